@@ -1,0 +1,30 @@
+# playseg — the two commands a new machine needs: `make demo` and `make test`.
+# Both first run `setup` (idempotent: seconds when nothing changed).
+VENV ?= .venv
+PY := $(VENV)/bin/python
+# The demo runs on its own ROS graph: domain 77 and localhost-only discovery, so it neither sees nor
+# disturbs other ROS 2 processes (override: make demo ROS_DOMAIN_ID=5). Tests pick their own domain per run
+# (tests/conftest.py).
+DEMO_ENV := ROS_DOMAIN_ID=$(or $(ROS_DOMAIN_ID),77) ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+
+.PHONY: setup demo test lint format bags bench clean
+
+setup:
+	@bash scripts/setup_env.sh
+
+demo: setup
+	$(DEMO_ENV) $(PY) -m playseg_ros.cli demo
+
+test: setup
+	$(PY) -m pytest -q tests
+
+lint: setup
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+format: setup
+	$(VENV)/bin/ruff format .
+	$(VENV)/bin/ruff check --fix .
+
+clean:
+	rm -rf build $(VENV) .pytest_cache
