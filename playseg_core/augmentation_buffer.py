@@ -1,0 +1,163 @@
+"""The trainer's persistent augmentation buffer: an append-only, crash-safe log of labelled segments.
+
+Layout: one file ``segments.log`` of records ``MAGIC | u32 header_len | u64 payload_len | u32 crc32 |
+header (JSON) | payload (raw arrays)``. ``append`` returns only after the record is flushed and fsync'ed,
+so every segment the trainer acknowledged survives a crash. On open, a torn record at the tail (a crash
+mid-write) is cut off; a corrupt record elsewhere is an error naming the file and byte offset.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+MAGIC = b"PSB1"
+_PREFIX = struct.Struct("<4sIQI")  # magic, header length, payload length, crc32 of header + payload
+LOG_NAME = "segments.log"
+
+
+@dataclass
+class BufferedSegment:
+    """A labelled segment with the observations and actions a policy learns from."""
+
+    episode_id: str
+    start: int
+    end: int
+    instruction: str
+    actions: np.ndarray  # (L, action_dim)
+    states: np.ndarray | None = None  # (L+1, *state_shape)
+    frames: np.ndarray | None = None  # (L+1, H, W, 3) uint8
+    confidence: float = 1.0
+    log_prob: float = 0.0
+    source: str = ""  # e.g. the segmentation model id, or "annotation"
+
+
+_ARRAYS = ("actions", "states", "frames")
+
+
+class AugmentationBuffer:
+    """Append-only segment store in ``directory`` (created if missing)."""
+
+    def __init__(self, directory: str | Path) -> None:
+        self.directory = Path(directory)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.path = self.directory / LOG_NAME
+        self._offsets: list[int] = []
+        self._steps = 0
+        self.recovered_bytes = self._scan_and_repair()
+        self._file = open(self.path, "ab")  # noqa: SIM115 (kept open for the buffer's lifetime)
+
+    def __len__(self) -> int:
+        return len(self._offsets)
+
+    @property
+    def num_steps(self) -> int:
+        """Total actions over all buffered segments."""
+        return self._steps
+
+    def append(self, segment: BufferedSegment) -> int:
+        """Write one segment durably; returns its index once it is on disk."""
+        header: dict = {
+            key: getattr(segment, key)
+            for key in ("episode_id", "start", "end", "instruction", "confidence", "log_prob", "source")
+        }
+        header["confidence"] = float(header["confidence"])
+        header["log_prob"] = float(header["log_prob"])
+        chunks, arrays = [], {}
+        for name in _ARRAYS:
+            array = getattr(segment, name)
+            if array is None:
+                continue
+            array = np.ascontiguousarray(array)
+            arrays[name] = {"dtype": array.dtype.str, "shape": list(array.shape)}
+            chunks.append(array.tobytes())
+        header["arrays"] = arrays
+        header_bytes = json.dumps(header, separators=(",", ":")).encode()
+        payload = b"".join(chunks)
+        crc = zlib.crc32(payload, zlib.crc32(header_bytes))
+        offset = self._file.tell()
+        self._file.write(_PREFIX.pack(MAGIC, len(header_bytes), len(payload), crc) + header_bytes + payload)
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self._offsets.append(offset)
+        self._steps += segment.end - segment.start
+        return len(self._offsets) - 1
+
+    def __getitem__(self, index: int) -> BufferedSegment:
+        with open(self.path, "rb") as f:
+            f.seek(self._offsets[index])
+            return _read_record(f, self.path)[0]
+
+    def __iter__(self) -> Iterator[BufferedSegment]:
+        self._file.flush()
+        with open(self.path, "rb") as f:
+            for offset in self._offsets:
+                f.seek(offset)
+                yield _read_record(f, self.path)[0]
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> AugmentationBuffer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _scan_and_repair(self) -> int:
+        """Index every complete record; cut a torn tail. Returns the number of bytes cut."""
+        if not self.path.exists():
+            return 0
+        size = self.path.stat().st_size
+        good_end = 0
+        with open(self.path, "rb") as f:
+            while good_end < size:
+                try:
+                    segment, next_offset = _read_record(f, self.path)
+                except _TornRecord:
+                    break
+                self._offsets.append(good_end)
+                self._steps += segment.end - segment.start
+                good_end = next_offset
+        if good_end < size:
+            with open(self.path, "r+b") as f:
+                f.truncate(good_end)
+        return size - good_end
+
+
+class _TornRecord(Exception):
+    """The file ends inside a record (a crash mid-append)."""
+
+
+def _read_record(f, path: Path) -> tuple[BufferedSegment, int]:
+    offset = f.tell()
+    prefix = f.read(_PREFIX.size)
+    if len(prefix) < _PREFIX.size:
+        raise _TornRecord
+    magic, header_len, payload_len, crc = _PREFIX.unpack(prefix)
+    if magic != MAGIC:
+        raise ValueError(f"{path}: no record at byte {offset} (bad magic {magic!r})")
+    body = f.read(header_len + payload_len)
+    if len(body) < header_len + payload_len:
+        raise _TornRecord
+    header_bytes, payload = body[:header_len], body[header_len:]
+    if zlib.crc32(payload, zlib.crc32(header_bytes)) != crc:
+        # A bad checksum on the very last record is a torn write; earlier it is corruption.
+        if f.read(1) == b"":
+            raise _TornRecord
+        raise ValueError(f"{path}: record at byte {offset} fails its checksum")
+    header = json.loads(header_bytes)
+    arrays, cursor = {}, 0
+    for name, spec in header.pop("arrays").items():
+        dtype = np.dtype(spec["dtype"])
+        count = int(np.prod(spec["shape"], dtype=np.int64))
+        arrays[name] = np.frombuffer(payload, dtype, count, cursor).reshape(spec["shape"])
+        cursor += count * dtype.itemsize
+    return BufferedSegment(**header, **arrays), offset + _PREFIX.size + header_len + payload_len
