@@ -24,6 +24,7 @@ __all__ = [
     "TOLERANCES",
     "BoundaryCounts",
     "LabelCounts",
+    "MatchCounts",
     "SegmentCounts",
     "boundary_key",
     "boundary_scores",
@@ -42,8 +43,8 @@ def _ratio(numerator: int, denominator: int) -> float:
 
 
 @dataclass(frozen=True)
-class BoundaryCounts:
-    """Matched boundaries out of the predicted and the true ones."""
+class MatchCounts:
+    """Matched items out of the predicted and the true ones."""
 
     matched: int
     num_pred: int
@@ -62,10 +63,20 @@ class BoundaryCounts:
         precision, recall = self.precision, self.recall
         return 2 * precision * recall / (precision + recall) if precision + recall else 0.0
 
-    def __add__(self, other: BoundaryCounts) -> BoundaryCounts:
-        return BoundaryCounts(
+    def __add__(self, other: MatchCounts) -> MatchCounts:
+        if type(other) is not type(self):
+            return NotImplemented
+        return type(self)(
             self.matched + other.matched, self.num_pred + other.num_pred, self.num_truth + other.num_truth
         )
+
+
+class BoundaryCounts(MatchCounts):
+    """Boundaries (segment ends) matched one-to-one within a tolerance."""
+
+
+class SegmentCounts(MatchCounts):
+    """Predicted segments equal to a true segment (start, end and instruction)."""
 
 
 @dataclass(frozen=True)
@@ -81,28 +92,6 @@ class LabelCounts:
 
     def __add__(self, other: LabelCounts) -> LabelCounts:
         return LabelCounts(self.correct + other.correct, self.total + other.total)
-
-
-@dataclass(frozen=True)
-class SegmentCounts:
-    """Predicted segments equal to a true segment (start, end and instruction), and the totals."""
-
-    matched: int
-    num_pred: int
-    num_truth: int
-
-    @property
-    def precision(self) -> float:
-        return _ratio(self.matched, self.num_pred)
-
-    @property
-    def recall(self) -> float:
-        return _ratio(self.matched, self.num_truth)
-
-    def __add__(self, other: SegmentCounts) -> SegmentCounts:
-        return SegmentCounts(
-            self.matched + other.matched, self.num_pred + other.num_pred, self.num_truth + other.num_truth
-        )
 
 
 def _check(segments: Sequence[Segment], argument: str, num_steps: int | None = None) -> None:
@@ -247,17 +236,17 @@ def format_metrics_table(results: Mapping[str, float | int]) -> str:
     lines = [
         f"episodes {results['episodes']}, predicted segments {results['pred_segments']}, "
         f"true segments {results['true_segments']}",
-        f"{'boundaries':<26}{'precision':>10}{'recall':>10}{'F1':>10}",
+        f"{'boundaries':<30}{'precision':>10}{'recall':>10}{'F1':>10}",
     ]
     for tol in tolerances:
         for final in (True, False):
             name = ("exact" if tol == 0 else f"+-{tol} steps") + ("" if final else ", no final boundary")
             row = [results[boundary_key(metric, tol, final)] for metric in ("precision", "recall", "f1")]
-            lines.append(f"{name:<26}" + "".join(f"{value:>10.3f}" for value in row))
+            lines.append(f"{name:<30}" + "".join(f"{value:>10.3f}" for value in row))
     lines.append(
-        f"{'label accuracy':<26}{results['label_accuracy']:>10.3f}  ({results['label_steps']} steps)"
+        f"{'label accuracy':<30}{results['label_accuracy']:>10.3f}  ({results['label_steps']} steps)"
     )
     lines.append(
-        f"{'segment precision/recall':<26}{results['segment_precision']:>10.3f}{results['segment_recall']:>10.3f}"
+        f"{'segment precision/recall':<30}{results['segment_precision']:>10.3f}{results['segment_recall']:>10.3f}"
     )
     return "\n".join(lines)
