@@ -1,0 +1,183 @@
+"""`playseg up CONFIG.yaml`: bring up a graph of playseg nodes, one OS process each (there is no
+`ros2 launch` in the package registry).
+
+Config::
+
+    ros_domain_id: 77              # optional; default: the environment's
+    nodes:
+      - name: segmenter            # ROS node name (unique)
+        node: segmenter            # recorder | segmenter | trainer | play_source | bag_player
+        parameters: {model: build/demo/ps.pt}
+        exit_ends_graph: false     # true: when this node exits, stop the whole graph
+
+Ctrl-C (SIGINT) or SIGTERM stops every node with SIGINT, which each node handles by closing its files;
+a node still running after `shutdown_timeout_s` is terminated, then killed.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+NODE_KINDS = ("recorder", "segmenter", "trainer", "play_source", "bag_player")
+
+
+@dataclass
+class NodeSpec:
+    name: str
+    node: str
+    parameters: dict = field(default_factory=dict)
+    exit_ends_graph: bool = False
+
+
+@dataclass
+class GraphSpec:
+    nodes: list[NodeSpec]
+    ros_domain_id: int | None = None
+    shutdown_timeout_s: float = 15.0
+
+
+def load_graph(path: str | Path) -> GraphSpec:
+    """Parse and validate a graph config; errors name the file and the offending entry."""
+    path = Path(path)
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ValueError(f"{path}: cannot read graph config: {exc}") from exc
+    if not isinstance(raw, dict) or not isinstance(raw.get("nodes"), list) or not raw["nodes"]:
+        raise ValueError(f"{path}: expected a mapping with a non-empty 'nodes' list")
+    nodes, names = [], set()
+    for i, entry in enumerate(raw["nodes"]):
+        where = f"{path}: nodes[{i}]"
+        if not isinstance(entry, dict) or "name" not in entry or "node" not in entry:
+            raise ValueError(f"{where}: each node needs 'name' and 'node'")
+        if entry["node"] not in NODE_KINDS:
+            raise ValueError(f"{where}: unknown node {entry['node']!r} (one of {', '.join(NODE_KINDS)})")
+        if entry["name"] in names:
+            raise ValueError(f"{where}: duplicate node name {entry['name']!r}")
+        unknown = set(entry) - {"name", "node", "parameters", "exit_ends_graph"}
+        if unknown:
+            raise ValueError(f"{where}: unknown keys {sorted(unknown)}")
+        names.add(entry["name"])
+        nodes.append(
+            NodeSpec(
+                entry["name"],
+                entry["node"],
+                dict(entry.get("parameters") or {}),
+                bool(entry.get("exit_ends_graph")),
+            )
+        )
+    return GraphSpec(nodes, raw.get("ros_domain_id"), float(raw.get("shutdown_timeout_s", 15.0)))
+
+
+def node_command(spec: NodeSpec, params_dir: Path) -> list[str]:
+    """The command line that runs one node with its parameters (a ROS parameter file)."""
+    params_file = params_dir / f"{spec.name}.yaml"
+    params_file.write_text(yaml.safe_dump({spec.name: {"ros__parameters": spec.parameters}}))
+    return [
+        sys.executable,
+        "-m",
+        f"playseg_ros.nodes.{spec.node}",
+        "--ros-args",
+        "-r",
+        f"__node:={spec.name}",
+        "--params-file",
+        str(params_file),
+    ]
+
+
+class Graph:
+    """Running node processes; `stop()` shuts them down in reverse start order."""
+
+    def __init__(self, spec: GraphSpec, log_dir: Path | None = None) -> None:
+        self.spec = spec
+        self.log_dir = log_dir
+        self.processes: dict[str, subprocess.Popen] = {}
+        self._params_dir = Path(tempfile.mkdtemp(prefix="playseg-up-"))
+
+    def start(self) -> None:
+        env = dict(os.environ)
+        if self.spec.ros_domain_id is not None:
+            env["ROS_DOMAIN_ID"] = str(self.spec.ros_domain_id)
+        for spec in self.spec.nodes:
+            out = None
+            if self.log_dir is not None:
+                self.log_dir.mkdir(parents=True, exist_ok=True)
+                out = open(self.log_dir / f"{spec.name}.log", "wb")  # noqa: SIM115 (owned by the child)
+            # Own process group: a terminal's Ctrl-C reaches only us, and we stop the nodes in order.
+            self.processes[spec.name] = subprocess.Popen(
+                node_command(spec, self._params_dir),
+                env=env,
+                stdout=out,
+                stderr=subprocess.STDOUT if out else None,
+                start_new_session=True,
+            )
+
+    def wait(self, poll_s: float = 0.2) -> str | None:
+        """Block until a node exits; returns its name (or None if all are still running on signal)."""
+        ends = {s.name for s in self.spec.nodes if s.exit_ends_graph}
+        while True:
+            for name, proc in self.processes.items():
+                if proc.poll() is not None and (name in ends or proc.returncode != 0):
+                    return name
+            if all(p.poll() is not None for p in self.processes.values()):
+                return None
+            time.sleep(poll_s)
+
+    def stop(self) -> dict[str, int]:
+        """SIGINT every node (reverse order), then escalate; returns each node's exit code."""
+        for proc in reversed(list(self.processes.values())):
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + self.spec.shutdown_timeout_s
+        for name, proc in self.processes.items():
+            try:
+                proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                print(
+                    f"[up] {name} did not stop within {self.spec.shutdown_timeout_s} s: terminating",
+                    file=sys.stderr,
+                )
+                proc.terminate()
+                try:
+                    proc.wait(timeout=5)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+        return {name: proc.returncode for name, proc in self.processes.items()}
+
+
+def run_graph(path: str | Path) -> int:
+    """`playseg up`: start the graph, wait for Ctrl-C or a graph-ending node, stop everything."""
+    spec = load_graph(path)
+    graph = Graph(spec)
+    stop_requested = False
+
+    def request_stop(signum, frame):  # noqa: ARG001
+        nonlocal stop_requested
+        stop_requested = True
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, request_stop)
+    print(f"[up] starting {len(spec.nodes)} nodes: {', '.join(s.name for s in spec.nodes)}", file=sys.stderr)
+    graph.start()
+    ended = None
+    try:
+        ended = graph.wait()
+    except KeyboardInterrupt:
+        print("[up] stopping ...", file=sys.stderr)
+    codes = graph.stop()
+    if ended:
+        print(f"[up] {ended} exited (code {codes[ended]}): graph stopped", file=sys.stderr)
+    failed = {n: c for n, c in codes.items() if c not in (0, -signal.SIGINT)}
+    for name, code in failed.items():
+        print(f"[up] {name} exited with code {code}", file=sys.stderr)
+    return 1 if failed else 0

@@ -1,0 +1,72 @@
+"""What every playseg node shares: declared+validated parameters, the run loop, autostart."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+from typing import Any
+
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
+from rclpy.node import Node
+
+
+def declare(node: Node, name: str, default: Any, description: str) -> Any:
+    """Declare a parameter with a description and return its value."""
+    return node.declare_parameter(name, default, ParameterDescriptor(description=description)).value
+
+
+def require(condition: bool, node: Node, message: str) -> None:
+    """Parameter validation: raise ValueError naming the node and the problem."""
+    if not condition:
+        raise ValueError(f"{node.get_name()}: invalid parameter: {message}")
+
+
+def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threads: int = 2) -> int:
+    """Init rclpy, build the node, autostart lifecycle nodes, spin until Ctrl-C, clean up.
+
+    A LifecycleNode with parameter ``autostart`` true (the default) configures and activates itself;
+    with ``autostart:=false`` an external manager drives its transitions. SIGINT/SIGTERM end the spin;
+    lifecycle nodes are then deactivated and cleaned up so their files are closed.
+    """
+    rclpy.init(args=sys.argv if args is None else args)
+    node = None
+    code = 0
+    try:
+        node = make_node()
+        if isinstance(node, LifecycleNode):
+            autostart = declare(node, "autostart", True, "configure and activate on start-up")
+            if autostart:
+                if node.trigger_configure() != TransitionCallbackReturn.SUCCESS:
+                    node.get_logger().error("configure failed")
+                    return 1
+                node.trigger_activate()
+        executor = MultiThreadedExecutor(num_threads=threads)
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        code = 2
+    finally:
+        if node is not None:
+            _shut_down(node)
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+def _shut_down(node: Node) -> None:
+    """Run the lifecycle transitions down to unconfigured so that files are flushed and closed."""
+    if isinstance(node, LifecycleNode):
+        state = node._state_machine.current_state[1]  # rclpy exposes no public getter
+        if state == "active":
+            node.trigger_deactivate()
+            state = "inactive"
+        if state == "inactive":
+            node.trigger_cleanup()
+    elif hasattr(node, "close"):
+        node.close()

@@ -1,0 +1,95 @@
+"""play_source: a BabyAI bot "teleoperator" publishing play as PlayStep at a set rate.
+
+Episodes come from `playseg_core.babyai.generate_episode` (seeds seed, seed+1, ...). For a chosen share of
+its segments it also publishes an Annotation (the human label a teleoperator would add) and, for
+evaluation, every ground-truth segment on `ground_truth_topic`. Annotations are published when their
+segment's last step has been published.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from playseg_msgs.msg import Annotation, PlayStep
+from rclpy.node import Node
+from std_msgs.msg import Header
+
+from playseg_core.babyai import PlayConfig, generate_episode
+from playseg_ros import qos
+from playseg_ros.live_convert import play_step_msg
+from playseg_ros.nodes.common import declare, require, run_node
+
+
+class PlaySourceNode(Node):
+    def __init__(self) -> None:
+        super().__init__("play_source")
+        self.rate_hz = declare(self, "rate_hz", 10.0, "PlaySteps per second")
+        self.seed = declare(self, "seed", 0, "seed of the first episode (then seed+1, ...)")
+        self.num_episodes = declare(self, "num_episodes", 0, "stop after this many episodes (0 = forever)")
+        self.annotate_share = declare(
+            self, "annotate_share", 0.1, "share of segments published as Annotation"
+        )
+        num_objects = declare(self, "num_objects", 7, "objects in the BabyAI room")
+        steps_topic = declare(self, "steps_topic", "/play/steps", "PlayStep output topic")
+        annotations_topic = declare(self, "annotations_topic", "/play/annotations", "Annotation output topic")
+        truth_topic = declare(self, "ground_truth_topic", "/play/ground_truth", "ground truth ('' = off)")
+        require(self.rate_hz > 0, self, "rate_hz must be > 0")
+        require(0.0 <= self.annotate_share <= 1.0, self, "annotate_share must be in [0, 1]")
+        require(self.num_episodes >= 0, self, "num_episodes must be >= 0")
+        self.config = PlayConfig(num_objects=num_objects)
+        self.rng = np.random.default_rng(self.seed)
+        self.steps_pub = self.create_publisher(PlayStep, steps_topic, qos.PLAY_STEPS)
+        self.annotation_pub = self.create_publisher(Annotation, annotations_topic, qos.ANNOTATIONS)
+        self.truth_pub = (
+            self.create_publisher(Annotation, truth_topic, qos.ANNOTATIONS) if truth_topic else None
+        )
+        self.episodes_done = 0
+        self.episode = None
+        self.t = 0
+        self.create_timer(1.0 / self.rate_hz, self.publish_next_step)
+
+    def _next_episode(self) -> None:
+        seed = self.seed + self.episodes_done
+        self.episode = generate_episode(self.config, seed)
+        while self.episode.num_steps == 0:  # the bot failed its first task: no play to publish
+            seed += 10_000_000
+            self.episode = generate_episode(self.config, seed)
+        self.annotated = {s for s in self.episode.segments if self.rng.random() < self.annotate_share}
+        self.t = 0
+
+    def publish_next_step(self) -> None:
+        if self.num_episodes and self.episodes_done >= self.num_episodes:
+            return
+        if self.episode is None:
+            self._next_episode()
+        stamp = self.get_clock().now().to_msg()
+        self.steps_pub.publish(play_step_msg(self.episode, self.t, stamp, frame_id="babyai"))
+        for seg in self.episode.segments:
+            if seg.end == self.t:
+                if seg in self.annotated:
+                    self.annotation_pub.publish(self._annotation(seg, stamp))
+                if self.truth_pub is not None:
+                    self.truth_pub.publish(self._annotation(seg, stamp))
+        if self.t == self.episode.num_steps:
+            self.episodes_done += 1
+            self.episode = None
+            if self.num_episodes and self.episodes_done >= self.num_episodes:
+                self.get_logger().info(f"published {self.episodes_done} episodes")
+        else:
+            self.t += 1
+
+    def _annotation(self, seg, stamp) -> Annotation:
+        return Annotation(
+            header=Header(stamp=stamp, frame_id="babyai"),
+            episode_id=self.episode.episode_id,
+            start_step=seg.start,
+            end_step=seg.end,
+            instruction=seg.instruction,
+        )
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(PlaySourceNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

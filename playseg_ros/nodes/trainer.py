@@ -1,0 +1,221 @@
+"""trainer: LabelledSegment in -> persistent augmentation buffer -> retrained policy, TrainerStatus out.
+
+Lifecycle: configure opens the buffer and loads the annotated base data; activate starts listening;
+deactivate stops listening; cleanup closes the buffer. Every received segment is fsync'ed to the buffer
+before it counts (TrainerStatus.buffer_segments is the acknowledged count), so a crash loses nothing
+that was acknowledged. Retraining runs in a background thread every `retrain_every` segments and on the
+`~/retrain` service; each run writes `policy-vNNNN.pt` and evaluates it on fixed seeded BabyAI episodes.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+
+from playseg_msgs.msg import LabelledSegment, TrainerStatus
+from playseg_msgs.srv import EvaluatePolicy, Retrain, SaveBuffer
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+
+from playseg_core.augmentation import AugmentationTrainer, TrainerConfig, demonstrations_from_episodes
+from playseg_core.policy_training import PolicyTrainConfig
+from playseg_ros import qos
+from playseg_ros.live_convert import buffered_segment_from_msg
+from playseg_ros.nodes.common import declare, require, run_node
+
+
+class TrainerNode(LifecycleNode):
+    def __init__(self) -> None:
+        super().__init__("trainer")
+        self.p = {
+            "buffer_dir": declare(self, "buffer_dir", "", "directory of the persistent augmentation buffer"),
+            "checkpoint_dir": declare(self, "checkpoint_dir", "", "where versioned policy checkpoints go"),
+            "base_dataset": declare(
+                self,
+                "base_dataset",
+                "",
+                "playseg dataset whose 'train' split is the annotated data ('' = none)",
+            ),
+            "segments_topic": declare(self, "segments_topic", "/segments", "LabelledSegment input topic"),
+            "status_topic": declare(self, "status_topic", "/trainer/status", "TrainerStatus output topic"),
+            "retrain_every": declare(
+                self, "retrain_every", 0, "retrain after N new segments (0 = on request)"
+            ),
+            "min_confidence": declare(
+                self, "min_confidence", 0.0, "train only on segments at this confidence+"
+            ),
+            "train_steps": declare(self, "train_steps", 2000, "optimiser steps per retraining"),
+            "batch_size": declare(self, "batch_size", 256, "imitation batch size"),
+            "seed": declare(self, "seed", 0, "training seed"),
+            "eval_episodes": declare(self, "eval_episodes", 512, "fixed seeded evaluation episodes"),
+            "eval_max_steps": declare(self, "eval_max_steps", 25, "success must come within this many steps"),
+            "status_period_s": declare(self, "status_period_s", 2.0, "status republish period"),
+        }
+        self.trainer: AugmentationTrainer | None = None
+        self.state = "idle"
+        self.message = ""
+        self.last_eval = math.nan
+        self.last_eval_episodes = 0
+        self.last_loss = math.nan
+        self._training = threading.Lock()
+        self._sub = None
+        self._status_pub = self.create_publisher(TrainerStatus, self.p["status_topic"], qos.STATUS)
+        self.create_service(Retrain, "~/retrain", self._on_retrain)
+        self.create_service(SaveBuffer, "~/save_buffer", self._on_save_buffer)
+        self.create_service(EvaluatePolicy, "~/evaluate", self._on_evaluate)
+        self.create_timer(self.p["status_period_s"], self.publish_status)
+
+    # -- lifecycle -------------------------------------------------------------------------------------
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        p = self.p
+        try:
+            require(bool(p["buffer_dir"]), self, "buffer_dir must be set")
+            require(bool(p["checkpoint_dir"]), self, "checkpoint_dir must be set")
+            require(p["retrain_every"] >= 0, self, "retrain_every must be >= 0")
+            require(p["eval_episodes"] > 0 and p["eval_max_steps"] > 0, self, "eval_* must be > 0")
+            base = []
+            if p["base_dataset"]:
+                from playseg_core.dataset import PlayDataset
+
+                base = demonstrations_from_episodes(PlayDataset.open(p["base_dataset"]).episodes("train"))
+            config = TrainerConfig(
+                buffer_dir=p["buffer_dir"],
+                checkpoint_dir=p["checkpoint_dir"],
+                retrain_every=p["retrain_every"],
+                min_confidence=p["min_confidence"],
+                eval_episodes=p["eval_episodes"],
+                eval_max_steps=p["eval_max_steps"],
+                train=PolicyTrainConfig(steps=p["train_steps"], batch_size=p["batch_size"], seed=p["seed"]),
+            )
+            self.trainer = AugmentationTrainer(config, base)
+        except (ValueError, OSError) as exc:
+            self.get_logger().error(str(exc))
+            return TransitionCallbackReturn.FAILURE
+        if self.trainer.buffer.recovered_bytes:
+            self.get_logger().warning(f"cut a torn record of {self.trainer.buffer.recovered_bytes} bytes")
+        self.get_logger().info(
+            f"buffer {p['buffer_dir']}: {len(self.trainer.buffer)} segments; {len(base)} annotated segments; "
+            f"policy v{self.trainer.policy_version}"
+        )
+        self.publish_status()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._sub = self.create_subscription(
+            LabelledSegment, self.p["segments_topic"], self._on_segment, qos.SEGMENTS
+        )
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        if self._sub is not None:
+            self.destroy_subscription(self._sub)
+            self._sub = None
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        with self._training:  # let a running retraining finish writing its checkpoint
+            if self.trainer is not None:
+                self.trainer.close()
+                self.trainer = None
+        return TransitionCallbackReturn.SUCCESS
+
+    # -- data ------------------------------------------------------------------------------------------
+    def _on_segment(self, msg: LabelledSegment) -> None:
+        try:
+            segment = buffered_segment_from_msg(msg)
+        except ValueError as exc:
+            self.get_logger().error(f"dropped LabelledSegment on {self.p['segments_topic']}: {exc}")
+            return
+        due = self.trainer.add(segment)
+        self.publish_status()
+        if due:
+            self._start_retraining()
+
+    def _start_retraining(self) -> bool:
+        if not self._training.acquire(blocking=False):
+            return False  # one already runs; the next trigger picks up the new segments
+        threading.Thread(target=self._retrain_locked, daemon=True).start()
+        return True
+
+    def _retrain_locked(self) -> None:
+        try:
+            self.state = "training"
+            self.publish_status()
+            version = self.trainer.retrain()
+            self.last_eval, self.last_eval_episodes = version.success_rate, version.eval_episodes
+            self.last_loss = version.train_loss
+            self.message = f"policy v{version.version}: success {version.success_rate:.3f}"
+            self.get_logger().info(self.message)
+            self.state = "idle"
+        except Exception as exc:  # a failed retraining must not kill the node or lose the buffer
+            self.state, self.message = "error", f"retraining failed: {exc}"
+            self.get_logger().error(self.message)
+        finally:
+            self._training.release()
+            self.publish_status()
+
+    # -- services --------------------------------------------------------------------------------------
+    def _on_retrain(self, request: Retrain.Request, response: Retrain.Response) -> Retrain.Response:
+        if self.trainer is None:
+            response.accepted, response.message = False, "trainer is not configured"
+            return response
+        if request.wait:
+            self._training.acquire()  # waits for a running retraining, then runs a fresh one
+            self._retrain_locked()
+            response.accepted = self.state != "error"
+            response.eval_success_rate = self.last_eval
+        else:
+            response.accepted = self._start_retraining()
+            response.eval_success_rate = math.nan
+        response.policy_version = self.trainer.policy_version + (0 if request.wait else 1)
+        response.message = self.message if request.wait else ("started" if response.accepted else "busy")
+        return response
+
+    def _on_save_buffer(
+        self, request: SaveBuffer.Request, response: SaveBuffer.Response
+    ) -> SaveBuffer.Response:
+        from playseg_ros.export import export_buffer_dataset
+
+        try:
+            response.segments = export_buffer_dataset(self.trainer.buffer, request.path)
+            response.success, response.path = True, request.path
+        except Exception as exc:
+            response.success, response.message = False, str(exc)
+        return response
+
+    def _on_evaluate(
+        self, request: EvaluatePolicy.Request, response: EvaluatePolicy.Response
+    ) -> EvaluatePolicy.Response:
+        try:
+            result = self.trainer.evaluate(episodes=request.episodes or None)
+            response.success, response.success_rate = True, result.success_rate
+            response.episodes, response.policy_version = result.num_episodes, self.trainer.policy_version
+        except ValueError as exc:
+            response.success, response.message = False, str(exc)
+        return response
+
+    def publish_status(self) -> None:
+        msg = TrainerStatus()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.state = self.state
+        if self.trainer is not None:
+            msg.buffer_segments = len(self.trainer.buffer)
+            msg.buffer_steps = self.trainer.buffer.num_steps
+            msg.policy_version = self.trainer.policy_version
+            if self.trainer.latest:
+                msg.checkpoint_path = self.trainer.latest.checkpoint
+                if math.isnan(self.last_eval):
+                    self.last_eval = self.trainer.latest.success_rate
+                    self.last_eval_episodes = self.trainer.latest.eval_episodes
+        msg.last_eval_success_rate = float(self.last_eval)
+        msg.last_eval_episodes = self.last_eval_episodes
+        msg.last_train_loss = float(self.last_loss)
+        msg.message = self.message
+        self._status_pub.publish(msg)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(TrainerNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
