@@ -1,0 +1,261 @@
+"""Play data as rosbag2 bags: episodes with their annotations, and bags of labelled segments.
+
+Topics of a play bag:
+  /play/steps         playseg_msgs/msg/PlayStep    every observation of every episode, in step order
+  /play/annotations   playseg_msgs/msg/Annotation  the human labels of annotated episodes (D_ann)
+  /play/ground_truth  playseg_msgs/msg/Annotation  the true segments, for evaluation only
+A segment bag has /segments (playseg_msgs/msg/LabelledSegment), one self-contained message per segment.
+
+Readers validate as they go and raise `BagError` naming the bag, topic, episode and step.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection, Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from playseg_core.data_model import Episode, Segment
+from playseg_ros.bag_io import BagError, BagReader, BagSummary, BagWriter, topic_info
+from playseg_ros.convert import (
+    ANNOTATION,
+    LABELLED_SEGMENT,
+    PLAY_STEP,
+    EpisodeBuilder,
+    SegmentClip,
+    StepError,
+    annotation_message,
+    clip_from_labelled,
+    episode_messages,
+    labelled_segment_message,
+    segment_from_annotation,
+    stamp_ns,
+)
+from playseg_ros.typestore import playseg_typestore
+
+STEPS_TOPIC = "/play/steps"
+ANNOTATIONS_TOPIC = "/play/annotations"
+GROUND_TRUTH_TOPIC = "/play/ground_truth"
+SEGMENTS_TOPIC = "/segments"
+TOPIC_TYPES = {
+    STEPS_TOPIC: PLAY_STEP,
+    ANNOTATIONS_TOPIC: ANNOTATION,
+    GROUND_TRUTH_TOPIC: ANNOTATION,
+    SEGMENTS_TOPIC: LABELLED_SEGMENT,
+}
+DEFAULT_START_NS = 1_700_000_000_000_000_000
+DEFAULT_STEP_PERIOD_NS = 100_000_000  # 10 Hz
+
+
+def _serialize(msg: Any, type_name: str) -> bytes:
+    return playseg_typestore().serialize_cdr(msg, type_name)
+
+
+def write_play_bag(
+    path: Path | str,
+    episodes: Iterable[Episode],
+    annotated: bool | Collection[str],
+    *,
+    ground_truth: bool = True,
+    start_ns: int = DEFAULT_START_NS,
+    step_period_ns: int = DEFAULT_STEP_PERIOD_NS,
+    frame_id: str = "play",
+    **writer_options: Any,
+) -> BagSummary:
+    """Write episodes as a play bag at ``path`` (a new directory).
+
+    ``annotated``: True (every episode), False (none) or the ids of the annotated episodes; their
+    segments go to /play/annotations. With ``ground_truth`` every episode's segments also go to
+    /play/ground_truth. Step t of the k-th episode is stamped ``step_period_ns`` after the previous
+    step; an episode's annotations are stamped with its last step. ``writer_options`` go to
+    `BagWriter` (max_file_bytes, max_file_duration_ns, chunk_bytes, compression). If writing fails,
+    nothing is left at ``path``.
+    """
+    with BagWriter(path, **writer_options) as writer:
+        writer.add_topic(topic_info(STEPS_TOPIC, PLAY_STEP))
+        if annotated:
+            writer.add_topic(topic_info(ANNOTATIONS_TOPIC, ANNOTATION))
+        if ground_truth:
+            writer.add_topic(topic_info(GROUND_TRUTH_TOPIC, ANNOTATION))
+        now = start_ns
+        for episode in episodes:
+            stamps = now + step_period_ns * np.arange(episode.num_steps + 1, dtype=np.int64)
+            for msg in episode_messages(episode, stamps.tolist(), frame_id):
+                writer.write(STEPS_TOPIC, _serialize(msg, PLAY_STEP), stamp_ns(msg.header))
+            end_stamp = int(stamps[-1])
+            is_annotated = annotated is True or (
+                not isinstance(annotated, bool) and episode.episode_id in annotated
+            )
+            topics = ([ANNOTATIONS_TOPIC] if is_annotated else []) + (
+                [GROUND_TRUTH_TOPIC] if ground_truth else []
+            )
+            for topic in topics:
+                for segment in episode.segments:
+                    msg = annotation_message(episode.episode_id, segment, end_stamp, frame_id)
+                    writer.write(topic, _serialize(msg, ANNOTATION), end_stamp)
+            now = end_stamp + step_period_ns
+    return writer.close()
+
+
+def _check_topics(reader: BagReader, required: Collection[str]) -> None:
+    present = reader.topics
+    for topic in required:
+        if topic not in present:
+            raise BagError(reader.path, f"topic missing (the bag has {sorted(present)})", topic)
+    store = playseg_typestore()
+    for topic, actual in present.items():
+        expected = TOPIC_TYPES.get(topic)
+        if expected is None:
+            continue
+        if actual != expected:
+            raise BagError(reader.path, f"message type is {actual!r}, expected {expected!r}", topic)
+        digest = reader.topic_hash(topic)
+        if digest.startswith("RIHS01_") and digest != store.hash_rihs01(expected):
+            raise BagError(
+                reader.path, f"{expected} in the bag has another definition (type hash {digest})", topic
+            )
+
+
+def _deserialize(reader: BagReader, data: bytes, topic: str) -> Any:
+    try:
+        return playseg_typestore().deserialize_cdr(data, TOPIC_TYPES[topic])
+    except Exception as error:  # rosbags raises assorted errors for malformed CDR
+        raise BagError(reader.path, f"cannot deserialize message: {error}", topic) from error
+
+
+def _read_annotations(reader: BagReader, topic: str) -> dict[str, list[Segment]]:
+    by_episode: dict[str, list[Segment]] = {}
+    for raw in reader.messages([topic]):
+        msg = _deserialize(reader, raw.data, topic)
+        try:
+            segment = segment_from_annotation(msg)
+        except StepError as error:
+            raise BagError(reader.path, error.detail, topic, error.episode, error.step) from None
+        by_episode.setdefault(msg.episode_id, []).append(segment)
+    return by_episode
+
+
+def _fit_segments(
+    reader: BagReader, topic: str, episode_id: str, segments: list[Segment], num_steps: int
+) -> list[Segment]:
+    """The annotations of one episode, sorted, each checked against the episode's length."""
+    previous_end = 0
+    for segment in sorted(segments):
+        if segment.end > num_steps:
+            raise BagError(
+                reader.path,
+                f"annotation [{segment.start}, {segment.end}) ends after the episode's last step {num_steps}",
+                topic,
+                episode_id,
+                segment.end,
+            )
+        if segment.start < previous_end:
+            raise BagError(
+                reader.path,
+                f"annotation [{segment.start}, {segment.end}) overlaps the previous one (ends at {previous_end})",
+                topic,
+                episode_id,
+                segment.start,
+            )
+        previous_end = segment.end
+    return sorted(segments)
+
+
+def iter_play_bag(path: Path | str, truth: bool = False, drop_incomplete: bool = False) -> Iterator[Episode]:
+    """Episodes of a play bag, each as soon as its last step is read.
+
+    Segments come from /play/annotations (episodes without annotations get none) or, with ``truth``,
+    from /play/ground_truth. An episode whose stream stops before ``episode_end`` (e.g. a recovered
+    recording) is an error unless ``drop_incomplete``.
+    """
+    segment_topic = GROUND_TRUTH_TOPIC if truth else ANNOTATIONS_TOPIC
+    with BagReader(path) as reader:
+        _check_topics(reader, [STEPS_TOPIC, GROUND_TRUTH_TOPIC] if truth else [STEPS_TOPIC])
+        segments = _read_annotations(reader, segment_topic) if segment_topic in reader.topics else {}
+        open_episodes: dict[str, EpisodeBuilder] = {}
+        finished: set[str] = set()
+        for raw in reader.messages([STEPS_TOPIC]):
+            msg = _deserialize(reader, raw.data, STEPS_TOPIC)
+            episode_id = msg.episode_id
+            if episode_id in finished:
+                raise BagError(
+                    reader.path,
+                    "step of an episode that already ended",
+                    STEPS_TOPIC,
+                    episode_id,
+                    int(msg.step),
+                )
+            builder = open_episodes.setdefault(episode_id, EpisodeBuilder(episode_id))
+            try:
+                builder.add(msg)
+            except StepError as error:
+                raise BagError(reader.path, error.detail, STEPS_TOPIC, error.episode, error.step) from None
+            if builder.finished:
+                del open_episodes[episode_id]
+                finished.add(episode_id)
+                num_steps = len(builder.actions)
+                episode_segments = _fit_segments(
+                    reader, segment_topic, episode_id, segments.pop(episode_id, []), num_steps
+                )
+                yield builder.build(episode_segments)
+        if open_episodes and not drop_incomplete:
+            episode_id, builder = next(iter(open_episodes.items()))
+            raise BagError(
+                reader.path,
+                "the bag ends before this episode's episode_end (pass drop_incomplete=True to skip it)",
+                STEPS_TOPIC,
+                episode_id,
+                builder.next_step - 1,
+            )
+        for episode_id, orphans in segments.items():
+            if episode_id not in open_episodes:
+                raise BagError(
+                    reader.path,
+                    f"annotation [{orphans[0].start}, {orphans[0].end}) of an episode with no steps in the bag",
+                    segment_topic,
+                    episode_id,
+                    orphans[0].start,
+                )
+
+
+def read_play_bag(path: Path | str, truth: bool = False, drop_incomplete: bool = False) -> list[Episode]:
+    """All episodes of a play bag (see `iter_play_bag`)."""
+    return list(iter_play_bag(path, truth=truth, drop_incomplete=drop_incomplete))
+
+
+def write_segment_bag(
+    path: Path | str,
+    clips: Iterable[SegmentClip],
+    *,
+    start_ns: int = DEFAULT_START_NS,
+    period_ns: int = DEFAULT_STEP_PERIOD_NS,
+    frame_id: str = "play",
+    **writer_options: Any,
+) -> BagSummary:
+    """Write labelled segments to /segments, one LabelledSegment each, ``period_ns`` apart."""
+    with BagWriter(path, **writer_options) as writer:
+        writer.add_topic(topic_info(SEGMENTS_TOPIC, LABELLED_SEGMENT))
+        for i, clip in enumerate(clips):
+            stamp = start_ns + i * period_ns
+            msg = labelled_segment_message(clip, stamp, frame_id=frame_id)
+            writer.write(SEGMENTS_TOPIC, _serialize(msg, LABELLED_SEGMENT), stamp)
+    return writer.close()
+
+
+def iter_segment_bag(path: Path | str) -> Iterator[SegmentClip]:
+    """The labelled segments of a segment bag, in order."""
+    with BagReader(path) as reader:
+        _check_topics(reader, [SEGMENTS_TOPIC])
+        for raw in reader.messages([SEGMENTS_TOPIC]):
+            msg = _deserialize(reader, raw.data, SEGMENTS_TOPIC)
+            try:
+                clip = clip_from_labelled(msg)
+            except StepError as error:
+                raise BagError(reader.path, error.detail, SEGMENTS_TOPIC, error.episode, error.step) from None
+            yield clip
+
+
+def read_segment_bag(path: Path | str) -> list[SegmentClip]:
+    return list(iter_segment_bag(path))
