@@ -206,7 +206,16 @@ class OnlineDecoder:
     the episode. The concatenated output equals ``decode_segments`` on the same scores with the same
     ``min_len``/``max_len``, bit for bit: both run the same float operations in the same order.
 
-    Memory is O(max_len) plus the backpointers since the last committed boundary.
+    Convergence test: the positions from which a later segment may still start are the last
+    max_len positions with a finite V (the frontier). Their backpointer chains form a tree rooted at the
+    last committed boundary; the tree is kept pruned to the ancestors of frontier positions (a node is
+    dropped when it leaves the frontier childless), and the root moves down while it is not on the
+    frontier and has a single child. Every move commits a segment. Amortised O(1) tree work per step.
+    Since a later segment may start at any frontier position, a boundary is committed no earlier than
+    max_len-1 steps after it when every position is reachable (min_len=1); the latency is exactly what
+    the scores need beyond that, not a fixed window.
+
+    Memory is O(max_len) plus the tree since the last committed boundary.
     """
 
     def __init__(self, max_len: int, min_len: int = 1) -> None:
@@ -220,14 +229,16 @@ class OnlineDecoder:
         self.t = 0
         self.finished = False
         self.commits: list[Commit] = []
-        self._committed_to = 0
+        self._root = 0  # the last committed boundary
         # _not_ending[k]: sum of log(1 - p) for the open segment starting at t-k-1, over ends in (start, t).
         self._not_ending = np.zeros(self.max_len)
-        # _recent[m] = V[t - max_len + m], the last max_len values (-inf before step 0).
+        # _recent[m] = V[t - max_len + 1 + m], the last max_len values (-inf before step 0).
         self._recent = np.full(self.max_len, -np.inf)
         self._recent[-1] = 0.0
+        # The pruned backpointer tree: parent (segment start), segment score and children per position.
         self._back: dict[int, int] = {}
         self._score_of: dict[int, float] = {}
+        self._children: dict[int, set[int]] = {0: set()}
 
     def push(self, end_column: np.ndarray) -> list[tuple[int, int]]:
         """Feed the end logits of step t (the next step); returns the segments committed by it."""
@@ -250,12 +261,10 @@ class OnlineDecoder:
         scores[usable:] = -np.inf
         # Candidates ordered by increasing start (k descending), as in decode_segments.
         width = self.max_len - self.min_len + 1
-        candidates = self._recent[:width] + scores[::-1][:width]
+        by_start = scores[::-1][:width]
+        candidates = self._recent[:width] + by_start
         best = int(candidates.argmax())
         value = candidates[best]
-        start = t - self.max_len + best
-        self._back[t] = start
-        self._score_of[t] = float(scores[::-1][best])
 
         shifted = self._not_ending + log_sigmoid(-column)
         self._not_ending[1:] = shifted[:-1]
@@ -263,33 +272,46 @@ class OnlineDecoder:
         self._recent[:-1] = self._recent[1:]
         self._recent[-1] = value
         self.t = t
-        return self._commit_converged()
 
-    def _commit_converged(self) -> list[tuple[int, int]]:
-        """Commit up to the latest position every live frontier chain passes through."""
-        t = self.t
-        # Live positions: still extendable (within max_len of t) and reachable (finite V).
-        first = t - self.max_len + 1
-        frontier = {first + m for m in range(self.max_len) if self._recent[m] > -np.inf}
-        frontier = {p for p in frontier if p >= self._committed_to}
-        if not frontier:
-            return []
-        # Walk the chains back together, always stepping the latest one, until they meet.
-        while len(frontier) > 1:
-            latest = max(frontier)
-            frontier.remove(latest)
-            frontier.add(self._back[latest])
-        meet = frontier.pop()
-        return self._commit_to(meet, decided_at=t)
+        if value > -np.inf:  # unreachable positions never join the tree
+            start = t - self.max_len + best
+            self._back[t] = start
+            self._score_of[t] = float(by_start[best])
+            self._children[t] = set()
+            self._children[start].add(t)
+        self._prune(t - self.max_len)  # it just left the frontier
+        return self._advance_root()
+
+    def _on_frontier(self, position: int) -> bool:
+        return position > self.t - self.max_len
+
+    def _prune(self, position: int) -> None:
+        """Drop ``position`` and then its ancestors while they are childless and off the frontier."""
+        while (
+            position != self._root
+            and position in self._children
+            and not self._children[position]
+            and not self._on_frontier(position)
+        ):
+            parent = self._back.pop(position)
+            del self._score_of[position], self._children[position]
+            self._children[parent].discard(position)
+            position = parent
+
+    def _advance_root(self) -> list[tuple[int, int]]:
+        """Move the root down its single-child path: all surviving best paths pass through it."""
+        root = self._root
+        while not self._on_frontier(root) and len(self._children[root]) == 1:
+            root = next(iter(self._children[root]))
+        return self._commit_to(root, decided_at=self.t) if root != self._root else []
 
     def _commit_to(self, boundary: int, decided_at: int) -> list[tuple[int, int]]:
-        segments = _backtrack(self._back, boundary, stop=self._committed_to)
+        segments = _backtrack(self._back, boundary, stop=self._root)
         for start, end in segments:
             self.commits.append(Commit(start, end, self._score_of[end], decided_at))
-        for position in [p for p in self._back if p <= boundary]:
-            del self._back[position]
-            del self._score_of[position]
-        self._committed_to = boundary
+            del self._children[start]
+            del self._back[end], self._score_of[end]
+        self._root = boundary
         return segments
 
     def finish(self) -> list[tuple[int, int]]:
@@ -302,7 +324,11 @@ class OnlineDecoder:
         if self._recent[-1] == -np.inf:
             raise ValueError("end_column stream: every feasible segmentation has log-score -inf")
         self.finished = True
-        return self._commit_to(self.t, decided_at=self.t)
+        segments = self._commit_to(self.t, decided_at=self.t)
+        self._back.clear()
+        self._score_of.clear()
+        self._children = {self.t: set()}
+        return segments
 
     @property
     def log_score(self) -> float:

@@ -192,6 +192,45 @@ def test_online_decoder_equals_offline(problem):
     assert all(c.latency >= 0 for c in decoder.commits)
 
 
+def earliest_commit_points(logits: np.ndarray, min_len: int, max_len: int) -> list[int]:
+    """After each step t, the latest position every live best-path chain passes through.
+
+    Independent plain-Python DP; live = the last max_len positions with a finite best score.
+    """
+    num_steps = logits.shape[0]
+    value = [0.0] + [-math.inf] * num_steps
+    back = [0] * (num_steps + 1)
+    points = []
+    for t in range(1, num_steps + 1):
+        for start in range(max(0, t - max_len), t - min_len + 1):
+            if value[start] > -math.inf:
+                candidate = value[start] + direct_log_score(logits, start, t)
+                if candidate > value[t]:
+                    value[t], back[t] = candidate, start
+        chains = []
+        for position in range(max(0, t - max_len + 1), t + 1):
+            if value[position] > -math.inf:
+                chain = {position}
+                while position > 0:
+                    position = back[position]
+                    chain.add(position)
+                chains.append(chain)
+        points.append(max(set.intersection(*chains)))
+    return points
+
+
+@settings(max_examples=100, deadline=None)
+@given(decoding_problems())
+def test_online_decoder_commits_as_soon_as_the_best_paths_converge(problem):
+    logits, min_len, max_len = problem
+    decoder = OnlineDecoder(max_len=max_len, min_len=min_len)
+    committed_to = []
+    for column in end_columns(logits):
+        decoder.push(column)
+        committed_to.append(decoder.commits[-1].end if decoder.commits else 0)
+    assert committed_to == earliest_commit_points(logits, min_len, max_len)
+
+
 def test_online_decoder_equals_offline_on_a_long_noisy_episode():
     rng = np.random.default_rng(3)
     logits = rng.normal(size=(3000, 25)) * 3
