@@ -344,7 +344,8 @@ def reference_style_decode(
     ``score_segment(i, j)`` returns log s(i, j) and is called once per candidate segment (as the
     reference scores every prefix once). ``S[n][j]`` is the best score of ``[0, j)`` split into n
     segments: ``S[n][j] = max_l S[n-1][l] + log s(l, j)``; the answer is ``max_n S[n][T]``. Ties prefer
-    the smallest start, then the fewest segments, which matches ``decode_segments``.
+    the smallest start, then the fewest segments. The best score equals ``decode_segments``'s; the
+    segmentation too unless several segmentations tie (after rounding), where the two tie rules differ.
     """
     if not isinstance(num_steps, int | np.integer) or num_steps < 1:
         raise ValueError(f"num_steps must be an integer >= 1, got {num_steps!r}")

@@ -145,6 +145,11 @@ def test_decode_segments_follows_clear_end_signals():
     logits = np.full((12, 5), -20.0)
     logits[:, 2] = 20.0
     assert decode_segments(logits).segments == [(0, 3), (3, 6), (6, 9), (9, 12)]
+    # Infinite logits act as hard constraints: segments of exactly two steps.
+    hard = np.full((8, 4), -np.inf)
+    hard[:, 1] = np.inf
+    decoded = decode_segments(hard)
+    assert decoded.segments == [(0, 2), (2, 4), (4, 6), (6, 8)] and decoded.log_score == 0.0
 
 
 def test_decode_segments_ties_prefer_the_smallest_start():
@@ -229,6 +234,31 @@ def test_online_decoder_commits_as_soon_as_the_best_paths_converge(problem):
         decoder.push(column)
         committed_to.append(decoder.commits[-1].end if decoder.commits else 0)
     assert committed_to == earliest_commit_points(logits, min_len, max_len)
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    st.integers(1, 12),
+    st.integers(1, 5),
+    st.integers(1, 5),
+    st.integers(0, 2**32 - 1),
+    st.sampled_from([(-1.0, 0.0, 1.0), (-np.inf, np.inf), (-np.inf, 0.0, 2.0)]),
+)
+def test_online_decoder_equals_offline_under_ties_and_infinite_logits(
+    num_steps, max_len, min_len, seed, values
+):
+    # Few distinct (or infinite) logit values make exact ties common: the tie rule must agree too.
+    min_len = min(min_len, max_len)
+    logits = np.random.default_rng(seed).choice(values, size=(num_steps, max_len))
+    try:
+        offline = decode_segments(logits, min_len=min_len, max_len=max_len)
+    except ValueError:
+        with pytest.raises(ValueError, match="no segmentation|-inf"):
+            run_online(logits, min_len, max_len)
+        return
+    segments, decoder = run_online(logits, min_len, max_len)
+    assert segments == offline.segments
+    assert decoder.log_score == offline.log_score
 
 
 def test_online_decoder_equals_offline_on_a_long_noisy_episode():
