@@ -100,9 +100,7 @@ def msg_file_text(type_name: str) -> str:
         path = directory / f"{name}.msg"
         if path.is_file():
             return path.read_text()
-    raise FileNotFoundError(
-        f"no .msg file for {type_name!r} in {[str(d) for d in _msg_search_dirs(package)]}"
-    )
+    raise ValueError(f"no .msg file for {type_name!r} in {[str(d) for d in _msg_search_dirs(package)]}")
 
 
 def _msg_dependencies(text: str, package: str) -> list[str]:

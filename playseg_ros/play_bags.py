@@ -125,6 +125,11 @@ def _deserialize(reader: BagReader, data: bytes, topic: str) -> Any:
         raise BagError(reader.path, f"cannot deserialize message: {error}", topic) from error
 
 
+def _located(reader: BagReader, topic: str, error: StepError) -> BagError:
+    """A message's StepError with the bag and topic it came from."""
+    return BagError(reader.path, error.detail, topic, error.episode, error.step)
+
+
 def _read_annotations(reader: BagReader, topic: str) -> dict[str, list[Segment]]:
     by_episode: dict[str, list[Segment]] = {}
     for raw in reader.messages([topic]):
@@ -132,7 +137,7 @@ def _read_annotations(reader: BagReader, topic: str) -> dict[str, list[Segment]]
         try:
             segment = segment_from_annotation(msg)
         except StepError as error:
-            raise BagError(reader.path, error.detail, topic, error.episode, error.step) from None
+            raise _located(reader, topic, error) from None
         by_episode.setdefault(msg.episode_id, []).append(segment)
     return by_episode
 
@@ -191,7 +196,7 @@ def iter_play_bag(path: Path | str, truth: bool = False, drop_incomplete: bool =
             try:
                 builder.add(msg)
             except StepError as error:
-                raise BagError(reader.path, error.detail, STEPS_TOPIC, error.episode, error.step) from None
+                raise _located(reader, STEPS_TOPIC, error) from None
             if builder.finished:
                 del open_episodes[episode_id]
                 finished.add(episode_id)
@@ -253,7 +258,7 @@ def iter_segment_bag(path: Path | str) -> Iterator[SegmentClip]:
             try:
                 clip = clip_from_labelled(msg)
             except StepError as error:
-                raise BagError(reader.path, error.detail, SEGMENTS_TOPIC, error.episode, error.step) from None
+                raise _located(reader, SEGMENTS_TOPIC, error) from None
             yield clip
 
 
