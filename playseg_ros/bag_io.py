@@ -434,9 +434,10 @@ class BagWriter:
             self._file.add_topic(topic)
 
     def write(
-        self, topic: str, data: bytes | memoryview, log_time_ns: int, publish_time_ns: int = -1
+        self, topic: str, data: bytes | memoryview, log_time_ns: int, publish_time_ns: int | None = None
     ) -> None:
-        """Append one serialized message (CDR bytes) received at ``log_time_ns``."""
+        """Append one serialized message (CDR bytes) logged at ``log_time_ns`` (and published then,
+        unless ``publish_time_ns`` is given)."""
         if self._closed:
             raise BagError(self.path, "write after close", topic)
         if topic not in self._summary.topics:
@@ -444,7 +445,7 @@ class BagWriter:
         if self._file is None or self._file_full(len(data), log_time_ns):
             self._start_file()
         assert self._file is not None
-        publish_time_ns = log_time_ns if publish_time_ns < 0 else publish_time_ns
+        publish_time_ns = log_time_ns if publish_time_ns is None else publish_time_ns
         self._file.add_message(topic, data, log_time_ns, publish_time_ns, self._sequence[topic])
         self._sequence[topic] += 1
         self._summary.files[-1].add(topic, log_time_ns)
