@@ -1,0 +1,310 @@
+"""Imitation training of the BabyAI policy on (instruction, states, actions) segments, and its evaluation.
+
+Training: every sample is one random timestep t of one uniformly drawn segment, (state_t, instruction)
+-> action_t, cross-entropy, Adam. Seeded: the same seed and data give the same weights.
+
+Evaluation: BabyAI GoToLocal (``BabyAI-GoToLocalS8N7-v0``: room size 8, 7 objects), fully observed 8x8x3
+grid encoding with the agent written in. Episode k is reset with seed ``seed + k``; success means the task
+is completed within ``max_steps`` steps; actions are greedy, so one policy always gets the same score.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+import torch
+from minigrid.core.constants import OBJECT_TO_IDX
+from minigrid.envs.babyai import GoToLocal
+from minigrid.utils.baby_ai_bot import BabyAIBot
+from torch.nn import functional as F
+from tqdm import tqdm
+
+from playseg_core.policy import AGENT_TYPE, NUM_ACTIONS, PolicyConfig, PolicyNet, encode_instructions
+
+# (instruction, states (L+1, 8, 8, 3) uint8, actions (L,) or (L, 1) discrete action indices)
+Demonstration = tuple[str, np.ndarray, np.ndarray]
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The evaluation environment and bot demonstrations
+
+
+def make_goto_env(room_size: int = 8, num_objects: int = 7) -> GoToLocal:
+    """BabyAI GoToLocal; (8, 7) is ``BabyAI-GoToLocalS8N7-v0`` (built directly: no gym wrappers)."""
+    return GoToLocal(room_size=room_size, num_dists=num_objects)
+
+
+def reset_quietly(env: GoToLocal, seed: int) -> None:
+    """Reset with a seed; level generation prints rejected samples to stdout, which we swallow."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        env.reset(seed=seed)
+
+
+def encode_state(env: GoToLocal) -> np.ndarray:
+    """Fully observed (W, H, 3) uint8 grid encoding with the agent cell set to (agent, red, direction)."""
+    grid = env.grid.encode()
+    x, y = env.agent_pos
+    grid[x, y] = (OBJECT_TO_IDX["agent"], 0, env.agent_dir)
+    return grid
+
+
+def bot_demonstrations(
+    num: int, seed: int, room_size: int = 8, num_objects: int = 7, max_steps: int = 64
+) -> list[Demonstration]:
+    """``num`` GoToLocal episodes solved by minigrid's BabyAIBot; episode k is reset with ``seed + k``.
+
+    Returns (instruction, states (L+1, 8, 8, 3) uint8, actions (L,) int64) per successful episode (the
+    bot solves GoToLocal always; a failure would be dropped rather than taught).
+    """
+    env = make_goto_env(room_size, num_objects)
+    demonstrations: list[Demonstration] = []
+    for k in range(num):
+        reset_quietly(env, seed + k)
+        bot = BabyAIBot(env)
+        bot.vis_mask[:] = True  # full observability: the bot needs no exploration
+        states, actions = [encode_state(env)], []
+        success = False
+        for _ in range(max_steps):
+            action = int(bot.replan())
+            _, reward, terminated, truncated, _ = env.step(action)
+            states.append(encode_state(env))
+            actions.append(action)
+            if terminated or truncated:
+                success = terminated and reward > 0
+                break
+        if success:
+            demonstrations.append((env.mission, np.stack(states), np.array(actions, dtype=np.int64)))
+    return demonstrations
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Training
+
+
+@dataclass
+class PolicyTrainConfig:
+    steps: int = 2000
+    batch_size: int = 256
+    learning_rate: float = 1e-3
+    weight_decay: float = 0.0
+    grad_clip: float = 1.0
+    seed: int = 0
+    log_every: int = 100
+    mirror_augmentation: bool = True  # mirror half the samples (an exact symmetry of the task)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+
+
+@dataclass
+class TrainStats:
+    steps: int
+    seconds: float
+    num_segments: int
+    num_samples: int  # (state, action) pairs available
+    losses: list[tuple[int, float]]  # (step, mean loss over the preceding log interval)
+    final_loss: float
+    final_accuracy: float  # training-batch accuracy over the last log interval
+
+
+@dataclass
+class FlatSegments:
+    """All segments' (state, action) pairs flattened; segment i owns rows offsets[i] : offsets[i] + lengths[i]."""
+
+    states: torch.Tensor  # (N, H, W, 3) uint8
+    actions: torch.Tensor  # (N,) int64
+    offsets: np.ndarray  # (S,)
+    lengths: np.ndarray  # (S,)
+    instruction_index: np.ndarray  # (S,) index into the unique instructions
+    word_ids: torch.Tensor  # (U, W) word ids of the unique instructions
+    word_lengths: torch.Tensor  # (U,)
+
+
+def flatten_segments(segments: Sequence[Demonstration], max_words: int = 16) -> FlatSegments:
+    """Check and concatenate segments; the boundary state o_end is not a training input (no action)."""
+    if not segments:
+        raise ValueError("train_policy needs at least one segment")
+    states, actions, lengths, instruction_index = [], [], [], []
+    unique: dict[str, int] = {}
+    for index, (instruction, segment_states, segment_actions) in enumerate(segments):
+        segment_actions = np.asarray(segment_actions).reshape(-1)
+        length = segment_actions.shape[0]
+        if length < 1 or segment_states.shape[0] != length + 1 or segment_states.shape[-1] != 3:
+            raise ValueError(
+                f"segment {index}: need states (L+1, H, W, 3) and actions (L,) with L >= 1, "
+                f"got {segment_states.shape} and {np.asarray(segment_actions).shape}"
+            )
+        action_ids = segment_actions.astype(np.int64)
+        if not np.all((action_ids >= 0) & (action_ids < NUM_ACTIONS)) or np.any(
+            action_ids != segment_actions
+        ):
+            raise ValueError(f"segment {index}: actions must be integers in [0, {NUM_ACTIONS})")
+        states.append(np.asarray(segment_states[:length], dtype=np.uint8))
+        actions.append(action_ids)
+        lengths.append(length)
+        instruction_index.append(unique.setdefault(instruction, len(unique)))
+    lengths_array = np.array(lengths, dtype=np.int64)
+    word_ids, word_lengths = encode_instructions(list(unique), max_words)
+    return FlatSegments(
+        states=torch.from_numpy(np.concatenate(states)),
+        actions=torch.from_numpy(np.concatenate(actions)),
+        offsets=np.concatenate([[0], np.cumsum(lengths_array)[:-1]]),
+        lengths=lengths_array,
+        instruction_index=np.array(instruction_index, dtype=np.int64),
+        word_ids=word_ids,
+        word_lengths=word_lengths,
+    )
+
+
+def mirror_samples(states: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mirror the world along x: the agent's direction +x <-> -x and the turns left <-> right swap.
+
+    GoToLocal is symmetric under this map, so a mirrored demonstration is a valid demonstration.
+    """
+    mirrored = states.flip(1).clone()
+    is_agent = mirrored[..., 0] == AGENT_TYPE
+    flipped_direction = ((2 - mirrored[..., 2].long()) % 4).to(mirrored.dtype)
+    mirrored[..., 2] = torch.where(is_agent, flipped_direction, mirrored[..., 2])
+    swapped = torch.where(actions == 0, 1, torch.where(actions == 1, 0, actions))
+    return mirrored, swapped
+
+
+def train_policy(
+    segments: Sequence[Demonstration], config: PolicyTrainConfig, progress: bool = True
+) -> tuple[PolicyNet, TrainStats]:
+    """Behaviour cloning on segments -> (model in eval mode, stats)."""
+    data = flatten_segments(segments, config.policy.max_words)
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng(config.seed)
+    model = PolicyNet(config.policy)
+    optimizer = torch.optim.Adam(
+        model.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay
+    )
+    model.train()
+    losses: list[tuple[int, float]] = []
+    interval_loss, interval_correct, interval_count = 0.0, 0, 0
+    final_accuracy = float("nan")
+    started = time.perf_counter()
+    bar = tqdm(range(1, config.steps + 1), desc="policy", disable=not progress, mininterval=1.0)
+    for step in bar:
+        # One random timestep of one uniformly drawn segment per sample.
+        segment = rng.integers(0, len(data.lengths), config.batch_size)
+        timestep = (rng.random(config.batch_size) * data.lengths[segment]).astype(np.int64)
+        rows = torch.from_numpy(data.offsets[segment] + timestep)
+        instruction = torch.from_numpy(data.instruction_index[segment])
+        states, targets = data.states[rows], data.actions[rows]
+        if config.mirror_augmentation:
+            mirror = torch.from_numpy(rng.random(config.batch_size) < 0.5)
+            states[mirror], targets[mirror] = mirror_samples(states[mirror], targets[mirror])
+        logits = model(states, data.word_ids[instruction], data.word_lengths[instruction])
+        loss = F.cross_entropy(logits, targets)
+
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+        optimizer.step()
+
+        interval_loss += loss.item() * len(targets)
+        interval_correct += int((logits.argmax(dim=-1) == targets).sum())
+        interval_count += len(targets)
+        if step % config.log_every == 0 or step == config.steps:
+            mean_loss = interval_loss / interval_count
+            losses.append((step, mean_loss))
+            final_accuracy = interval_correct / interval_count
+            bar.set_postfix(loss=f"{mean_loss:.3f}", acc=f"{final_accuracy:.3f}")
+            interval_loss, interval_correct, interval_count = 0.0, 0, 0
+    model.eval()
+    stats = TrainStats(
+        steps=config.steps,
+        seconds=time.perf_counter() - started,
+        num_segments=len(data.lengths),
+        num_samples=int(data.lengths.sum()),
+        losses=losses,
+        final_loss=losses[-1][1] if losses else float("nan"),
+        final_accuracy=final_accuracy,
+    )
+    return model, stats
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Evaluation
+
+
+class Policy(Protocol):
+    def act(self, states: np.ndarray, instructions: list[str]) -> np.ndarray: ...
+
+
+class RandomPolicy:
+    """Uniform random actions among left/right/forward (the moves that matter in GoToLocal); a baseline."""
+
+    def __init__(self, seed: int = 0):
+        self.rng = np.random.default_rng(seed)
+
+    def act(self, states: np.ndarray, instructions: list[str]) -> np.ndarray:
+        return self.rng.integers(0, 3, len(states))
+
+
+@dataclass
+class EvalResult:
+    success_rate: float
+    num_episodes: int
+    num_successes: int
+    mean_success_steps: float  # steps taken in successful episodes (nan if none)
+    seconds: float
+    seed: int
+    episode_success: list[bool]
+    episode_steps: list[int]  # steps until success, or max_steps on failure
+
+
+def evaluate_policy(
+    model: Policy,
+    num_episodes: int = 512,
+    max_steps: int = 25,
+    seed: int = 0,
+    num_envs: int = 128,
+    room_size: int = 8,
+    num_objects: int = 7,
+) -> EvalResult:
+    """Success rate on the fixed episodes seed, seed+1, ..., run ``num_envs`` at a time.
+
+    Each step stacks the states of all running episodes into one batch for a single forward pass.
+    """
+    started = time.perf_counter()
+    envs = [make_goto_env(room_size, num_objects) for _ in range(min(num_envs, num_episodes))]
+    success = [False] * num_episodes
+    steps_taken = [max_steps] * num_episodes
+    for wave_start in range(0, num_episodes, len(envs)):
+        episodes = list(range(wave_start, min(wave_start + len(envs), num_episodes)))
+        for slot, episode in enumerate(episodes):
+            reset_quietly(envs[slot], seed + episode)
+        running = list(range(len(episodes)))  # slots still going
+        for step in range(max_steps):
+            states = np.stack([encode_state(envs[slot]) for slot in running])
+            actions = model.act(states, [envs[slot].mission for slot in running])
+            still_running = []
+            for slot, action in zip(running, actions, strict=True):
+                _, reward, terminated, truncated, _ = envs[slot].step(int(action))
+                if terminated and reward > 0:
+                    success[episodes[slot]] = True
+                    steps_taken[episodes[slot]] = step + 1
+                elif not (terminated or truncated):
+                    still_running.append(slot)
+            running = still_running
+            if not running:
+                break
+    successes = sum(success)
+    success_steps = [s for s, ok in zip(steps_taken, success, strict=True) if ok]
+    return EvalResult(
+        success_rate=successes / num_episodes,
+        num_episodes=num_episodes,
+        num_successes=successes,
+        mean_success_steps=float(np.mean(success_steps)) if success_steps else float("nan"),
+        seconds=time.perf_counter() - started,
+        seed=seed,
+        episode_success=success,
+        episode_steps=steps_taken,
+    )
