@@ -37,6 +37,55 @@ def _cmd_bag_recover(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_generate(args: argparse.Namespace) -> int:
+    from playseg_core.generate import generate_dataset, get_preset
+
+    preset = get_preset(args.preset, annotated_share=args.annotated_share)
+    try:
+        summary = generate_dataset(
+            args.out,
+            preset,
+            seed=args.seed,
+            workers=args.workers,
+            progress=not args.quiet,
+            overwrite=args.overwrite,
+        )
+    except FileExistsError as error:
+        print(f"playseg generate: {error}", file=sys.stderr)
+        return 1
+    splits = ", ".join(
+        f"{name} {summary.episodes_per_split[name]} episodes / {summary.segments_per_split[name]} segments"
+        for name in summary.segments_per_split
+    )
+    print(
+        f"{summary.path}: preset {summary.preset}, seed {summary.seed}: {summary.episodes} episodes, "
+        f"{summary.steps} steps ({splits}); {summary.bytes_on_disk / 1e6:.1f} MB in {summary.seconds:.1f} s "
+        f"with {summary.workers} workers"
+    )
+    return 0
+
+
+def _add_generate_command(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """`playseg generate`: returns its parser so other sources (e.g. a bag option) can add arguments."""
+    generate = sub.add_parser("generate", help="generate a BabyAI play dataset (train/val/play/test splits)")
+    generate.add_argument(
+        "--preset", choices=("tiny", "small", "paper"), default="small", help="dataset size"
+    )
+    generate.add_argument("--out", required=True, help="dataset directory to create")
+    generate.add_argument("--seed", type=int, default=0, help="base seed; same seed, same bytes")
+    generate.add_argument("--workers", type=int, default=1, help="generator processes")
+    generate.add_argument(
+        "--annotated-share",
+        type=float,
+        default=None,
+        help="share of the non-test segments that is annotated (0.1, 0.25, 0.5, 1.0); preset default if unset",
+    )
+    generate.add_argument("--overwrite", action="store_true", help="replace an existing dataset at --out")
+    generate.add_argument("--quiet", action="store_true", help="no progress bar")
+    generate.set_defaults(func=_cmd_generate)
+    return generate
+
+
 def _add_bag_commands(sub: argparse._SubParsersAction) -> None:
     bag = sub.add_parser("bag", help="inspect and repair rosbag2 MCAP bags (no ROS graph needed)")
     bag_sub = bag.add_subparsers(dest="bag_command", required=True, metavar="BAG_COMMAND")
@@ -56,6 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="run the main job on the sample bags in bags/")
     demo.set_defaults(func=_cmd_demo)
     _add_bag_commands(sub)
+    _add_generate_command(sub)
     return parser
 
 
