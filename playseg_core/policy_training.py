@@ -13,7 +13,7 @@ from __future__ import annotations
 import contextlib
 import io
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -83,6 +83,17 @@ def bot_demonstrations(
     return demonstrations
 
 
+@contextlib.contextmanager
+def torch_threads(num_threads: int) -> Iterator[None]:
+    """Run torch ops on ``num_threads`` CPU threads, restoring the previous setting afterwards."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(num_threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
 # ---------------------------------------------------------------------------------------------------------
 # Training
 
@@ -96,6 +107,7 @@ class PolicyTrainConfig:
     grad_clip: float = 1.0
     seed: int = 0
     log_every: int = 100
+    num_threads: int = 1  # torch CPU threads; more than the free cores makes a shared machine crawl
     mirror_augmentation: bool = True  # mirror half the samples (an exact symmetry of the task)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
 
@@ -177,6 +189,13 @@ def train_policy(
     segments: Sequence[Demonstration], config: PolicyTrainConfig, progress: bool = True
 ) -> tuple[PolicyNet, TrainStats]:
     """Behaviour cloning on segments -> (model in eval mode, stats)."""
+    with torch_threads(config.num_threads):
+        return _train_policy(segments, config, progress)
+
+
+def _train_policy(
+    segments: Sequence[Demonstration], config: PolicyTrainConfig, progress: bool
+) -> tuple[PolicyNet, TrainStats]:
     data = flatten_segments(segments, config.policy.max_words)
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
@@ -268,6 +287,7 @@ def evaluate_policy(
     num_envs: int = 128,
     room_size: int = 8,
     num_objects: int = 7,
+    num_threads: int = 1,
 ) -> EvalResult:
     """Success rate on the fixed episodes seed, seed+1, ..., run ``num_envs`` at a time.
 
@@ -284,7 +304,8 @@ def evaluate_policy(
         running = list(range(len(episodes)))  # slots still going
         for step in range(max_steps):
             states = np.stack([encode_state(envs[slot]) for slot in running])
-            actions = model.act(states, [envs[slot].mission for slot in running])
+            with torch_threads(num_threads):
+                actions = model.act(states, [envs[slot].mission for slot in running])
             still_running = []
             for slot, action in zip(running, actions, strict=True):
                 _, reward, terminated, truncated, _ = envs[slot].step(int(action))

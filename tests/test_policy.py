@@ -34,12 +34,12 @@ SMALL = PolicyConfig(channels=16, cell_embedding=16, word_embedding=16, instruct
 
 @pytest.fixture(scope="module")
 def demonstrations():
-    return bot_demonstrations(400, seed=10_000)
+    return bot_demonstrations(800, seed=10_000)
 
 
 @pytest.fixture(scope="module")
 def trained(demonstrations):
-    config = PolicyTrainConfig(steps=250, batch_size=128, learning_rate=3e-3, seed=0, policy=SMALL)
+    config = PolicyTrainConfig(steps=300, batch_size=128, learning_rate=3e-3, seed=0, policy=SMALL)
     return train_policy(demonstrations, config, progress=False)
 
 
@@ -51,7 +51,7 @@ def test_tokenizer_maps_unknown_words_to_one_id():
 
 
 def test_bot_demonstrations_are_consistent(demonstrations):
-    assert len(demonstrations) == 400  # the bot solves every GoToLocal episode
+    assert len(demonstrations) == 800  # the bot solves every GoToLocal episode
     for instruction, states, actions in demonstrations[:50]:
         assert instruction.startswith("go to ")
         assert states.shape == (len(actions) + 1, 8, 8, 3) and states.dtype == np.uint8
@@ -110,7 +110,7 @@ def test_checkpoint_round_trip(tmp_path: Path, trained, demonstrations):
     path = tmp_path / "policy.pt"
     save_policy(path, model, SMALL, {"num_segments": stats.num_segments, "note": "test"})
     loaded, config, meta = load_policy(path)
-    assert config == SMALL and meta == {"num_segments": 400, "note": "test"}
+    assert config == SMALL and meta == {"num_segments": 800, "note": "test"}
     states = np.stack([s[0] for _, s, _ in demonstrations[:64]])
     ids, lengths = encode_instructions([i for i, _, _ in demonstrations[:64]])
     with torch.no_grad():
