@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import sys
 from collections.abc import Callable
 from typing import Any
@@ -11,6 +12,7 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 
 
 def declare(node: Node, name: str, default: Any, description: str) -> Any:
@@ -31,7 +33,12 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threa
     with ``autostart:=false`` an external manager drives its transitions. SIGINT/SIGTERM end the spin;
     lifecycle nodes are then deactivated and cleaned up so their files are closed.
     """
-    rclpy.init(args=sys.argv if args is None else args)
+    # Our own SIGINT/SIGTERM handling: the context stays valid while the node shuts down, so lifecycle
+    # transitions (which close files) can still run.
+    rclpy.init(args=sys.argv if args is None else args, signal_handler_options=SignalHandlerOptions.NO)
+    # Installed explicitly: a process started in the background by a shell inherits SIGINT ignored.
+    signal.signal(signal.SIGINT, _raise_keyboard_interrupt)
+    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
     node = None
     code = 0
     try:
@@ -45,7 +52,8 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threa
                 node.trigger_activate()
         executor = MultiThreadedExecutor(num_threads=threads)
         executor.add_node(node)
-        executor.spin()
+        while rclpy.ok():  # short waits, so that Python's signal handlers get to run
+            executor.spin_once(timeout_sec=0.2)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ValueError as exc:
@@ -57,6 +65,10 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threa
             node.destroy_node()
         rclpy.try_shutdown()
     return code
+
+
+def _raise_keyboard_interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
 
 
 def _shut_down(node: Node) -> None:

@@ -1,0 +1,89 @@
+"""bag_player: publishes a bag's messages at recorded speed, a multiple of it, or as fast as subscribers
+keep up (there is no `ros2 bag play` in the package registry).
+
+`rate` 1.0 = recorded speed, 2.0 = twice as fast, 0 = as fast as possible: with the reliable KEEP_ALL
+profile a publisher blocks while subscribers' queues are full instead of dropping, so nothing is lost.
+`wait_for_subscribers` delays the start until every played topic has that many subscribers (volatile
+topics have no history for late joiners). Annotation topics are published transient-local.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import rclpy
+from rclpy.node import Node
+
+from playseg_ros import qos
+from playseg_ros.bag_io import BagReader
+from playseg_ros.nodes.common import declare, require, run_node
+from playseg_ros.ros_types import message_class
+
+
+class BagPlayerNode(Node):
+    def __init__(self) -> None:
+        super().__init__("bag_player")
+        self.bag = declare(self, "bag", "", "bag directory to play")
+        self.rate = declare(self, "rate", 1.0, "speed multiple of the recording; 0 = as fast as possible")
+        topics = declare(self, "topics", [""], "topics to play (empty = all)")
+        self.wait_for_subscribers = declare(
+            self, "wait_for_subscribers", 0, "start once each topic has N subscribers"
+        )
+        self.exit_when_done = declare(self, "exit_when_done", True, "shut down after the last message")
+        require(bool(self.bag), self, "bag must be set")
+        require(self.rate >= 0, self, "rate must be >= 0")
+        self.reader = BagReader(self.bag)
+        wanted = [t for t in topics if t]
+        unknown = sorted(set(wanted) - set(self.reader.topics))
+        require(not unknown, self, f"topics {unknown} are not in bag {self.bag}")
+        self.topic_types = {t: ty for t, ty in self.reader.topics.items() if not wanted or t in wanted}
+        self.publishers_by_topic = {}
+        for topic, type_name in self.topic_types.items():
+            profile = qos.ANNOTATIONS if type_name.endswith("/Annotation") else qos.PLAY_STEPS
+            self.publishers_by_topic[topic] = self.create_publisher(message_class(type_name), topic, profile)
+        self.published = 0
+        self.done = threading.Event()
+        threading.Thread(target=self._play, daemon=True).start()
+
+    def _play(self) -> None:
+        try:
+            self._wait_for_subscribers()
+            first_log, started = None, time.monotonic()
+            for message in self.reader.messages(list(self.topic_types)):
+                if not rclpy.ok():
+                    return
+                if self.rate > 0:
+                    first_log = message.log_time_ns if first_log is None else first_log
+                    due = started + (message.log_time_ns - first_log) / 1e9 / self.rate
+                    time.sleep(max(0.0, due - time.monotonic()))
+                self.publishers_by_topic[message.topic].publish(message.data)
+                self.published += 1
+            self.get_logger().info(f"played {self.published} messages from {self.bag}")
+        except Exception as exc:  # reported, then the node ends like after a normal playback
+            self.get_logger().error(f"playback of {self.bag} failed: {exc}")
+        finally:
+            self.done.set()
+            if self.exit_when_done:
+                time.sleep(1.0)  # let reliable publishers deliver the tail before the process ends
+                rclpy.try_shutdown()
+
+    def _wait_for_subscribers(self) -> None:
+        if self.wait_for_subscribers <= 0:
+            return
+        while rclpy.ok() and any(
+            pub.get_subscription_count() < self.wait_for_subscribers
+            for pub in self.publishers_by_topic.values()
+        ):
+            time.sleep(0.05)
+
+    def close(self) -> None:
+        self.reader.close()
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(BagPlayerNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

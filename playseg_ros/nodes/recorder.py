@@ -1,0 +1,140 @@
+"""recorder: records topics through serialized (raw) subscriptions into a rosbag2-compatible MCAP bag.
+
+Lifecycle: configure opens the bag (`<output>.partial/` until it is closed); activate subscribes to every
+configured topic as soon as its type is known on the graph; deactivate unsubscribes and flushes; cleanup
+finishes the bag (metadata.yaml, rename to `<output>`). Files split by size or duration; chunks are zstd
+compressed and flushed every `flush_period_s`, so a crash loses at most the open chunk and
+`playseg bag recover <output>` restores the rest.
+"""
+
+from __future__ import annotations
+
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+
+from playseg_ros import qos
+from playseg_ros.bag_io import BagWriter, QosProfile, topic_info
+from playseg_ros.nodes.common import declare, require, run_node
+from playseg_ros.ros_types import message_class
+
+
+def _offered_profile(info) -> QosProfile:
+    """An rclpy TopicEndpointInfo's QoS in rosbag2's metadata vocabulary."""
+    q = info.qos_profile
+    return QosProfile(
+        history=q.history.name.lower(),
+        depth=int(q.depth),
+        reliability=q.reliability.name.lower(),
+        durability=q.durability.name.lower(),
+        liveliness=q.liveliness.name.lower(),
+    )
+
+
+class RecorderNode(LifecycleNode):
+    def __init__(self) -> None:
+        super().__init__("recorder")
+        self.output = declare(self, "output", "", "bag directory to create (must not exist)")
+        self.topics = declare(self, "topics", ["/play/steps"], "topics to record")
+        self.reliability = declare(
+            self, "reliability", "reliable", "subscription reliability: reliable | best_effort"
+        )
+        self.max_file_mb = declare(
+            self, "max_file_mb", 0.0, "start a new .mcap file past this size (0 = never)"
+        )
+        self.max_file_s = declare(
+            self, "max_file_s", 0.0, "start a new .mcap file past this duration (0 = never)"
+        )
+        self.compression = declare(self, "compression", "zstd", "chunk compression: zstd | none")
+        self.flush_period_s = declare(
+            self, "flush_period_s", 1.0, "close the open chunk this often (bounds crash loss)"
+        )
+        self.writer: BagWriter | None = None
+        self.received: dict[str, int] = {}
+        self._subs: dict[str, object] = {}
+        self._timers = []
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        try:
+            require(bool(self.output), self, "output must be set")
+            require(len(self.topics) > 0 and all(self.topics), self, "topics must list at least one topic")
+            require(
+                self.reliability in ("reliable", "best_effort"), self, "reliability: reliable | best_effort"
+            )
+            require(self.compression in ("zstd", "none"), self, "compression: zstd | none")
+            require(self.max_file_mb >= 0 and self.max_file_s >= 0, self, "max_file_* must be >= 0")
+            require(self.flush_period_s > 0, self, "flush_period_s must be > 0")
+            self.writer = BagWriter(
+                self.output,
+                max_file_bytes=int(self.max_file_mb * 1e6),
+                max_file_duration_ns=int(self.max_file_s * 1e9),
+                compression=self.compression,
+            )
+        except (ValueError, OSError) as exc:
+            self.get_logger().error(str(exc))
+            return TransitionCallbackReturn.FAILURE
+        self.get_logger().info(f"recording {', '.join(self.topics)} to {self.output}")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._timers = [
+            self.create_timer(0.1, self._subscribe_discovered),
+            self.create_timer(self.flush_period_s, self.writer.flush),
+        ]
+        self._subscribe_discovered()
+        return super().on_activate(state)
+
+    def _subscribe_discovered(self) -> None:
+        """Subscribe to each configured topic once a publisher reveals its type."""
+        missing = [t for t in self.topics if t not in self._subs]
+        if not missing:
+            return
+        types = dict(self.get_topic_names_and_types())
+        for topic in missing:
+            if topic not in types:
+                continue
+            type_name = types[topic][0]
+            try:
+                msg_class = message_class(type_name)
+                offered = [_offered_profile(i) for i in self.get_publishers_info_by_topic(topic)]
+                self.writer.add_topic(topic_info(topic, type_name, qos=offered or [QosProfile()]))
+            except ValueError as exc:
+                self.get_logger().error(f"cannot record {topic}: {exc}")
+                self._subs[topic] = None
+                continue
+            self.received[topic] = 0
+            self._subs[topic] = self.create_subscription(
+                msg_class,
+                topic,
+                lambda data, t=topic: self._on_message(t, data),
+                qos.recorder_qos(self.reliability),
+                raw=True,
+            )
+            self.get_logger().info(f"subscribed to {topic} ({type_name})")
+
+    def _on_message(self, topic: str, data: bytes) -> None:
+        self.writer.write(topic, data, self.get_clock().now().nanoseconds)
+        self.received[topic] += 1
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        for timer in self._timers:
+            self.destroy_timer(timer)
+        for sub in self._subs.values():
+            if sub is not None:
+                self.destroy_subscription(sub)
+        self._subs.clear()
+        self.writer.flush()
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        if self.writer is not None:
+            self.writer.close()
+            self.get_logger().info(f"closed {self.output}: {self.received}")
+            self.writer = None
+        return TransitionCallbackReturn.SUCCESS
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(RecorderNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
