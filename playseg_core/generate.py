@@ -44,6 +44,12 @@ PRESETS: dict[str, Preset] = {
         PlayConfig(),
         SplitTargets.from_share(total_segments=400, annotated_share=0.25, test_segments=60),
     ),
+    "sample": Preset(
+        "sample",
+        "the sample bags in bags/: ~200 annotated, ~80 play and ~30 test episodes (~2 MB as bags)",
+        PlayConfig(),
+        SplitTargets(test_segments=300, annotated_segments=2000, play_segments=800),
+    ),
     "small": Preset(
         "small",
         "the demo: ~400 episodes, ~3,600 segments, under a minute on 2 cores",

@@ -11,7 +11,6 @@ is completed within ``max_steps`` steps; actions are greedy, so one policy alway
 from __future__ import annotations
 
 import contextlib
-import io
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -19,12 +18,12 @@ from typing import Protocol
 
 import numpy as np
 import torch
-from minigrid.core.constants import OBJECT_TO_IDX
 from minigrid.envs.babyai import GoToLocal
 from minigrid.utils.baby_ai_bot import BabyAIBot
 from torch.nn import functional as F
 from tqdm import tqdm
 
+from playseg_core.babyai import PlayConfig, encode_state, make_env, quiet_level_generation
 from playseg_core.policy import AGENT_TYPE, NUM_ACTIONS, PolicyConfig, PolicyNet, encode_instructions
 
 # (instruction, states (L+1, 8, 8, 3) uint8, actions (L,) or (L, 1) discrete action indices)
@@ -36,22 +35,18 @@ Demonstration = tuple[str, np.ndarray, np.ndarray]
 
 
 def make_goto_env(room_size: int = 8, num_objects: int = 7) -> GoToLocal:
-    """BabyAI GoToLocal; (8, 7) is ``BabyAI-GoToLocalS8N7-v0`` (built directly: no gym wrappers)."""
-    return GoToLocal(room_size=room_size, num_dists=num_objects)
+    """BabyAI GoToLocal; (8, 7) is ``BabyAI-GoToLocalS8N7-v0`` (built directly: no gym wrappers).
+
+    The play generator's environment (`babyai.make_env`): its own step limit is disabled, so an episode
+    ends where the caller's ``max_steps`` says, not at the level's default limit (64 steps for 8x8).
+    """
+    return make_env(PlayConfig(num_objects=num_objects, room_size=room_size))
 
 
 def reset_quietly(env: GoToLocal, seed: int) -> None:
-    """Reset with a seed; level generation prints rejected samples to stdout, which we swallow."""
-    with contextlib.redirect_stdout(io.StringIO()):
+    """Reset with a seed, swallowing what level generation prints to stdout."""
+    with quiet_level_generation():
         env.reset(seed=seed)
-
-
-def encode_state(env: GoToLocal) -> np.ndarray:
-    """Fully observed (W, H, 3) uint8 grid encoding with the agent cell set to (agent, red, direction)."""
-    grid = env.grid.encode()
-    x, y = env.agent_pos
-    grid[x, y] = (OBJECT_TO_IDX["agent"], 0, env.agent_dir)
-    return grid
 
 
 def bot_demonstrations(

@@ -62,6 +62,19 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         f"{summary.steps} steps ({splits}); {summary.bytes_on_disk / 1e6:.1f} MB in {summary.seconds:.1f} s "
         f"with {summary.workers} workers"
     )
+    if args.bag:
+        from playseg_ros.bag_io import BagError
+        from playseg_ros.play_bags import write_dataset_bags
+
+        bag_dir = summary.path / "bags"
+        try:
+            bags = write_dataset_bags(summary.path, bag_dir)
+        except (BagError, FileExistsError) as error:
+            print(f"playseg generate --bag: {error}", file=sys.stderr)
+            return 1
+        for name, bag in bags.items():
+            size = sum(f.stat().st_size for f in bag.path.rglob("*") if f.is_file())
+            print(f"{bag.path}: {name} bag, {bag.message_count} messages, {size / 1e6:.2f} MB")
     return 0
 
 
@@ -69,7 +82,7 @@ def _add_generate_command(sub: argparse._SubParsersAction) -> argparse.ArgumentP
     """`playseg generate`: returns its parser so other sources (e.g. a bag option) can add arguments."""
     generate = sub.add_parser("generate", help="generate a BabyAI play dataset (train/val/play/test splits)")
     generate.add_argument(
-        "--preset", choices=("tiny", "small", "paper"), default="small", help="dataset size"
+        "--preset", choices=("tiny", "sample", "small", "paper"), default="small", help="dataset size"
     )
     generate.add_argument("--out", required=True, help="dataset directory to create")
     generate.add_argument("--seed", type=int, default=0, help="base seed; same seed, same bytes")
@@ -82,6 +95,11 @@ def _add_generate_command(sub: argparse._SubParsersAction) -> argparse.ArgumentP
     )
     generate.add_argument("--overwrite", action="store_true", help="replace an existing dataset at --out")
     generate.add_argument("--quiet", action="store_true", help="no progress bar")
+    generate.add_argument(
+        "--bag",
+        action="store_true",
+        help="also write the episodes as play bags: OUT/bags/annotated (train+val), play, test",
+    )
     generate.set_defaults(func=_cmd_generate)
     return generate
 

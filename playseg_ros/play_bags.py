@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from playseg_core.data_model import Episode, Segment
+from playseg_core.dataset import PlayDataset
 from playseg_ros.bag_io import BagError, BagReader, BagSummary, BagWriter, topic_info
 from playseg_ros.convert import (
     ANNOTATION,
@@ -264,3 +265,44 @@ def iter_segment_bag(path: Path | str) -> Iterator[SegmentClip]:
 
 def read_segment_bag(path: Path | str) -> list[SegmentClip]:
     return list(iter_segment_bag(path))
+
+
+DATASET_BAGS: dict[str, tuple[tuple[str, ...], bool]] = {
+    "annotated": (("train", "val"), True),
+    "play": (("play",), False),
+    "test": (("test",), False),
+}
+"""Bags written from a dataset: name -> (dataset splits, in dataset order; with /play/annotations)."""
+
+
+def dataset_bag_episodes(dataset: PlayDataset, name: str) -> Iterator[Episode]:
+    """The episodes of the dataset bag ``name`` (see DATASET_BAGS), in dataset order, with true segments."""
+    if name not in DATASET_BAGS:
+        raise KeyError(f"unknown dataset bag {name!r} (expected one of {sorted(DATASET_BAGS)})")
+    splits, _ = DATASET_BAGS[name]
+    indices = sorted(index for split in splits for index in dataset.episode_indices(split))
+    for index in indices:
+        yield dataset.episode(index, truth=True)
+
+
+def write_dataset_bags(
+    dataset_dir: Path | str, out_dir: Path | str, **writer_options: Any
+) -> dict[str, BagSummary]:
+    """Write a dataset's episodes as three play bags under ``out_dir``.
+
+    ``annotated/``: the train+val episodes, labelled on /play/annotations and /play/ground_truth;
+    ``play/``: the unannotated play episodes, /play/ground_truth only; ``test/``: the held-out test
+    episodes, /play/ground_truth only. A split without episodes gives a bag without episodes.
+    Episodes are streamed from the memory-mapped dataset, one at a time.
+    """
+    dataset = PlayDataset.open(dataset_dir)
+    out = Path(out_dir)
+    for name in DATASET_BAGS:  # refuse before writing anything, so no half set of bags is left
+        if (out / name).exists():
+            raise FileExistsError(f"bag {str(out / name)!r}: already exists (remove it to write new bags)")
+    summaries: dict[str, BagSummary] = {}
+    for name, (_, annotated) in DATASET_BAGS.items():
+        summaries[name] = write_play_bag(
+            out / name, dataset_bag_episodes(dataset, name), annotated, **writer_options
+        )
+    return summaries

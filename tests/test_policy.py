@@ -167,3 +167,11 @@ def test_trained_policy_beats_untrained_and_random(trained):
     print(f"success: trained {trained_score:.3f} untrained {untrained_score:.3f} random {random_score:.3f}")
     assert trained_score >= untrained_score + 0.2
     assert trained_score >= random_score + 0.1
+
+
+def test_evaluation_counts_its_own_steps_past_the_levels_default_limit():
+    """The level's own limit (64 steps in an 8x8 room) is off: success within max_steps is what counts."""
+    result = evaluate_policy(RandomPolicy(1), num_episodes=100, max_steps=100, seed=5, num_envs=50)
+    late = [s for s, ok in zip(result.episode_steps, result.episode_success, strict=True) if ok and s > 64]
+    assert late, "no episode succeeded after step 64: the env's step limit cut the episodes short"
+    assert all(s <= 100 for s in result.episode_steps)
