@@ -1,0 +1,254 @@
+"""The networks of Play Segmentation: frame encoder, labelling model and PS model, in one file.
+
+Shapes: a frame is (64, 64, 3) uint8; an episode has T+1 frames and T actions. Frames are encoded once
+each (no temporal mixing in the encoder); everything temporal happens on the (T+1, d) feature sequence.
+
+The PS trunk is causal in time *from the segment start*: for a window starting at step i, position p
+(frame o_{i+p}) sees only o_i .. o_{i+p}, the start frame's features and the offset p. One pass over the
+window therefore scores every candidate end j = i+p at once, and all T windows of an episode go through
+the trunk as one batch (see `PSModel.end_logits`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+@dataclass
+class EncoderConfig:
+    image_size: int = 64
+    tile_size: int = 8  # BabyAI renders a grid of 8x8-pixel tiles: the first conv reads one tile
+    tile_channels: int = 32
+    grid_channels: int = 64
+    feature_dim: int = 128
+
+
+@dataclass
+class TrunkConfig:
+    hidden_dim: int = 64
+    num_layers: int = 2
+    kernel_size: int = 5
+    max_len: int = 25  # L_max: the longest segment (in actions) the model can score
+
+
+@dataclass
+class ModelConfig:
+    """Configuration of a PS model or a labelling model (same parts, different heads)."""
+
+    encoder: EncoderConfig
+    trunk: TrunkConfig
+    num_classes: int = 36
+
+    @staticmethod
+    def from_dict(raw: dict) -> ModelConfig:
+        return ModelConfig(
+            encoder=EncoderConfig(**raw["encoder"]),
+            trunk=TrunkConfig(**raw["trunk"]),
+            num_classes=int(raw["num_classes"]),
+        )
+
+
+class FrameEncoder(nn.Module):
+    """Per-frame CNN over the tile grid, pooled two ways.
+
+    The tile conv (kernel = stride = tile size) identifies each tile's content; a 3x3 conv relates a tile
+    to its neighbours ("the agent faces a red ball"). Global max/mean pooling makes such facts
+    position-free (what is faced, how many red balls exist); a linear map of the whole grid keeps where
+    things are (the agent's pose relative to the segment start).
+    """
+
+    def __init__(self, cfg: EncoderConfig) -> None:
+        super().__init__()
+        grid = cfg.image_size // cfg.tile_size
+        self.tile = nn.Conv2d(3, cfg.tile_channels, cfg.tile_size, stride=cfg.tile_size)
+        self.tile_mix = nn.Conv2d(cfg.tile_channels, cfg.tile_channels, 1)
+        self.neighbours = nn.Conv2d(cfg.tile_channels, cfg.grid_channels, 3, padding=1)
+        self.neighbour_mix = nn.Conv2d(cfg.grid_channels, cfg.grid_channels, 1)
+        self.layout = nn.Linear(cfg.tile_channels * grid * grid, cfg.feature_dim)
+        self.proj = nn.Linear(cfg.feature_dim + 2 * cfg.grid_channels, cfg.feature_dim)
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        """(N, H, W, 3) uint8 -> (N, feature_dim)."""
+        x = frames.permute(0, 3, 1, 2).float() / 255.0
+        tiles = F.relu(self.tile_mix(F.relu(self.tile(x))))
+        local = F.relu(self.neighbour_mix(F.relu(self.neighbours(tiles))))
+        pooled = torch.cat([local.amax((2, 3)), local.mean((2, 3))], dim=1)
+        layout = F.relu(self.layout(tiles.flatten(1)))
+        return self.proj(torch.cat([layout, pooled], dim=1))
+
+
+class CausalConvBlock(nn.Module):
+    """Pre-norm residual block: LayerNorm -> causal Conv1d over time -> GELU."""
+
+    def __init__(self, dim: int, kernel_size: int) -> None:
+        super().__init__()
+        self.norm = nn.LayerNorm(dim)
+        self.conv = nn.Conv1d(dim, dim, kernel_size)
+        self.pad = kernel_size - 1
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        """(B, P, dim) -> (B, P, dim); output p depends on inputs <= p only."""
+        x = self.norm(h).transpose(1, 2)
+        x = self.conv(F.pad(x, (self.pad, 0)))  # left padding only: causal
+        return h + F.gelu(x.transpose(1, 2))
+
+
+class StartCausalTrunk(nn.Module):
+    """Windows of frame features -> per-position hidden states, causal from the window start.
+
+    Every position also gets the start frame's features and its offset p from the start: "have I reached
+    the goal, given where the segment started and how long it took" is the question both heads answer.
+    A window starting the episode is flagged: its start frame is a reset, not the end of a previous
+    segment, which the negatives teach the model to look for.
+    """
+
+    def __init__(self, feature_dim: int, cfg: TrunkConfig) -> None:
+        super().__init__()
+        self.in_proj = nn.Linear(3 * feature_dim, cfg.hidden_dim)
+        self.offset = nn.Embedding(cfg.max_len + 1, cfg.hidden_dim)
+        self.episode_start = nn.Parameter(torch.zeros(cfg.hidden_dim))
+        self.blocks = nn.ModuleList(
+            CausalConvBlock(cfg.hidden_dim, cfg.kernel_size) for _ in range(cfg.num_layers)
+        )
+        self.memory = nn.Linear(cfg.hidden_dim, cfg.hidden_dim)
+        self.norm = nn.LayerNorm(cfg.hidden_dim)
+
+    def forward(self, windows: torch.Tensor, starts_episode: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, P, d) features of o_i .. o_{i+P-1}, P <= max_len + 1 -> (B, P, hidden).
+
+        starts_episode: (B,) bool, True where i = 0.
+        """
+        num_pos = windows.shape[1]
+        start = windows[:, :1].expand_as(windows)
+        h = self.in_proj(torch.cat([windows, start, windows - start], dim=-1))
+        h = h + self.offset.weight[:num_pos]
+        if starts_episode is not None:
+            h = h + starts_episode.to(h.dtype)[:, None, None] * self.episode_start
+        for block in self.blocks:
+            h = block(h)
+        # A running max since the start: "did something happen earlier in this segment" (e.g. an end
+        # already passed) is visible at every later position, beyond the convolutions' reach.
+        h = h + torch.cummax(self.memory(h), dim=1).values
+        return self.norm(h)
+
+
+def _class_names(instructions: list[str] | None, num_classes: int) -> list[str]:
+    """The instruction string of each class (placeholders when none are given)."""
+    names = [f"class {i}" for i in range(num_classes)] if instructions is None else list(instructions)
+    if len(names) != num_classes:
+        raise ValueError(f"{len(names)} instructions for a model with {num_classes} classes")
+    return names
+
+
+def episode_windows(features: torch.Tensor, window_len: int) -> torch.Tensor:
+    """(T+1, d) -> (T, window_len, d): the window starting at every step, zero-padded past the end."""
+    num_steps = features.shape[0] - 1
+    padded = F.pad(features, (0, 0, 0, window_len - 1))
+    return padded.unfold(0, window_len, 1)[:num_steps].transpose(1, 2)
+
+
+class PSModel(nn.Module):
+    """Play Segmentation: p_seg(segment [i, j) ends at j | o_i..o_j) and p(label | o_i..o_j)."""
+
+    def __init__(self, cfg: ModelConfig, instructions: list[str] | None = None) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.instructions = _class_names(instructions, cfg.num_classes)
+        self.encoder = FrameEncoder(cfg.encoder)
+        self.trunk = StartCausalTrunk(cfg.encoder.feature_dim, cfg.trunk)
+        self.end_head = nn.Linear(cfg.trunk.hidden_dim, 1)
+        self.label_head = nn.Linear(cfg.trunk.hidden_dim, cfg.num_classes)
+
+    @property
+    def max_len(self) -> int:
+        return self.cfg.trunk.max_len
+
+    def encode_frames(self, frames: torch.Tensor) -> torch.Tensor:
+        """(N, 64, 64, 3) uint8 -> (N, d); encode an episode once and reuse the features."""
+        return self.encoder(frames)
+
+    def window_hidden(self, features: torch.Tensor) -> torch.Tensor:
+        """(T+1, d) -> (T, L_max+1, hidden): trunk states of the window starting at every step."""
+        starts_episode = torch.arange(features.shape[0] - 1) == 0
+        return self.trunk(episode_windows(features, self.max_len + 1), starts_episode)
+
+    def end_logits_from_hidden(self, hidden: torch.Tensor) -> torch.Tensor:
+        """(T, L_max+1, hidden) -> (T, L_max); position 0 (an empty segment) is dropped."""
+        return self.end_head(hidden[:, 1:]).squeeze(-1)
+
+    def end_logits(self, features: torch.Tensor) -> torch.Tensor:
+        """(T+1, d) -> (T, L_max): [i, k] = logit that the segment [i, i+k+1) ends at i+k+1.
+
+        Entries with i+k+1 > T are computed on zero padding and must be ignored (decoding.py does).
+        """
+        return self.end_logits_from_hidden(self.window_hidden(features))
+
+    def end_column(self, features_window: torch.Tensor, first_is_episode_start: bool) -> torch.Tensor:
+        """Features of o_{t-n+1} .. o_t (n <= L_max+1 rows) -> (L_max,) for the online decoder.
+
+        [k] = logit that the segment [t-k-1, t) ends at t (the diagonal end_logits[t-k-1, k]); starts
+        before the window (k >= n-1) get -inf: such a segment cannot be scored from this window.
+        first_is_episode_start: the window's first row is o_0.
+        """
+        n = features_window.shape[0]
+        column = torch.full((self.max_len,), float("-inf"), dtype=features_window.dtype)
+        if n < 2:
+            return column
+        # Window for start t-k-1 holds the last k+2 rows; right-pad with zeros (causal: no effect).
+        lengths = torch.arange(2, n + 1)
+        windows = torch.zeros(n - 1, n, features_window.shape[1], dtype=features_window.dtype)
+        for row, length in enumerate(lengths.tolist()):
+            windows[row, :length] = features_window[n - length :]
+        starts_episode = (lengths == n) & first_is_episode_start
+        hidden = self.trunk(windows, starts_episode)
+        logits = self.end_head(hidden[torch.arange(n - 1), lengths - 1]).squeeze(-1)
+        column[: n - 1] = logits
+        return column
+
+    def label_logits(self, features: torch.Tensor, start: int, end: int) -> torch.Tensor:
+        """(T+1, d) features, segment [start, end) -> (num_classes,) label logits at its end."""
+        if not 0 < end - start <= self.max_len:
+            raise ValueError(f"segment [{start}, {end}) must have 1..{self.max_len} steps")
+        hidden = self.trunk(features[start : end + 1].unsqueeze(0), torch.tensor([start == 0]))
+        return self.label_head(hidden[0, -1])
+
+
+class LabelModel(nn.Module):
+    """Labelling model p_LM(instruction | o_i..o_j): encoder + start-causal trunk + mean/last pooling."""
+
+    def __init__(self, cfg: ModelConfig, instructions: list[str] | None = None) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.instructions = _class_names(instructions, cfg.num_classes)
+        self.encoder = FrameEncoder(cfg.encoder)
+        self.trunk = StartCausalTrunk(cfg.encoder.feature_dim, cfg.trunk)
+        self.head = nn.Linear(2 * cfg.trunk.hidden_dim, cfg.num_classes)
+
+    @property
+    def max_len(self) -> int:
+        return self.cfg.trunk.max_len
+
+    def encode_frames(self, frames: torch.Tensor) -> torch.Tensor:
+        return self.encoder(frames)
+
+    def logits_from_windows(
+        self, windows: torch.Tensor, lengths: torch.Tensor, starts_episode: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """(B, P, d) right-padded windows, (B,) segment lengths in actions -> (B, num_classes)."""
+        hidden = self.trunk(windows, starts_episode)
+        positions = torch.arange(windows.shape[1], device=windows.device)
+        inside = (positions[None, :] <= lengths[:, None]).unsqueeze(-1).to(hidden.dtype)
+        mean = (hidden * inside).sum(1) / inside.sum(1)
+        last = hidden[torch.arange(windows.shape[0], device=windows.device), lengths]
+        return self.head(torch.cat([mean, last], dim=-1))
+
+    def label_logits(self, features: torch.Tensor, start: int, end: int) -> torch.Tensor:
+        """(T+1, d) features, segment [start, end) -> (num_classes,)."""
+        if not 0 < end - start <= self.max_len:
+            raise ValueError(f"segment [{start}, {end}) must have 1..{self.max_len} steps")
+        window = features[start : end + 1].unsqueeze(0)
+        return self.logits_from_windows(window, torch.tensor([end - start]), torch.tensor([start == 0]))[0]

@@ -1,0 +1,93 @@
+"""End-to-end Play Segmentation of an episode: encode frames once, score all windows, decode, label.
+
+`segment_episode` is the production path: T frame encodings, one batched trunk pass over the T windows,
+the exact O(T * L_max) decoder of decoding.py, then the label head at each chosen end.
+`reference_style_segment` reproduces the reference's cost model for benchmarking: the whole model
+(encoder included) re-run on every prefix o_i..o_j, one pass each, then the paper's DP with Python loops.
+Both return the same segmentation for the same model and episode.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from playseg_core.data_model import Episode, Segment
+from playseg_core.decoding import decode_segments, log_sigmoid, reference_style_decode
+from playseg_core.models import PSModel
+
+ENCODE_CHUNK = 2048  # frames per encoder call: bounds memory on long episodes
+
+
+def episode_frames(episode: Episode) -> torch.Tensor:
+    """The episode's frames as a uint8 tensor (copied: dataset frames are read-only memmaps)."""
+    return torch.from_numpy(np.array(episode.frames, dtype=np.uint8))
+
+
+@torch.no_grad()
+def encode_episode(model: PSModel, episode: Episode) -> torch.Tensor:
+    """(T+1, d) features, each frame encoded once."""
+    frames = episode_frames(episode)
+    return torch.cat([model.encode_frames(chunk) for chunk in frames.split(ENCODE_CHUNK)])
+
+
+def _labelled(model: PSModel, start: int, end: int, label_logits: torch.Tensor, log_prob: float) -> Segment:
+    probs = torch.softmax(label_logits.double(), dim=-1)
+    best = int(probs.argmax())
+    return Segment(start, end, model.instructions[best], float(probs[best]), float(log_prob))
+
+
+@torch.no_grad()
+def segment_episode(model: PSModel, episode: Episode, min_len: int = 1) -> list[Segment]:
+    """The most likely segmentation of `episode` under `model`, each segment labelled by the label head.
+
+    Segment.confidence is the label probability, Segment.log_prob the segment's log-score log s(i, j).
+    """
+    model.eval()
+    if episode.num_steps == 0:
+        return []
+    features = encode_episode(model, episode)
+    hidden = model.window_hidden(features)
+    end_logits = model.end_logits_from_hidden(hidden).double().numpy()
+    max_len = min(model.max_len, episode.num_steps)
+    decoded = decode_segments(end_logits[:, :max_len], min_len=min_len, max_len=max_len)
+    segments = []
+    for (start, end), log_prob in zip(decoded.segments, decoded.segment_log_scores, strict=True):
+        label_logits = model.label_head(hidden[start, end - start])
+        segments.append(_labelled(model, start, end, label_logits, log_prob))
+    return segments
+
+
+@torch.no_grad()
+def reference_style_segment(model: PSModel, episode: Episode, min_len: int = 1) -> list[Segment]:
+    """Same result as `segment_episode`, computed the reference's way (benchmarking only).
+
+    Every prefix o_i .. o_j (j - i <= L_max) goes through the full model separately, frames encoded anew
+    each time; then the DP over (number of segments, end) of `reference_style_decode`.
+    """
+    model.eval()
+    num_steps = episode.num_steps
+    if num_steps == 0:
+        return []
+    frames = episode_frames(episode)
+    max_len = min(model.max_len, num_steps)
+    end_logit: dict[tuple[int, int], float] = {}
+    starts = [torch.tensor([start == 0]) for start in range(num_steps)]
+    for start in range(num_steps):
+        for end in range(start + 1, min(start + max_len, num_steps) + 1):
+            hidden = model.trunk(model.encode_frames(frames[start : end + 1])[None], starts[start])
+            end_logit[(start, end)] = float(model.end_head(hidden[0, -1]))
+
+    def score_segment(start: int, end: int) -> float:
+        # log s(i, j): not ending at every t in (i, j), then ending at j; summed in order like cumsum.
+        total = 0.0
+        for t in range(start + 1, end):
+            total += float(log_sigmoid(-end_logit[(start, t)]))
+        return total + float(log_sigmoid(end_logit[(start, end)]))
+
+    decoded = reference_style_decode(score_segment, num_steps, min_len, max_len)
+    segments = []
+    for (start, end), log_prob in zip(decoded.segments, decoded.segment_log_scores, strict=True):
+        hidden = model.trunk(model.encode_frames(frames[start : end + 1])[None], starts[start])
+        segments.append(_labelled(model, start, end, model.label_head(hidden[0, -1]), log_prob))
+    return segments

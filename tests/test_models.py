@@ -1,0 +1,179 @@
+"""PS model: the end matrix and the online column agree, the trunk is causal from the start, checkpoints."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from playseg_core.data_model import Episode, Segment
+from playseg_core.models import (
+    EncoderConfig,
+    LabelModel,
+    ModelConfig,
+    PSModel,
+    TrunkConfig,
+)
+from playseg_core.training import load_checkpoint, save_checkpoint
+
+torch.set_num_threads(1)
+
+NUM_CLASSES = 4
+INSTRUCTIONS = [f"go to thing {c}" for c in range(NUM_CLASSES)]
+
+
+def tiny_ps_model(max_len: int = 6, seed: int = 0) -> PSModel:
+    torch.manual_seed(seed)
+    cfg = ModelConfig(
+        EncoderConfig(tile_channels=8, grid_channels=8, feature_dim=16),
+        TrunkConfig(hidden_dim=16, num_layers=2, kernel_size=3, max_len=max_len),
+        NUM_CLASSES,
+    )
+    return PSModel(cfg, INSTRUCTIONS).eval()
+
+
+PALETTE = np.array([[230, 40, 40], [40, 230, 40], [40, 40, 230], [230, 230, 40]], np.uint8)
+
+
+def synthetic_episode(seed: int, num_segments: int = 6, max_seg_len: int = 5, size: int = 64) -> Episode:
+    """Play-like frames of 8x8 tiles: the top-left tile in the colour of the current instruction's
+    class, a marker tile at every segment end, and a flickering tile so that frames differ."""
+    rng = np.random.default_rng(seed)
+    lengths = rng.integers(1, max_seg_len + 1, size=num_segments)
+    classes = rng.integers(0, NUM_CLASSES, size=num_segments)
+    num_steps = int(lengths.sum())
+    frames = np.zeros((num_steps + 1, size, size, 3), np.uint8)
+    segments, start = [], 0
+    for length, cls in zip(lengths.tolist(), classes.tolist(), strict=True):
+        end = start + length
+        frames[start + 1 : end + 1, :8, :8] = PALETTE[cls]
+        frames[end, 8:16, 8:16] = 255  # the "goal reached" marker
+        segments.append(Segment(start, end, INSTRUCTIONS[cls]))
+        start = end
+    frames[:, :8, 8:16, 1] = rng.integers(0, 120, size=(num_steps + 1, 1, 1), dtype=np.uint8)
+    actions = rng.integers(0, 3, size=(num_steps, 1)).astype(np.float32)
+    return Episode(f"synthetic-{seed}", frames, actions, segments=segments)
+
+
+class UnsafePayload:
+    """An arbitrary pickled object: weights_only loading must refuse it."""
+
+
+def random_features(num_frames: int, dim: int = 16, seed: int = 1) -> torch.Tensor:
+    return torch.randn(num_frames, dim, generator=torch.Generator().manual_seed(seed))
+
+
+@pytest.mark.parametrize("num_steps", [3, 6, 14])
+def test_end_column_equals_diagonal_of_end_logits(num_steps: int) -> None:
+    model = tiny_ps_model(max_len=6)
+    features = random_features(num_steps + 1)
+    with torch.no_grad():
+        matrix = model.end_logits(features)
+        assert matrix.shape == (num_steps, 6)
+        for t in range(1, num_steps + 1):
+            window = features[max(0, t - model.max_len) : t + 1]
+            column = model.end_column(window, first_is_episode_start=t <= model.max_len)
+            for k in range(model.max_len):
+                if t - k - 1 >= 0:
+                    torch.testing.assert_close(column[k], matrix[t - k - 1, k], rtol=1e-5, atol=1e-5)
+                else:
+                    assert column[k] == float("-inf")
+
+
+def test_output_k_ignores_frames_after_position_k() -> None:
+    model = tiny_ps_model(max_len=6)
+    frames = synthetic_episode(3).frames
+    with torch.no_grad():
+        features = model.encode_frames(torch.from_numpy(frames))
+        base = model.end_logits(features)
+        start, k = 2, 2  # the output for segment [2, 5) sees o_2 .. o_5
+        changed = features.clone()
+        changed[start + k + 2 :] = torch.randn_like(changed[start + k + 2 :])
+        other = model.end_logits(changed)
+    torch.testing.assert_close(other[start, : k + 1], base[start, : k + 1])
+    assert not torch.allclose(other[start, k + 1 :], base[start, k + 1 :])
+
+
+def test_frames_before_the_start_change_nothing() -> None:
+    model = tiny_ps_model(max_len=6)
+    features = random_features(15)
+    with torch.no_grad():
+        base = model.end_logits(features)
+        changed = features.clone()
+        changed[:5] = torch.randn(5, 16)
+        other = model.end_logits(changed)
+        label = model.label_logits(features, 5, 9)
+        label_other = model.label_logits(changed, 5, 9)
+    torch.testing.assert_close(other[5:], base[5:])
+    assert not torch.allclose(other[:5], base[:5])
+    torch.testing.assert_close(label, label_other)
+
+
+def test_encoder_has_no_temporal_mixing() -> None:
+    model = tiny_ps_model()
+    frames = torch.from_numpy(synthetic_episode(4).frames)
+    with torch.no_grad():
+        together = model.encode_frames(frames)
+        one_by_one = torch.cat([model.encode_frames(frames[t : t + 1]) for t in range(len(frames))])
+    torch.testing.assert_close(together, one_by_one, rtol=1e-5, atol=1e-5)
+
+
+def test_label_logits_validate_segment_length() -> None:
+    model = tiny_ps_model(max_len=4)
+    features = random_features(10)
+    assert model.label_logits(features, 2, 6).shape == (NUM_CLASSES,)
+    with pytest.raises(ValueError, match="1..4 steps"):
+        model.label_logits(features, 2, 7)
+
+
+def test_checkpoint_round_trip_gives_identical_outputs(tmp_path) -> None:
+    model = tiny_ps_model(seed=5)
+    path = tmp_path / "ps.pt"
+    save_checkpoint(path, model, extra={"note": "test"})
+    raw = torch.load(path, weights_only=True)
+    assert raw["instructions"] == INSTRUCTIONS and raw["config"]["trunk"]["max_len"] == 6
+    loaded, extra = load_checkpoint(path)
+    assert isinstance(loaded, PSModel) and loaded.instructions == INSTRUCTIONS
+    assert extra == {"note": "test"}
+    frames = torch.from_numpy(synthetic_episode(1).frames)
+    with torch.no_grad():
+        torch.testing.assert_close(
+            loaded.end_logits(loaded.encode_frames(frames)), model.end_logits(model.encode_frames(frames))
+        )
+
+
+def test_labeller_checkpoint_round_trip(tmp_path) -> None:
+    torch.manual_seed(0)
+    cfg = ModelConfig(
+        EncoderConfig(tile_channels=8, grid_channels=8, feature_dim=16), TrunkConfig(16, 1, 3, 6), NUM_CLASSES
+    )
+    model = LabelModel(cfg, INSTRUCTIONS).eval()
+    save_checkpoint(tmp_path / "lab.pt", model)
+    loaded, _ = load_checkpoint(tmp_path / "lab.pt")
+    features = random_features(8)
+    assert isinstance(loaded, LabelModel)
+    torch.testing.assert_close(loaded.label_logits(features, 1, 5), model.label_logits(features, 1, 5))
+
+
+def test_corrupt_checkpoints_fail_clearly(tmp_path) -> None:
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"this is not a checkpoint")
+    with pytest.raises(ValueError, match="garbage.pt"):
+        load_checkpoint(garbage)
+
+    unsafe = tmp_path / "unsafe.pt"
+    torch.save({"kind": "ps", "object": UnsafePayload()}, unsafe)
+    with pytest.raises(ValueError, match="unsafe.pt.*cannot be read safely"):
+        load_checkpoint(unsafe)
+
+    model = tiny_ps_model()
+    wrong_shape = tmp_path / "wrong.pt"
+    save_checkpoint(wrong_shape, model)
+    payload = torch.load(wrong_shape, weights_only=True)
+    payload["config"]["trunk"]["hidden_dim"] = 32
+    torch.save(payload, wrong_shape)
+    with pytest.raises(ValueError, match="wrong.pt.*not a playseg checkpoint"):
+        load_checkpoint(wrong_shape)
+
+    with pytest.raises(ValueError, match="missing.pt.*no such file"):
+        load_checkpoint(tmp_path / "missing.pt")

@@ -1,0 +1,109 @@
+"""End-to-end segmentation: fast path == reference-style path == online decoding; label calibration."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from test_models import INSTRUCTIONS, synthetic_episode, tiny_ps_model
+
+from playseg_core.decoding import OnlineDecoder
+from playseg_core.labelling import (
+    calibrate_on_annotated,
+    calibrate_threshold,
+    keep_confident,
+    label_segments,
+)
+from playseg_core.segmentation import encode_episode, reference_style_segment, segment_episode
+
+torch.set_num_threads(1)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_reference_style_equals_fast_segmentation(seed: int) -> None:
+    model = tiny_ps_model(max_len=5, seed=seed)
+    episode = synthetic_episode(seed, num_segments=4, max_seg_len=4)
+    fast = segment_episode(model, episode)
+    slow = reference_style_segment(model, episode)
+    assert [(s.start, s.end, s.instruction) for s in fast] == [(s.start, s.end, s.instruction) for s in slow]
+    for a, b in zip(fast, slow, strict=True):
+        assert a.confidence == pytest.approx(b.confidence, abs=1e-4)
+        assert a.log_prob == pytest.approx(b.log_prob, abs=1e-4)
+
+
+def test_segmentation_covers_the_episode_with_known_labels() -> None:
+    model = tiny_ps_model(max_len=4, seed=3)
+    episode = synthetic_episode(7, num_segments=5)
+    segments = segment_episode(model, episode)
+    assert segments[0].start == 0 and segments[-1].end == episode.num_steps
+    for previous, current in zip(segments, segments[1:], strict=False):
+        assert previous.end == current.start
+    assert all(1 <= s.length <= 4 and s.instruction in INSTRUCTIONS for s in segments)
+    assert all(0 < s.confidence <= 1 and s.log_prob <= 0 for s in segments)
+
+
+def test_online_decoding_with_end_columns_matches_offline() -> None:
+    model = tiny_ps_model(max_len=5, seed=2)
+    episode = synthetic_episode(5, num_segments=5)
+    offline = [(s.start, s.end) for s in segment_episode(model, episode)]
+    features = encode_episode(model, episode)
+    decoder = OnlineDecoder(max_len=model.max_len)
+    online = []
+    with torch.no_grad():
+        for t in range(1, episode.num_steps + 1):
+            first = max(0, t - model.max_len)
+            column = model.end_column(features[first : t + 1], first_is_episode_start=first == 0)
+            online += decoder.push(column.double().numpy())
+    online += decoder.finish()
+    assert online == offline
+
+
+def test_label_segments_uses_the_label_head() -> None:
+    model = tiny_ps_model(max_len=5)
+    episode = synthetic_episode(2, num_segments=3)
+    spans = [(seg.start, seg.end) for seg in episode.segments]
+    labelled = label_segments(model, episode, spans)
+    features = encode_episode(model, episode)
+    for seg in labelled:
+        with torch.no_grad():
+            probs = torch.softmax(model.label_logits(features, seg.start, seg.end).double(), -1)
+        assert seg.instruction == INSTRUCTIONS[int(probs.argmax())]
+        assert seg.confidence == pytest.approx(float(probs.max()))
+
+
+def test_calibrate_threshold_reaches_the_target_with_most_items() -> None:
+    confidences = [0.99, 0.95, 0.9, 0.8, 0.7, 0.6, 0.5]
+    correct = [True, True, True, False, True, False, False]
+    # Top 3: 1.0; top 5: 0.8; top 4: 0.75 -> for 0.8 the lowest threshold is 0.7 (five kept).
+    assert calibrate_threshold(confidences, correct, 0.8) == 0.7
+    assert calibrate_threshold(confidences, correct, 0.95) == 0.9
+    assert calibrate_threshold(confidences, correct, 0.5) == 0.5
+    assert calibrate_threshold([0.9, 0.8], [False, True], 0.9) == math.inf
+    # Equal confidences are kept or dropped together.
+    assert calibrate_threshold([0.9, 0.9, 0.5], [True, False, True], 0.9) == math.inf
+    with pytest.raises(ValueError, match="target_accuracy"):
+        calibrate_threshold([0.5], [True], 0.0)
+
+
+def test_calibrated_threshold_keeps_accurate_items_on_random_data() -> None:
+    rng = np.random.default_rng(0)
+    confidences = rng.uniform(size=2000)
+    correct = rng.uniform(size=2000) < confidences  # calibrated: P(correct) = confidence
+    threshold = calibrate_threshold(confidences, correct, 0.9)
+    kept = confidences >= threshold
+    assert correct[kept].mean() >= 0.9
+    assert 0.6 < threshold < 0.95  # most of the mass above 0.8 is needed for 90% accuracy
+
+
+def test_calibrate_on_annotated_and_keep_confident() -> None:
+    model = tiny_ps_model(max_len=5)
+    episodes = [synthetic_episode(s, num_segments=3) for s in range(3)]
+    calibration = calibrate_on_annotated(model, episodes, target_accuracy=0.5)
+    assert calibration.num_segments == 9
+    if math.isfinite(calibration.threshold):
+        assert calibration.accuracy_kept >= 0.5
+    segments = segment_episode(model, episodes[0])
+    kept = keep_confident(segments, calibration.threshold)
+    assert all(s.confidence >= calibration.threshold for s in kept)

@@ -1,0 +1,121 @@
+"""Training samples (the paper's negatives), batches, and short training runs that must learn."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from test_models import INSTRUCTIONS, synthetic_episode
+
+from playseg_core.models import EncoderConfig, ModelConfig, TrunkConfig
+from playseg_core.training import (
+    NEGATIVE_KINDS,
+    TrainConfig,
+    label_index,
+    make_batch,
+    segment_samples,
+    train_labeller,
+    train_ps,
+)
+
+torch.set_num_threads(1)
+
+
+def test_middle_segment_gets_all_six_negatives_inside_the_episode() -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        samples = segment_samples(20, 26, num_steps=50, max_len=25, k_max=5, rng=rng)
+        kinds = [s.kind for s in samples]
+        assert kinds == ["positive", *NEGATIVE_KINDS]
+        for s in samples:
+            assert 0 <= s.start < s.end <= 50 and s.end - s.start <= 25
+            assert s.is_end == (s.kind == "positive")
+        by_kind = {s.kind: s for s in samples}
+        assert by_kind["end_later"].start == 20 and 27 <= by_kind["end_later"].end <= 31
+        assert by_kind["end_earlier"].start == 20 and 21 <= by_kind["end_earlier"].end <= 25
+        widened = by_kind["widened"]
+        assert 15 <= widened.start <= 19 and 27 <= widened.end <= 31
+        assert by_kind["before"].end == 20 and 15 <= by_kind["before"].start <= 19
+        left, right = by_kind["shift_left"], by_kind["shift_right"]
+        assert left.end - left.start == 6 and 15 <= left.start <= 19
+        assert right.end - right.start == 6 and 21 <= right.start <= 25
+
+
+def test_shifts_cover_exactly_one_to_k_max() -> None:
+    rng = np.random.default_rng(1)
+    seen = set()
+    for _ in range(300):
+        samples = segment_samples(20, 26, num_steps=50, max_len=25, k_max=3, rng=rng)
+        seen.add(next(s for s in samples if s.kind == "shift_right").start - 20)
+    assert seen == {1, 2, 3}
+
+
+def test_corner_cases_stay_inside_the_episode() -> None:
+    rng = np.random.default_rng(2)
+    # At the episode start: nothing can move left.
+    kinds = {s.kind for s in segment_samples(0, 4, 30, 25, 5, rng)}
+    assert kinds == {"positive", "end_later", "end_earlier", "shift_right"}
+    # At the episode end: nothing can move right.
+    kinds = {s.kind for s in segment_samples(26, 30, 30, 25, 5, rng)}
+    assert kinds == {"positive", "end_earlier", "before", "shift_left"}
+    # A one-step segment cannot end earlier; the only room left is one step, so k = 1.
+    samples = segment_samples(1, 2, 3, 25, 5, rng)
+    assert "end_earlier" not in {s.kind for s in samples}
+    assert all(0 <= s.start < s.end <= 3 for s in samples)
+    # L_max bounds the widened and end-later windows; a segment of exactly L_max cannot grow.
+    kinds = {s.kind for s in segment_samples(10, 20, 40, 10, 5, rng)}
+    assert "end_later" not in kinds and "widened" not in kinds and "shift_left" in kinds
+    # A segment longer than L_max yields nothing.
+    assert segment_samples(0, 12, 40, 10, 5, rng) == []
+
+
+def test_batch_windows_never_cross_episodes() -> None:
+    episodes = [synthetic_episode(s, num_segments=3) for s in range(3)]
+    rng = np.random.default_rng(0)
+    batch = make_batch(episodes, label_index(INSTRUCTIONS), 6, 3, rng, dense_prefix_negatives=True)
+    total = sum(len(ep.frames) for ep in episodes)
+    starts = np.cumsum([0] + [len(ep.frames) for ep in episodes])
+    for row in batch.window_index.numpy():
+        first = row[0]
+        episode = np.searchsorted(starts, first, side="right") - 1
+        inside = row[row < total]
+        assert inside.max() <= starts[episode + 1] - 1  # padding rows point at the zero row
+        assert np.all(np.diff(inside) == 1)
+    # Every positive is supervised as an end; dense prefixes add "not ended" before it.
+    assert len(batch.labels) == sum(len(ep.segments) for ep in episodes)
+    ends = batch.end_target[batch.label_window, batch.label_position]
+    assert torch.all(ends == 1)
+    positives = batch.end_weight[batch.label_window]
+    for row, length in zip(positives, batch.label_position.tolist(), strict=True):
+        assert torch.all(row[1 : length + 1] == 1) and row[0] == 0
+
+
+SMALL = {"image_size": 16, "tile_channels": 8, "grid_channels": 8, "feature_dim": 16}
+
+
+def _small_data() -> tuple[list, list]:
+    train = [synthetic_episode(s, num_segments=5, size=16) for s in range(16)]
+    val = [synthetic_episode(100 + s, num_segments=5, size=16) for s in range(4)]
+    return train, val
+
+
+@pytest.mark.parametrize("dense", [True, False])
+def test_short_ps_training_learns_ends_and_labels(dense: bool) -> None:
+    train, val = _small_data()
+    cfg = TrainConfig(epochs=6, episodes_per_batch=1, lr=3e-3, dense_prefix_negatives=dense, progress=False)
+    model_cfg = ModelConfig(EncoderConfig(**SMALL), TrunkConfig(16, 1, 3, 8), len(INSTRUCTIONS))
+    result = train_ps(train, val, INSTRUCTIONS, cfg, model_cfg)
+    first = result.history[0]["val"]
+    best = min((h["val"] for h in result.history), key=lambda v: v["loss"])
+    assert best["loss"] < 0.6 * first["loss"]
+    assert best["label_accuracy"] >= 0.8  # chance: 0.25
+    assert best["end_accuracy"] >= 0.9
+
+
+def test_short_labeller_training_learns() -> None:
+    train, val = _small_data()
+    cfg = TrainConfig(epochs=5, episodes_per_batch=1, lr=3e-3, progress=False)
+    model_cfg = ModelConfig(EncoderConfig(**SMALL), TrunkConfig(16, 1, 3, 8), len(INSTRUCTIONS))
+    result = train_labeller(train, val, INSTRUCTIONS, cfg, model_cfg)
+    assert result.history[-1]["val"]["label_accuracy"] >= 0.8
+    assert result.history[-1]["train"]["loss"] < 0.5 * result.history[0]["train"]["loss"]
