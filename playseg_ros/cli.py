@@ -117,6 +117,57 @@ def _add_bag_commands(sub: argparse._SubParsersAction) -> None:
     recover.set_defaults(func=_cmd_bag_recover)
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    from playseg_ros.offline import train
+
+    return train(args.data, args.out, args.epochs, args.lr, args.batch_episodes, args.seed, args.labeller)
+
+
+def _cmd_segment(args: argparse.Namespace) -> int:
+    from playseg_ros.offline import segment
+
+    try:
+        return segment(args.model, args.input, args.out, args.splits.split(","), args.min_len, args.overwrite)
+    except (ValueError, FileExistsError, FileNotFoundError) as error:
+        print(f"playseg segment: {error}", file=sys.stderr)
+        return 1
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from playseg_ros.offline import evaluate
+
+    return evaluate(args.pred, args.truth, args.json, args.plot, args.plot_episodes)
+
+
+def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
+    train = sub.add_parser("train", help="train the Play Segmentation model on a dataset's annotated splits")
+    train.add_argument("--data", required=True, help="dataset directory (train + val splits are used)")
+    train.add_argument("--out", required=True, help="checkpoint file to write (e.g. models/ps.pt)")
+    train.add_argument("--epochs", type=int, default=15)
+    train.add_argument("--lr", type=float, default=2e-3)
+    train.add_argument("--batch-episodes", type=int, default=8, help="annotated episodes per batch")
+    train.add_argument("--seed", type=int, default=0)
+    train.add_argument("--labeller", help="also train the stand-alone labelling model into this file")
+    train.set_defaults(func=_cmd_train)
+    segment = sub.add_parser("segment", help="cut play into labelled segments with a trained PS model")
+    segment.add_argument("--model", required=True, help="PS checkpoint from `playseg train`")
+    segment.add_argument("--input", required=True, help="dataset directory or play bag directory")
+    segment.add_argument(
+        "--out", required=True, help="output dataset directory (plus OUT/segments_bag for bags)"
+    )
+    segment.add_argument("--splits", default="play,test", help="dataset splits to segment (comma-separated)")
+    segment.add_argument("--min-len", type=int, default=1, help="shortest segment in steps")
+    segment.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    segment.set_defaults(func=_cmd_segment)
+    evaluate = sub.add_parser("evaluate", help="metrics of segmented play against the ground truth")
+    evaluate.add_argument("--pred", required=True, help="output of `playseg segment`")
+    evaluate.add_argument("--truth", required=True, help="the dataset that was segmented")
+    evaluate.add_argument("--json", help="metrics JSON path (default PRED/metrics.json)")
+    evaluate.add_argument("--plot", help="timeline PNG path (default PRED/timeline.png)")
+    evaluate.add_argument("--plot-episodes", type=int, default=6, help="episodes in the timeline (0: none)")
+    evaluate.set_defaults(func=_cmd_evaluate)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="playseg", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -124,6 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=_cmd_demo)
     _add_bag_commands(sub)
     _add_generate_command(sub)
+    _add_segmentation_commands(sub)
     return parser
 
 

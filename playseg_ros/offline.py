@@ -1,0 +1,165 @@
+"""Offline Play Segmentation commands: `playseg train`, `playseg segment`, `playseg evaluate`.
+
+No ROS graph is needed: datasets are read with playseg_core.dataset, bags with playseg_ros.play_bags.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import asdict
+from pathlib import Path
+
+from playseg_core.data_model import Episode, Segment
+
+
+def _is_bag(path: Path) -> bool:
+    return path.is_dir() and (path / "metadata.yaml").is_file()
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
+
+
+def train(
+    data: str, out: str, epochs: int, lr: float, batch_episodes: int, seed: int, labeller: str | None
+) -> int:
+    """Train the PS model (and optionally the stand-alone labeller) on a dataset's train/val splits."""
+    from playseg_core.dataset import PlayDataset
+    from playseg_core.labelling import calibrate_on_annotated
+    from playseg_core.training import TrainConfig, save_checkpoint, train_labeller, train_ps
+
+    dataset = PlayDataset.open(data)
+    train_eps = list(dataset.episodes("train"))
+    val_eps = list(dataset.episodes("val"))
+    cfg = TrainConfig(seed=seed, epochs=epochs, lr=lr, episodes_per_batch=batch_episodes)
+    result = train_ps(train_eps, val_eps, dataset.instructions, cfg)
+    calibration = calibrate_on_annotated(result.model, val_eps, 0.95) if val_eps else None
+    extra = {
+        "train": asdict(cfg),
+        "history": result.history,
+        "seconds": result.seconds,
+        "dataset": str(Path(data).resolve()),
+        "calibration": asdict(calibration) if calibration else {},
+    }
+    save_checkpoint(out, result.model, extra)
+    last = result.history[-1]
+    print(
+        f"{out}: PS model trained in {result.seconds:.0f} s on {len(train_eps)} episodes; "
+        f"val label accuracy {last.get('val', last['train'])['label_accuracy']:.3f}; "
+        f"peak RSS {_peak_rss_mb():.0f} MB"
+    )
+    if calibration:
+        print(
+            f"label threshold {calibration.threshold:.3f} for {calibration.target_accuracy:.2f} accuracy "
+            f"keeps {calibration.coverage:.1%} of {calibration.num_segments} val segments"
+        )
+    if labeller:
+        lab = train_labeller(train_eps, val_eps, dataset.instructions, cfg)
+        save_checkpoint(labeller, lab.model, {"train": asdict(cfg), "history": lab.history})
+        final = lab.history[-1].get("val", lab.history[-1]["train"])
+        print(f"{labeller}: labeller, val accuracy {final['label_accuracy']:.3f}, {lab.seconds:.0f} s")
+    return 0
+
+
+def _input_episodes(path: Path, splits: list[str]) -> tuple[Iterator[Episode], list[str] | None, str]:
+    """Episodes to segment: a dataset's `splits` (annotations hidden), or every episode of a play bag."""
+    if _is_bag(path):
+        from playseg_ros.play_bags import read_play_bag
+
+        return iter(read_play_bag(path)), None, "bag"
+    from playseg_core.dataset import PlayDataset
+
+    dataset = PlayDataset.open(path)
+
+    def episodes() -> Iterator[Episode]:
+        for split in splits:
+            yield from dataset.episodes(split)
+
+    return episodes(), list(dataset.instructions), "dataset"
+
+
+def segment(
+    model_path: str, input_path: str, out: str, splits: list[str], min_len: int, overwrite: bool
+) -> int:
+    """Segment every episode of the input; write a dataset of labelled segments (and a bag for bags)."""
+    from playseg_core.dataset import DatasetWriter
+    from playseg_core.models import PSModel
+    from playseg_core.segmentation import segment_episode
+    from playseg_core.training import load_checkpoint
+
+    model, extra = load_checkpoint(model_path)
+    if not isinstance(model, PSModel):
+        raise ValueError(f"{model_path}: a labeller checkpoint; `playseg segment` needs a PS model")
+    source = Path(input_path)
+    episodes, instructions, kind = _input_episodes(source, splits)
+    threshold = float(extra.get("calibration", {}).get("threshold", 0.0))
+    meta = {"segmented_by": str(model_path), "source": str(source), "label_threshold": threshold}
+    started, steps, count, results = time.perf_counter(), 0, 0, []
+    with DatasetWriter(out, instructions or model.instructions, meta, overwrite=overwrite) as writer:
+        for episode in episodes:
+            segments = segment_episode(model, episode, min_len=min_len)
+            labelled = Episode(episode.episode_id, episode.frames, episode.actions, episode.states, segments)
+            writer.add(labelled, "play", extra={"source": kind})
+            steps += episode.num_steps
+            count += len(segments)
+            if kind == "bag":
+                results.append((labelled, segments))
+    seconds = time.perf_counter() - started
+    print(
+        f"{out}: {count} segments from {writer.num_episodes} episodes ({steps} steps) in {seconds:.1f} s "
+        f"({steps / max(seconds, 1e-9):.0f} steps/s)"
+    )
+    if kind == "bag":
+        from playseg_ros.convert import SegmentClip
+        from playseg_ros.play_bags import write_segment_bag
+
+        model_id = Path(model_path).name
+        clips = (
+            SegmentClip.from_episode(ep, seg, model_id)
+            for ep, segs in results
+            for seg in segs
+            if seg.confidence >= threshold
+        )
+        bag = write_segment_bag(Path(out) / "segments_bag", clips)
+        print(f"{Path(out) / 'segments_bag'}: {bag.message_count} LabelledSegment messages")
+    return 0
+
+
+def evaluate(pred: str, truth: str, out_json: str | None, plot: str | None, num_plot: int) -> int:
+    """Compare a segmented dataset with the ground truth of the dataset it came from."""
+    from playseg_core.dataset import PlayDataset
+    from playseg_core.metrics import evaluate as evaluate_metrics
+    from playseg_core.metrics import format_metrics_table
+
+    predicted = PlayDataset.open(pred)
+    reference = PlayDataset.open(truth)
+    pred_by_id: dict[str, list[Segment]] = {}
+    for index, record in enumerate(predicted.records):
+        pred_by_id[record.episode_id] = predicted.segments(index, truth=True)
+    truth_by_id, steps_by_id, plotted = {}, {}, []
+    for index, record in enumerate(reference.records):
+        if record.episode_id not in pred_by_id:
+            continue
+        truth_by_id[record.episode_id] = reference.segments(index, truth=True)
+        steps_by_id[record.episode_id] = record.num_steps
+        if len(plotted) < num_plot:
+            plotted.append(reference.episode(index, truth=True))
+    if not truth_by_id:
+        print(f"playseg evaluate: no episode of {pred} is in {truth}", file=sys.stderr)
+        return 1
+    results = evaluate_metrics(pred_by_id, truth_by_id, steps_by_id)
+    print(format_metrics_table(results))
+    json_path = Path(out_json) if out_json else Path(pred) / "metrics.json"
+    json_path.write_text(json.dumps(results, indent=2, sort_keys=True))
+    print(f"metrics: {json_path}")
+    if num_plot > 0:
+        from playseg_core.timeline import plot_timeline
+
+        png = Path(plot) if plot else Path(pred) / "timeline.png"
+        plot_timeline(png, plotted, pred_by_id)
+        print(f"timeline: {png}")
+    return 0
