@@ -22,8 +22,8 @@ from torch import nn
 class EncoderConfig:
     image_size: int = 64
     tile_size: int = 8  # BabyAI renders a grid of 8x8-pixel tiles: the first conv reads one tile
-    tile_channels: int = 32
-    grid_channels: int = 64
+    tile_channels: int = 64
+    grid_channels: int = 32
     feature_dim: int = 128
 
 

@@ -120,7 +120,7 @@ def _add_bag_commands(sub: argparse._SubParsersAction) -> None:
 def _cmd_train(args: argparse.Namespace) -> int:
     from playseg_ros.offline import train
 
-    return train(args.data, args.out, args.epochs, args.lr, args.batch_episodes, args.seed, args.labeller)
+    return train(args.data, args.out, args.epochs, args.lr, args.batch_segments, args.seed, args.labeller)
 
 
 def _cmd_segment(args: argparse.Namespace) -> int:
@@ -144,8 +144,8 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     train.add_argument("--data", required=True, help="dataset directory (train + val splits are used)")
     train.add_argument("--out", required=True, help="checkpoint file to write (e.g. models/ps.pt)")
     train.add_argument("--epochs", type=int, default=15)
-    train.add_argument("--lr", type=float, default=2e-3)
-    train.add_argument("--batch-episodes", type=int, default=8, help="annotated episodes per batch")
+    train.add_argument("--lr", type=float, default=3e-3)
+    train.add_argument("--batch-segments", type=int, default=64, help="annotated segments per batch")
     train.add_argument("--seed", type=int, default=0)
     train.add_argument("--labeller", help="also train the stand-alone labelling model into this file")
     train.set_defaults(func=_cmd_train)
