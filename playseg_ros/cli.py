@@ -117,6 +117,24 @@ def _add_bag_commands(sub: argparse._SubParsersAction) -> None:
     recover.set_defaults(func=_cmd_bag_recover)
 
 
+def _cmd_up(args: argparse.Namespace) -> int:
+    from playseg_ros.launch import run_graph
+
+    try:
+        return run_graph(args.config)
+    except ValueError as error:
+        print(f"playseg up: {error}", file=sys.stderr)
+        return 2
+
+
+def _add_up_command(sub: argparse._SubParsersAction) -> None:
+    up = sub.add_parser(
+        "up", help="bring up a graph of playseg nodes from a YAML config (Ctrl-C stops all of them)"
+    )
+    up.add_argument("config", help="graph config, e.g. config/live_play.yaml (see docs/nodes.md)")
+    up.set_defaults(func=_cmd_up)
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
     from playseg_ros.offline import train
 
@@ -175,6 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=_cmd_demo)
     _add_bag_commands(sub)
     _add_generate_command(sub)
+    _add_up_command(sub)
     _add_segmentation_commands(sub)
     return parser
 

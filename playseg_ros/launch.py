@@ -159,22 +159,27 @@ def run_graph(path: str | Path) -> int:
     """`playseg up`: start the graph, wait for Ctrl-C or a graph-ending node, stop everything."""
     spec = load_graph(path)
     graph = Graph(spec)
-    stop_requested = False
 
     def request_stop(signum, frame):  # noqa: ARG001
-        nonlocal stop_requested
-        stop_requested = True
         raise KeyboardInterrupt
 
-    signal.signal(signal.SIGTERM, request_stop)
+    # Installed explicitly for SIGINT too: a shell starts a background job with SIGINT ignored, and the
+    # nodes would inherit that (and miss the launcher's SIGINT while they start up).
+    previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     print(f"[up] starting {len(spec.nodes)} nodes: {', '.join(s.name for s in spec.nodes)}", file=sys.stderr)
-    graph.start()
     ended = None
     try:
+        graph.start()
         ended = graph.wait()
     except KeyboardInterrupt:
         print("[up] stopping ...", file=sys.stderr)
-    codes = graph.stop()
+    finally:
+        # A second Ctrl-C must not abandon the nodes half-stopped: stopping always runs to its end.
+        for sig in previous:
+            signal.signal(sig, signal.SIG_IGN)
+        codes = graph.stop()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     if ended:
         print(f"[up] {ended} exited (code {codes[ended]}): graph stopped", file=sys.stderr)
     failed = {n: c for n, c in codes.items() if c not in (0, -signal.SIGINT)}

@@ -122,9 +122,11 @@ def buffered_segment_from_msg(msg: LabelledSegment) -> BufferedSegment:
             raise ValueError(
                 f"{where}: steps[{offset}].step is {step_msg.step}, expected {msg.start_step + offset}"
             )
-        data = step_from_msg(step_msg)
+        data = step_from_msg(step_msg, steps[0].frame.shape if steps else None)
         if offset < len(msg.steps) - 1 and data.action is None:
             raise ValueError(f"{where}: step {data.step} has no action but is not the segment's last")
+        if steps:
+            _check_like_first(where, data, steps[0])
         steps.append(data)
     states = None if steps[0].state is None else np.stack([s.state for s in steps])
     return BufferedSegment(
@@ -139,3 +141,18 @@ def buffered_segment_from_msg(msg: LabelledSegment) -> BufferedSegment:
         log_prob=float(msg.segment_log_prob),
         source=msg.model_id,
     )
+
+
+def _check_like_first(where: str, data: StepData, first: StepData) -> None:
+    """Every step of a segment has the state shape and action size of its first step."""
+    first_state = None if first.state is None else first.state.shape
+    state = None if data.state is None else data.state.shape
+    if state != first_state:
+        raise ValueError(
+            f"{where}: step {data.step} has state shape {state}, step {first.step} {first_state}"
+        )
+    if data.action is not None and first.action is not None and data.action.shape != first.action.shape:
+        raise ValueError(
+            f"{where}: step {data.step} has {data.action.size} action values, step {first.step} "
+            f"{first.action.size}"
+        )

@@ -9,6 +9,7 @@ from typing import Any
 
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.exceptions import InvalidParameterTypeException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from rclpy.node import Node
@@ -16,8 +17,21 @@ from rclpy.signals import SignalHandlerOptions
 
 
 def declare(node: Node, name: str, default: Any, description: str) -> Any:
-    """Declare a parameter with a description and return its value."""
-    return node.declare_parameter(name, default, ParameterDescriptor(description=description)).value
+    """Declare a parameter with a description and return its value.
+
+    A float parameter also accepts an integer (`rate_hz: 10` in a YAML file); any other value of the
+    wrong type is a ValueError naming the node, the parameter and the expected type.
+    """
+    if isinstance(default, float):
+        descriptor = ParameterDescriptor(description=description, dynamic_typing=True)
+        value = node.declare_parameter(name, default, descriptor).value
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"{node.get_name()}: parameter {name!r} must be a number, got {value!r}")
+        return float(value)
+    try:
+        return node.declare_parameter(name, default, ParameterDescriptor(description=description)).value
+    except InvalidParameterTypeException as exc:
+        raise ValueError(f"{node.get_name()}: invalid parameter: {exc}") from exc
 
 
 def require(condition: bool, node: Node, message: str) -> None:
@@ -40,6 +54,7 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threa
     signal.signal(signal.SIGINT, _raise_keyboard_interrupt)
     signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
     node = None
+    executor = None
     code = 0
     try:
         node = make_node()
@@ -60,6 +75,8 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threa
         print(f"error: {exc}", file=sys.stderr)
         code = 2
     finally:
+        if executor is not None:
+            _stop_executor(executor)
         if node is not None:
             _shut_down(node)
             node.destroy_node()
@@ -69,6 +86,14 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threa
 
 def _raise_keyboard_interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
+
+
+def _stop_executor(executor: MultiThreadedExecutor) -> None:
+    """Let callbacks still running in worker threads (a recorder's write) finish before cleanup."""
+    try:
+        executor.shutdown()
+    except KeyboardInterrupt:  # a second Ctrl-C: clean up at once
+        pass
 
 
 def _shut_down(node: Node) -> None:

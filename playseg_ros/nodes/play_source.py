@@ -32,9 +32,17 @@ class PlaySourceNode(Node):
         steps_topic = declare(self, "steps_topic", "/play/steps", "PlayStep output topic")
         annotations_topic = declare(self, "annotations_topic", "/play/annotations", "Annotation output topic")
         truth_topic = declare(self, "ground_truth_topic", "/play/ground_truth", "ground truth ('' = off)")
+        self.wait_for_subscribers = declare(
+            self,
+            "wait_for_subscribers",
+            0,
+            "start publishing once the steps topic has N subscribers (steps are volatile: a subscriber "
+            "that joins later misses the steps before it)",
+        )
         require(self.rate_hz > 0, self, "rate_hz must be > 0")
         require(0.0 <= self.annotate_share <= 1.0, self, "annotate_share must be in [0, 1]")
         require(self.num_episodes >= 0, self, "num_episodes must be >= 0")
+        require(self.wait_for_subscribers >= 0, self, "wait_for_subscribers must be >= 0")
         self.config = PlayConfig(num_objects=num_objects)
         self.rng = np.random.default_rng(self.seed)
         self.steps_pub = self.create_publisher(PlayStep, steps_topic, qos.PLAY_STEPS)
@@ -45,6 +53,7 @@ class PlaySourceNode(Node):
         self.episodes_done = 0
         self.episode = None
         self.t = 0
+        self.started = self.wait_for_subscribers == 0
         self.create_timer(1.0 / self.rate_hz, self.publish_next_step)
 
     def _next_episode(self) -> None:
@@ -59,6 +68,11 @@ class PlaySourceNode(Node):
     def publish_next_step(self) -> None:
         if self.num_episodes and self.episodes_done >= self.num_episodes:
             return
+        if not self.started:
+            if self.steps_pub.get_subscription_count() < self.wait_for_subscribers:
+                return
+            self.started = True
+            self.get_logger().info(f"{self.steps_pub.get_subscription_count()} subscribers: starting")
         if self.episode is None:
             self._next_episode()
         stamp = self.get_clock().now().to_msg()

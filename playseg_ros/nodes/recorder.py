@@ -4,12 +4,19 @@ Lifecycle: configure opens the bag (`<output>.partial/` until it is closed); act
 configured topic as soon as its type is known on the graph; deactivate unsubscribes and flushes; cleanup
 finishes the bag (metadata.yaml, rename to `<output>`). Files split by size or duration; chunks are zstd
 compressed and flushed every `flush_period_s`, so a crash loses at most the open chunk and
-`playseg bag recover <output>` restores the rest.
+`playseg bag recover <output>` restores the rest (each flush that wrote something logs, at debug level,
+how many messages are on disk: `--ros-args --log-level recorder:=debug`).
+
+QoS: KEEP_ALL history, `reliability` as configured. A topic whose publishers all offer TRANSIENT_LOCAL
+(e.g. /play/annotations) is subscribed TRANSIENT_LOCAL, so what they published before the recorder
+subscribed is recorded too.
 """
 
 from __future__ import annotations
 
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.qos import DurabilityPolicy
+from rclpy.subscription import Subscription
 
 from playseg_ros import qos
 from playseg_ros.bag_io import BagWriter, QosProfile, topic_info
@@ -49,7 +56,8 @@ class RecorderNode(LifecycleNode):
         )
         self.writer: BagWriter | None = None
         self.received: dict[str, int] = {}
-        self._subs: dict[str, object] = {}
+        self._flushed_count = 0
+        self._subs: dict[str, Subscription | None] = {}
         self._timers = []
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -77,7 +85,7 @@ class RecorderNode(LifecycleNode):
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._timers = [
             self.create_timer(0.1, self._subscribe_discovered),
-            self.create_timer(self.flush_period_s, self.writer.flush),
+            self.create_timer(self.flush_period_s, self._flush),
         ]
         self._subscribe_discovered()
         return super().on_activate(state)
@@ -94,34 +102,60 @@ class RecorderNode(LifecycleNode):
             type_name = types[topic][0]
             try:
                 msg_class = message_class(type_name)
-                offered = [_offered_profile(i) for i in self.get_publishers_info_by_topic(topic)]
+                publishers = self.get_publishers_info_by_topic(topic)
+                offered = [_offered_profile(i) for i in publishers]
                 self.writer.add_topic(topic_info(topic, type_name, qos=offered or [QosProfile()]))
             except ValueError as exc:
                 self.get_logger().error(f"cannot record {topic}: {exc}")
                 self._subs[topic] = None
                 continue
+            profile = qos.recorder_qos(self.reliability)
+            latched = publishers and all(
+                i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in publishers
+            )
+            if latched:
+                profile.durability = DurabilityPolicy.TRANSIENT_LOCAL
             self.received[topic] = 0
             self._subs[topic] = self.create_subscription(
-                msg_class,
-                topic,
-                lambda data, t=topic: self._on_message(t, data),
-                qos.recorder_qos(self.reliability),
-                raw=True,
+                msg_class, topic, lambda data, t=topic: self._on_message(t, data), profile, raw=True
             )
-            self.get_logger().info(f"subscribed to {topic} ({type_name})")
+            durability = " transient-local" if latched else ""
+            self.get_logger().info(f"subscribed to {topic} ({type_name}){durability}")
 
     def _on_message(self, topic: str, data: bytes) -> None:
         self.writer.write(topic, data, self.get_clock().now().nanoseconds)
         self.received[topic] += 1
 
+    def _flush(self) -> None:
+        """Close the open chunk; everything received so far then survives a crash."""
+        self.writer.flush()
+        total = sum(self.received.values())
+        if total != self._flushed_count:
+            self._flushed_count = total
+            self.get_logger().debug(f"flushed: {total} messages on disk")
+
+    def _drain(self, topic: str, sub: Subscription) -> int:
+        """Record what DDS already received (and acknowledged) but the executor has not handed over."""
+        count = 0
+        while True:
+            with sub.handle:
+                taken = sub.handle.take_message(sub.msg_type, True)
+            if taken is None:
+                return count
+            self._on_message(topic, taken[0])
+            count += 1
+
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         for timer in self._timers:
             self.destroy_timer(timer)
-        for sub in self._subs.values():
+        for topic, sub in self._subs.items():
             if sub is not None:
+                drained = self._drain(topic, sub)
+                if drained:
+                    self.get_logger().info(f"{topic}: recorded {drained} messages still queued at stop")
                 self.destroy_subscription(sub)
         self._subs.clear()
-        self.writer.flush()
+        self._flush()
         return super().on_deactivate(state)
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:

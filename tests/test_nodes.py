@@ -1,0 +1,343 @@
+"""The nodes as real processes on real DDS: crashes, clean shutdowns, malformed input, playback, `playseg up`."""
+
+from __future__ import annotations
+
+import math
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from node_procs import Processes, RosPeer, descendants, node_env, stop, wait_for_log
+from playseg_msgs.msg import LabelledSegment, PlayStep, TrainerStatus
+from playseg_msgs.srv import Retrain
+from rclpy.duration import Duration
+from rclpy.serialization import serialize_message
+from rosbags.highlevel import AnyReader
+from sensor_msgs.msg import Image
+
+from playseg_core.augmentation_buffer import AugmentationBuffer
+from playseg_core.babyai import PlayConfig, generate_episode
+from playseg_core.data_model import Episode
+from playseg_ros import qos
+from playseg_ros.bag_io import BagReader, BagWriter, topic_info
+from playseg_ros.live_convert import labelled_segment_msg, play_step_msg
+from playseg_ros.play_bags import read_play_bag, write_play_bag
+from playseg_ros.typestore import playseg_typestore
+
+FLUSHED = re.compile(r"flushed: (\d+) messages on disk")
+
+
+@pytest.fixture
+def procs(tmp_path: Path) -> Iterator[Processes]:
+    processes = Processes(tmp_path)
+    yield processes
+    processes.close()
+
+
+@pytest.fixture
+def peer() -> Iterator[RosPeer]:
+    ros = RosPeer("playseg_node_test")
+    yield ros
+    ros.close()
+
+
+def _episodes(count: int) -> list[Episode]:
+    return [generate_episode(PlayConfig(), seed) for seed in range(count)]
+
+
+# -- recorder ------------------------------------------------------------------------------------------
+
+
+def test_recorder_sigkill_then_recover_restores_every_flushed_message(
+    procs: Processes, tmp_path: Path
+) -> None:
+    out = tmp_path / "crash"
+    recorder, rec_log = procs.node(
+        "recorder", "recorder", "--log-level", "recorder:=debug", output=out, topics=["/play/steps"],
+        flush_period_s=0.05,
+    )  # fmt: skip
+    wait_for_log(rec_log, r"recording", 30, recorder)
+    procs.node("play_source", "play_source", rate_hz=1000.0, wait_for_subscribers=1, ground_truth_topic="''")
+    wait_for_log(rec_log, r"flushed: ([2-9]\d\d|\d{4,}) messages", 60, recorder)  # >= 200 on disk
+    recorder.send_signal(signal.SIGKILL)
+    recorder.wait(timeout=10)
+    flushed = int(FLUSHED.findall(rec_log.read_text())[-1])
+    assert (tmp_path / "crash.partial").is_dir() and not out.exists()
+
+    result = subprocess.run(
+        [sys.executable, "-m", "playseg_ros.cli", "bag", "recover", str(out)],
+        env=node_env(), capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert (out / "metadata.yaml").is_file() and not (tmp_path / "crash.partial").exists()
+
+    store = playseg_typestore()
+    with AnyReader([out], default_typestore=store) as reader:
+        steps = [reader.deserialize(data, conn.msgtype) for conn, _, data in reader.messages()]
+    assert len(steps) >= flushed > 0
+    # What was recovered is the start of the play, step by step (nothing skipped inside the prefix).
+    expected = [(e.episode_id, t) for e in _episodes(len(steps) // 30 + 2) for t in range(e.num_steps + 1)]
+    assert [(s.episode_id, s.step) for s in steps] == expected[: len(steps)]
+
+
+def test_recorder_sigint_finishes_bag_with_every_published_step(procs: Processes, tmp_path: Path) -> None:
+    out = tmp_path / "play"
+    episodes = _episodes(3)
+    expected_steps = sum(e.num_steps + 1 for e in episodes)
+    expected_total = expected_steps + sum(len(e.segments) for e in episodes)
+    recorder, rec_log = procs.node(
+        "recorder", "recorder", "--log-level", "recorder:=debug", output=out,
+        topics=["/play/steps", "/play/annotations"], flush_period_s=0.1,
+    )  # fmt: skip
+    source, src_log = procs.node(
+        "play_source", "play_source", rate_hz=500.0, num_episodes=3, annotate_share=1.0,
+        wait_for_subscribers=1, ground_truth_topic="''",
+    )  # fmt: skip
+    wait_for_log(src_log, r"published 3 episodes", 60, source)
+    wait_for_log(rec_log, rf"flushed: {expected_total} messages", 15, recorder)
+    assert stop(recorder) == 0
+    assert (out / "metadata.yaml").is_file() and not (tmp_path / "play.partial").exists()
+
+    recorded = read_play_bag(out)
+    assert [e.episode_id for e in recorded] == [e.episode_id for e in episodes]
+    for got, want in zip(recorded, episodes, strict=True):
+        assert got.num_steps == want.num_steps
+        np.testing.assert_array_equal(got.frames, want.frames)
+        np.testing.assert_array_equal(got.states, want.states.astype(np.float32))
+        np.testing.assert_array_equal(got.actions, want.actions)
+        assert [(s.start, s.end, s.instruction) for s in got.segments] == [
+            (s.start, s.end, s.instruction) for s in want.segments
+        ]
+
+
+def test_recorder_sigint_right_after_the_acks_keeps_every_acknowledged_message(
+    procs: Processes, peer: RosPeer, tmp_path: Path
+) -> None:
+    """Messages DDS acknowledged but the recorder had not taken yet are written at stop, not dropped."""
+    out, count = tmp_path / "camera", 120
+    frame = bytearray(serialize_message(_camera_image()))
+    pub = peer.node.create_publisher(Image, "/camera", qos.PLAY_STEPS)
+    recorder, rec_log = procs.node("recorder", "recorder", output=out, topics=["/camera"], compression="zstd")
+    assert peer.spin_until(lambda: pub.get_subscription_count() > 0, 60), rec_log.read_text()
+    time.sleep(0.3)
+    for i in range(count):
+        frame[4:8] = i.to_bytes(4, "little")  # header.stamp.sec = index
+        pub.publish(bytes(frame))
+    assert pub.wait_for_all_acked(Duration(seconds=60))
+    assert stop(recorder) == 0
+    with BagReader(out) as reader:
+        indices = [int.from_bytes(m.data[4:8], "little") for m in reader.messages()]
+    assert indices == list(range(count))
+
+
+def _camera_image() -> Image:
+    image = Image(height=480, width=640, encoding="rgb8", step=640 * 3)
+    image.data = np.random.default_rng(0).integers(0, 256, 480 * 640 * 3, dtype=np.uint8).tobytes()
+    return image
+
+
+# -- trainer -------------------------------------------------------------------------------------------
+
+
+class TrainerClient:
+    """Publishes LabelledSegments to the trainer and tracks its acknowledged count."""
+
+    def __init__(self, peer: RosPeer) -> None:
+        self.peer = peer
+        self.statuses: list[TrainerStatus] = []
+        self.pub = peer.node.create_publisher(LabelledSegment, "/segments", qos.SEGMENTS)
+        peer.node.create_subscription(TrainerStatus, "/trainer/status", self.statuses.append, qos.STATUS)
+
+    @property
+    def acknowledged(self) -> int:
+        return max((s.buffer_segments for s in self.statuses), default=-1)
+
+    def wait_connected(self, timeout: float = 60.0) -> None:
+        assert self.peer.spin_until(lambda: self.pub.get_subscription_count() > 0, timeout), "no trainer"
+
+    def wait_acknowledged(self, count: int, timeout: float = 30.0) -> None:
+        ok = self.peer.spin_until(lambda: self.acknowledged >= count, timeout)
+        assert ok, f"trainer acknowledged {self.acknowledged}, expected {count}"
+
+
+def _segment_msgs(episode: Episode) -> list[LabelledSegment]:
+    return [
+        labelled_segment_msg(seg, [play_step_msg(episode, t) for t in range(seg.start, seg.end + 1)], "test")
+        for seg in episode.segments
+    ]
+
+
+def _trainer(procs: Processes, tmp_path: Path, log_name: str, **params: object):
+    params = {
+        "buffer_dir": tmp_path / "buffer", "checkpoint_dir": tmp_path / "checkpoints", "retrain_every": 0,
+        "status_period_s": 0.2, **params,
+    }  # fmt: skip
+    return procs.node("trainer", log_name, **params)
+
+
+def test_trainer_sigkill_and_restart_keeps_every_acknowledged_segment(
+    procs: Processes, peer: RosPeer, tmp_path: Path
+) -> None:
+    episode = generate_episode(PlayConfig(), 0)
+    msgs = _segment_msgs(episode)
+    client = TrainerClient(peer)
+    trainer, _ = _trainer(procs, tmp_path, "trainer1")
+    client.wait_connected()
+    for msg in msgs:
+        client.pub.publish(msg)
+    client.wait_acknowledged(3)  # kill it while it may still be storing the rest
+    trainer.send_signal(signal.SIGKILL)
+    trainer.wait(timeout=10)
+    peer.spin_until(lambda: False, 0.3)  # statuses already in flight
+    acknowledged = client.acknowledged
+    assert acknowledged >= 3
+
+    client.statuses.clear()
+    restarted, log = _trainer(procs, tmp_path, "trainer2")
+    wait_for_log(log, r"buffer .*: (\d+) segments", 60, restarted)
+    assert client.peer.spin_until(lambda: bool(client.statuses), 30)
+    restored = client.statuses[-1].buffer_segments
+    assert acknowledged <= restored <= len(msgs)
+    assert stop(restarted) == 0
+    with AugmentationBuffer(tmp_path / "buffer") as buffer:
+        assert len(buffer) == restored
+        for stored, seg in zip(buffer, episode.segments, strict=False):
+            assert (stored.episode_id, stored.start, stored.end) == (episode.episode_id, seg.start, seg.end)
+            assert stored.instruction == seg.instruction and stored.source == "test"
+            np.testing.assert_array_equal(stored.actions, episode.actions[seg.start : seg.end])
+            np.testing.assert_array_equal(stored.frames, episode.frames[seg.start : seg.end + 1])
+            np.testing.assert_array_equal(stored.states, episode.states[seg.start : seg.end + 1])
+
+
+def test_trainer_logs_malformed_segments_and_keeps_running(
+    procs: Processes, peer: RosPeer, tmp_path: Path
+) -> None:
+    episode = generate_episode(PlayConfig(), 1)
+    good = _segment_msgs(episode)[0]
+    wrong_encoding, wrong_size, nan_action = _segment_msgs(episode)[1:4]
+    wrong_encoding.steps[0].observation.encoding = "bgr8"
+    small = np.zeros((32, 32, 3), np.uint8)
+    image = wrong_size.steps[1].observation
+    image.height, image.width, image.step, image.data = 32, 32, 96, small.tobytes()
+    nan_action.steps[0].action = [math.nan]
+
+    client = TrainerClient(peer)
+    trainer, log = _trainer(procs, tmp_path, "trainer")
+    client.wait_connected()
+    for msg in (wrong_encoding, wrong_size, nan_action, good):
+        client.pub.publish(msg)
+    client.wait_acknowledged(1)
+    text = wait_for_log(log, r"(?s)dropped.*dropped.*dropped.*", 10).group(0)
+    assert "encoding is 'bgr8'" in text
+    assert "observation is 32x32, expected 64x64" in text
+    assert "NaN" in text
+    peer.spin_until(lambda: False, 0.5)
+    assert client.acknowledged == 1 and trainer.poll() is None
+    assert stop(trainer) == 0
+
+
+def test_trainer_retrain_service_writes_policy_version_1(
+    procs: Processes, peer: RosPeer, tmp_path: Path
+) -> None:
+    client = TrainerClient(peer)
+    trainer, _ = _trainer(procs, tmp_path, "trainer", train_steps=20, eval_episodes=8, batch_size=32)
+    client.wait_connected()
+    for msg in _segment_msgs(generate_episode(PlayConfig(), 2)):
+        client.pub.publish(msg)
+    client.wait_acknowledged(10)
+    retrain = peer.node.create_client(Retrain, "/trainer/retrain")
+    assert retrain.wait_for_service(timeout_sec=30)
+    future = retrain.call_async(Retrain.Request(wait=True))
+    assert peer.spin_until(future.done, 120), "no answer from ~/retrain"
+    response = future.result()
+    assert response.accepted, response.message
+    assert response.policy_version == 1
+    assert 0.0 <= response.eval_success_rate <= 1.0
+    checkpoints = sorted((tmp_path / "checkpoints").glob("policy-v*.pt"))
+    assert [c.name for c in checkpoints] == ["policy-v0001.pt"]
+    assert client.peer.spin_until(lambda: client.statuses[-1].policy_version == 1, 10)
+    assert stop(trainer) == 0
+
+
+# -- bag_player ----------------------------------------------------------------------------------------
+
+
+def _subscribe_raw(peer: RosPeer, topic: str, msg_type: type, profile) -> list[tuple[float, bytes]]:
+    received: list[tuple[float, bytes]] = []
+    peer.node.create_subscription(
+        msg_type, topic, lambda data: received.append((time.monotonic(), data)), profile, raw=True
+    )
+    return received
+
+
+def test_bag_player_fast_delivers_every_message_in_order(
+    procs: Processes, peer: RosPeer, tmp_path: Path
+) -> None:
+    bag = tmp_path / "play"
+    write_play_bag(bag, _episodes(3), annotated=True)
+    with BagReader(bag) as reader:
+        want = [bytes(m.data) for m in reader.messages(["/play/steps"])]
+    received = _subscribe_raw(peer, "/play/steps", PlayStep, qos.PLAY_STEPS)
+    player, log = procs.node(
+        "bag_player", "player", bag=bag, rate=0.0, wait_for_subscribers=1, topics=["/play/steps"]
+    )
+    assert peer.spin_until(lambda: len(received) >= len(want) or player.poll() is not None, 60)
+    peer.spin_until(lambda: len(received) >= len(want), 5)
+    assert player.wait(timeout=30) == 0, log.read_text()
+    got = [bytes(data) for _, data in received]
+    assert len(got) == len(want), f"lost {len(want) - len(got)} of {len(want)}"
+    # DDS pads a payload to a multiple of 4 bytes: the same CDR bytes, plus up to 3 zero bytes.
+    for i, (g, w) in enumerate(zip(got, want, strict=True)):
+        assert g[: len(w)] == w and len(g) - len(w) < 4 and not any(g[len(w) :]), f"message {i} differs"
+
+
+def test_bag_player_rate_1_takes_the_recorded_duration(
+    procs: Processes, peer: RosPeer, tmp_path: Path
+) -> None:
+    bag, step_ns, count = tmp_path / "timed", 100_000_000, 21  # 2.0 s recorded
+    episode = generate_episode(PlayConfig(), 0)
+    with BagWriter(bag) as writer:
+        writer.add_topic(topic_info("/play/steps", "playseg_msgs/msg/PlayStep"))
+        for i in range(count):
+            writer.write("/play/steps", serialize_message(play_step_msg(episode, i)), 10**18 + i * step_ns)
+    received = _subscribe_raw(peer, "/play/steps", PlayStep, qos.PLAY_STEPS)
+    player, _ = procs.node("bag_player", "player", bag=bag, rate=1.0, wait_for_subscribers=1)
+    assert peer.spin_until(lambda: len(received) >= count, 60), f"received {len(received)} of {count}"
+    span = received[-1][0] - received[0][0]
+    assert 1.6 <= span <= 3.5, f"playback of a 2.0 s recording took {span:.2f} s"
+    assert player.wait(timeout=30) == 0
+
+
+# -- playseg up ----------------------------------------------------------------------------------------
+
+
+def test_playseg_up_sigint_stops_every_node_and_finishes_the_bag(procs: Processes, tmp_path: Path) -> None:
+    out = tmp_path / "live"
+    config = yaml.safe_load((Path(__file__).parent.parent / "config" / "live_play.yaml").read_text())
+    del config["ros_domain_id"]  # the test's private domain
+    config["nodes"][0]["parameters"]["output"] = str(out)
+    config["nodes"][1]["parameters"]["rate_hz"] = 100  # an integer for a float parameter is accepted
+    (tmp_path / "graph.yaml").write_text(yaml.safe_dump(config))
+    launcher, log = procs.start(
+        [sys.executable, "-m", "playseg_ros.cli", "up", str(tmp_path / "graph.yaml")], "up"
+    )
+    wait_for_log(log, r"play_source\]: 1 subscribers: starting", 60, launcher)
+    time.sleep(1.0)
+    nodes = descendants(launcher.pid)
+    assert len(nodes) == 2
+    assert stop(launcher, timeout=40) == 0, log.read_text()[-3000:]
+    assert not [pid for pid in nodes if Path(f"/proc/{pid}").exists()]
+    assert (out / "metadata.yaml").is_file() and not (tmp_path / "live.partial").exists()
+    with BagReader(out) as reader:
+        counts = {topic: 0 for topic in reader.topics}
+        for message in reader.messages():
+            counts[message.topic] += 1
+    assert counts["/play/steps"] >= 50, counts
+    assert counts["/play/ground_truth"] >= 1, counts
