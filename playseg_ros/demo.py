@@ -1,69 +1,256 @@
-"""`make demo`: the main job on the embedded default.
+"""`make demo`: the whole pipeline on the sample bags in bags/, live on a real ROS 2 graph.
 
-Today: a play episode travels as PlayStep messages from one ROS 2 process to another over DDS and is
-checked on arrival. Later work replaces this with the full pipeline (train, segment live, record, retrain).
+1. Train a PS model on bags/annotated (cached under build/demo/cache, keyed by the bag's content).
+2. Bring up trainer, recorder and segmenter nodes; the trainer trains policy v1 on the annotated segments
+   only ("before augmentation").
+3. The bag player publishes the unannotated play of bags/play as fast as the subscribers keep up; the
+   segmenter publishes LabelledSegment live; the recorder writes play + segments to an output bag; the
+   trainer buffers every segment.
+4. The trainer retrains (v2 = annotated + extracted segments) and evaluates on the same seeded episodes.
+5. Print precision / recall / label accuracy against the ground truth of bags/play (read back from the
+   recorded output bag), policy success before and after, where the outputs are; write a PNG timeline.
 """
 
 from __future__ import annotations
 
-import subprocess
+import hashlib
+import json
+import math
+import shutil
 import sys
 import time
+from pathlib import Path
 
-NUM_STEPS = 50
+from playseg_core.babyai import INSTRUCTIONS
+
+DEMO_DIR = Path("build/demo")
+PLAY_TIMEOUT_S = 240.0
 
 
-def _publisher() -> None:
-    import rclpy
-    from playseg_msgs.msg import PlayStep
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+def _log(message: str) -> None:
+    print(f"[demo {time.strftime('%H:%M:%S')}] {message}", flush=True)
 
-    rclpy.init()
-    node = rclpy.create_node("playseg_demo_source")
-    qos = QoSProfile(
-        depth=NUM_STEPS + 1,
-        reliability=ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+
+def _cache_key(bag: Path) -> str:
+    """The bag's content and the model/training code: a cached model is reused only if both are the same."""
+    import playseg_core.models
+    import playseg_core.training
+
+    digest = hashlib.sha256()
+    for file in [
+        *sorted(bag.glob("*.mcap")),
+        Path(playseg_core.models.__file__),
+        Path(playseg_core.training.__file__),
+    ]:
+        digest.update(file.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def ensure_ps_model(annotated_bag: Path, cache_dir: Path) -> Path:
+    """Train the PS model on the annotated bag unless a model for this exact bag is cached."""
+    from playseg_core.training import TrainConfig, save_checkpoint, train_ps
+    from playseg_ros.play_bags import read_play_bag
+
+    model_path = cache_dir / f"ps-{_cache_key(annotated_bag)}.pt"
+    if model_path.exists():
+        _log(f"reusing cached PS model {model_path}")
+        return model_path
+    episodes = [e for e in read_play_bag(annotated_bag) if e.segments]
+    split = max(1, len(episodes) // 5)
+    train, val = episodes[split:], episodes[:split]
+    _log(
+        f"training the PS model on {len(train)} annotated episodes ({sum(len(e.segments) for e in train)} segments), "
+        f"validating on {len(val)} ..."
     )
-    pub = node.create_publisher(PlayStep, "/play/steps", qos)
-    for step in range(NUM_STEPS + 1):
-        msg = PlayStep(episode_id="demo-0", step=step, episode_end=step == NUM_STEPS)
-        msg.observation.height = msg.observation.width = 64
-        msg.observation.encoding = "rgb8"
-        msg.observation.step = 64 * 3
-        msg.observation.data = bytes([step % 256]) * (64 * 64 * 3)
-        msg.action = [] if step == NUM_STEPS else [float(step % 3)]
-        pub.publish(msg)
-    end = time.monotonic() + 20
+    result = train_ps(train, val, INSTRUCTIONS, TrainConfig(epochs=8, num_threads=2))
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(model_path, result.model, {"trained_on": str(annotated_bag)})
+    _log(f"PS model trained in {result.seconds:.0f} s -> {model_path}")
+    return model_path
+
+
+class _DemoClient:
+    """The demo's own ROS node: watches segments and trainer status, calls the trainer's services."""
+
+    def __init__(self, graph) -> None:
+        import rclpy
+        from playseg_msgs.msg import LabelledSegment, TrainerStatus
+        from playseg_msgs.srv import Retrain
+
+        from playseg_ros import qos
+
+        rclpy.init()
+        self.graph = graph
+        self.rclpy = rclpy
+        self.node = rclpy.create_node("playseg_demo")
+        self.segments = 0
+        self.last_segment_at = time.monotonic()
+        self.status = None
+        self.node.create_subscription(LabelledSegment, "/segments", self._on_segment, qos.SEGMENTS)
+        self.node.create_subscription(TrainerStatus, "/trainer/status", self._on_status, qos.STATUS)
+        self.retrain = self.node.create_client(Retrain, "/trainer/retrain")
+        self.Retrain = Retrain
+
+    def _on_segment(self, msg) -> None:
+        self.segments += 1
+        self.last_segment_at = time.monotonic()
+
+    def _on_status(self, msg) -> None:
+        self.status = msg
+
+    def spin_until(self, condition, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if condition():
+                return True
+            self._check_nodes()
+            self.rclpy.spin_once(self.node, timeout_sec=0.1)
+        return condition()
+
+    def _check_nodes(self) -> None:
+        """Fail fast, naming the node and its log, when a node of the graph died."""
+        for name, proc in self.graph.processes.items():
+            if proc.poll() is not None:
+                raise RuntimeError(
+                    f"node {name} exited with code {proc.returncode}: see {self.graph.log_dir / name}.log"
+                )
+
+    def call_retrain(self, timeout_s: float = 600.0):
+        if not self.spin_until(lambda: self.retrain.service_is_ready(), 60.0):
+            raise RuntimeError(
+                "the trainer's retrain service did not come up (see build/demo/logs/trainer.log)"
+            )
+        future = self.retrain.call_async(self.Retrain.Request(wait=True))
+        if not self.spin_until(future.done, timeout_s):
+            raise RuntimeError("retraining did not finish in time")
+        return future.result()
+
+    def close(self) -> None:
+        self.node.destroy_node()
+        self.rclpy.try_shutdown()
+
+
+def run_demo(bags_dir: Path = Path("bags"), out_dir: Path = DEMO_DIR) -> int:
+    from playseg_core.metrics import evaluate, format_metrics_table
+    from playseg_ros.launch import Graph, GraphSpec, NodeSpec
+    from playseg_ros.play_bags import read_play_bag, read_segment_bag
+
+    began = time.monotonic()
+    annotated_bag, play_bag = bags_dir / "annotated", bags_dir / "play"
+    for bag in (annotated_bag, play_bag):
+        if not (bag / "metadata.yaml").is_file():
+            print(f"error: sample bag {bag} is missing (regenerate with `make bags`)", file=sys.stderr)
+            return 2
+    model_path = ensure_ps_model(annotated_bag, out_dir / "cache")
+
+    run_dir = out_dir / "run"
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    run_dir.mkdir(parents=True)
+    output_bag = run_dir / "output_bag"
+    policy_params = {"train_steps": 400, "batch_size": 128, "policy_channels": 32, "eval_episodes": 256}
+    services = Graph(
+        GraphSpec(
+            [
+                NodeSpec(
+                    "trainer",
+                    "trainer",
+                    {
+                        "buffer_dir": str(run_dir / "buffer"),
+                        "checkpoint_dir": str(run_dir / "policies"),
+                        "base_data": str(annotated_bag),
+                        **policy_params,
+                    },
+                ),
+                NodeSpec(
+                    "recorder",
+                    "recorder",
+                    {"output": str(output_bag), "topics": ["/play/steps", "/play/ground_truth", "/segments"]},
+                ),
+                NodeSpec("segmenter", "segmenter", {"model": str(model_path)}),
+            ]
+        ),
+        log_dir=run_dir / "logs",
+    )
+    _log("starting trainer, recorder and segmenter nodes (logs in build/demo/run/logs) ...")
+    services.start()
+    client = _DemoClient(services)
     try:
-        while time.monotonic() < end:
-            rclpy.spin_once(node, timeout_sec=0.1)
-    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
-        pass  # stopped by the demo: SIGTERM shuts rclpy down
+        _log("trainer: policy v1 on the annotated segments only (before augmentation) ...")
+        before = client.call_retrain()
+        _log(f"policy v{before.policy_version}: success {before.eval_success_rate:.3f} ({before.message})")
 
+        truth_episodes = read_play_bag(play_bag, truth=True)
+        player = Graph(
+            GraphSpec(
+                [
+                    NodeSpec(
+                        "bag_player",
+                        "bag_player",
+                        {
+                            "bag": str(play_bag),
+                            "rate": 0.0,
+                            "wait_for_subscribers": 2,
+                            "exit_when_done": True,
+                        },
+                    )
+                ]
+            ),
+            log_dir=run_dir / "logs",
+        )
+        _log(f"bag_player: publishing {len(truth_episodes)} unannotated play episodes from {play_bag} ...")
+        player.start()
+        started = time.monotonic()
+        client.spin_until(lambda: player.processes["bag_player"].poll() is not None, PLAY_TIMEOUT_S)
+        # The segmenter decides the last segments at each episode's end: wait until the stream is quiet.
+        client.spin_until(lambda: time.monotonic() - client.last_segment_at > 3.0, 60.0)
+        player.stop()
+        _log(
+            f"segmenter published {client.segments} LabelledSegments in {time.monotonic() - started:.1f} s; "
+            f"trainer buffer: {client.status.buffer_segments if client.status else '?'} segments"
+        )
 
-def run_demo() -> int:
-    import rclpy
-    from playseg_msgs.msg import PlayStep
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        _log("trainer: policy v2 on annotated + extracted segments (after augmentation) ...")
+        after = client.call_retrain()
+        _log(f"policy v{after.policy_version}: success {after.eval_success_rate:.3f} ({after.message})")
+    finally:
+        client.close()
+        services.stop()
 
-    print("[demo] starting a PlayStep publisher in a second process ...")
-    source = subprocess.Popen([sys.executable, "-c", "from playseg_ros.demo import _publisher; _publisher()"])
-    rclpy.init()
-    node = rclpy.create_node("playseg_demo_sink")
-    steps: list[int] = []
-    qos = QoSProfile(
-        depth=NUM_STEPS + 1,
-        reliability=ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    clips = read_segment_bag(output_bag)
+    predicted: dict[str, list] = {e.episode_id: [] for e in truth_episodes}
+    for clip in clips:
+        predicted.setdefault(clip.episode_id, []).append(clip.segment)
+    truth = {e.episode_id: e.segments for e in truth_episodes}
+    num_steps = {e.episode_id: e.num_steps for e in truth_episodes}
+    metrics = evaluate(predicted, truth, num_steps)
+    print(format_metrics_table(metrics))
+    summary = {
+        "segments": len(clips),
+        "precision": metrics["boundary_precision_tol0"],
+        "recall": metrics["boundary_recall_tol0"],
+        "label_accuracy": metrics["label_accuracy"],
+        "policy_success_before": before.eval_success_rate,
+        "policy_success_after": after.eval_success_rate,
+        "seconds": time.monotonic() - began,
+    }
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    from playseg_core.timeline import plot_timeline
+
+    timeline = run_dir / "timeline.png"
+    plot_timeline(timeline, truth_episodes[:6], predicted)
+    print()
+    _log(
+        f"boundary precision {summary['precision']:.3f}  recall {summary['recall']:.3f}  "
+        f"label accuracy {summary['label_accuracy']:.3f}  (exact match, vs ground truth of {play_bag})"
     )
-    node.create_subscription(PlayStep, "/play/steps", lambda m: steps.append(m.step), qos)
-    deadline = time.monotonic() + 20
-    while len(steps) < NUM_STEPS + 1 and time.monotonic() < deadline:
-        rclpy.spin_once(node, timeout_sec=0.1)
-    source.terminate()
-    source.wait()
-    rclpy.shutdown()
-    ok = steps == list(range(NUM_STEPS + 1))
-    print(f"[demo] received {len(steps)} of {NUM_STEPS + 1} PlayStep messages over DDS, in order: {ok}")
-    return 0 if ok else 1
+    _log(
+        f"policy success before augmentation {before.eval_success_rate:.3f} -> after {after.eval_success_rate:.3f} "
+        f"(256 fixed seeded BabyAI episodes, success within 25 steps)"
+    )
+    _log(
+        f"outputs: recorded bag {output_bag} (play steps + /segments), policies {run_dir / 'policies'}, "
+        f"buffer {run_dir / 'buffer'}, timeline {timeline}, summary {run_dir / 'summary.json'}"
+    )
+    _log(f"done in {summary['seconds']:.0f} s")
+    return 0 if not math.isnan(after.eval_success_rate) else 1

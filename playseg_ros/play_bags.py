@@ -306,3 +306,11 @@ def write_dataset_bags(
             out / name, dataset_bag_episodes(dataset, name), annotated, **writer_options
         )
     return summaries
+
+
+def load_annotated_episodes(path: Path | str) -> list[Episode]:
+    """Annotated episodes from a play bag (its /play/annotations) or a playseg dataset (its 'train' split)."""
+    path = Path(path)
+    if (path / "metadata.yaml").is_file():
+        return [episode for episode in iter_play_bag(path) if episode.segments]
+    return list(PlayDataset.open(path).episodes("train"))

@@ -3,8 +3,8 @@ keep up (there is no `ros2 bag play` in the package registry).
 
 `rate` 1.0 = recorded speed, 2.0 = twice as fast, 0 = as fast as possible: with the reliable KEEP_ALL
 profile a publisher blocks while subscribers' queues are full instead of dropping, so nothing is lost.
-`wait_for_subscribers` delays the start until every played topic has that many subscribers (volatile
-topics have no history for late joiners). Annotation topics are published transient-local.
+`wait_for_subscribers` delays the start until each of `wait_topics` (default: the PlayStep topics) has that
+many subscribers (volatile topics have no history for late joiners). Annotation topics are published transient-local.
 """
 
 from __future__ import annotations
@@ -28,8 +28,9 @@ class BagPlayerNode(Node):
         self.rate = declare(self, "rate", 1.0, "speed multiple of the recording; 0 = as fast as possible")
         topics = declare(self, "topics", [""], "topics to play (empty = all)")
         self.wait_for_subscribers = declare(
-            self, "wait_for_subscribers", 0, "start once each topic has N subscribers"
+            self, "wait_for_subscribers", 0, "start once each of wait_topics has this many subscribers"
         )
+        wait_topics = declare(self, "wait_topics", [""], "topics to wait on (empty = the PlayStep topics)")
         self.exit_when_done = declare(self, "exit_when_done", True, "shut down after the last message")
         require(bool(self.bag), self, "bag must be set")
         require(self.rate >= 0, self, "rate must be >= 0")
@@ -42,6 +43,11 @@ class BagPlayerNode(Node):
         for topic, type_name in self.topic_types.items():
             profile = qos.ANNOTATIONS if type_name.endswith("/Annotation") else qos.PLAY_STEPS
             self.publishers_by_topic[topic] = self.create_publisher(message_class(type_name), topic, profile)
+        self.wait_topics = [t for t in wait_topics if t] or [
+            t for t, ty in self.topic_types.items() if ty == "playseg_msgs/msg/PlayStep"
+        ]
+        unknown = sorted(set(self.wait_topics) - set(self.topic_types))
+        require(not unknown, self, f"wait_topics {unknown} are not played")
         self.published = 0
         self.done = threading.Event()
         threading.Thread(target=self._play, daemon=True).start()
@@ -72,8 +78,8 @@ class BagPlayerNode(Node):
         if self.wait_for_subscribers <= 0:
             return
         while rclpy.ok() and any(
-            pub.get_subscription_count() < self.wait_for_subscribers
-            for pub in self.publishers_by_topic.values()
+            self.publishers_by_topic[topic].get_subscription_count() < self.wait_for_subscribers
+            for topic in self.wait_topics
         ):
             time.sleep(0.05)
 

@@ -17,10 +17,12 @@ from playseg_msgs.srv import EvaluatePolicy, Retrain, SaveBuffer
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
 from playseg_core.augmentation import AugmentationTrainer, TrainerConfig, demonstrations_from_episodes
+from playseg_core.policy import PolicyConfig
 from playseg_core.policy_training import PolicyTrainConfig
 from playseg_ros import qos
 from playseg_ros.live_convert import buffered_segment_from_msg
 from playseg_ros.nodes.common import declare, require, run_node
+from playseg_ros.play_bags import load_annotated_episodes
 
 
 class TrainerNode(LifecycleNode):
@@ -29,11 +31,12 @@ class TrainerNode(LifecycleNode):
         self.p = {
             "buffer_dir": declare(self, "buffer_dir", "", "directory of the persistent augmentation buffer"),
             "checkpoint_dir": declare(self, "checkpoint_dir", "", "where versioned policy checkpoints go"),
-            "base_dataset": declare(
+            "base_data": declare(
                 self,
-                "base_dataset",
+                "base_data",
                 "",
-                "playseg dataset whose 'train' split is the annotated data ('' = none)",
+                "annotated data the policy always trains on: a play bag (its /play/annotations) or a playseg "
+                "dataset (its 'train' split); '' = none",
             ),
             "segments_topic": declare(self, "segments_topic", "/segments", "LabelledSegment input topic"),
             "status_topic": declare(self, "status_topic", "/trainer/status", "TrainerStatus output topic"),
@@ -45,6 +48,7 @@ class TrainerNode(LifecycleNode):
             ),
             "train_steps": declare(self, "train_steps", 2000, "optimiser steps per retraining"),
             "batch_size": declare(self, "batch_size", 256, "imitation batch size"),
+            "policy_channels": declare(self, "policy_channels", 64, "width of the FiLM policy network"),
             "seed": declare(self, "seed", 0, "training seed"),
             "eval_episodes": declare(self, "eval_episodes", 512, "fixed seeded evaluation episodes"),
             "eval_max_steps": declare(self, "eval_max_steps", 25, "success must come within this many steps"),
@@ -72,11 +76,11 @@ class TrainerNode(LifecycleNode):
             require(bool(p["checkpoint_dir"]), self, "checkpoint_dir must be set")
             require(p["retrain_every"] >= 0, self, "retrain_every must be >= 0")
             require(p["eval_episodes"] > 0 and p["eval_max_steps"] > 0, self, "eval_* must be > 0")
-            base = []
-            if p["base_dataset"]:
-                from playseg_core.dataset import PlayDataset
-
-                base = demonstrations_from_episodes(PlayDataset.open(p["base_dataset"]).episodes("train"))
+            base = (
+                demonstrations_from_episodes(load_annotated_episodes(p["base_data"]))
+                if p["base_data"]
+                else []
+            )
             config = TrainerConfig(
                 buffer_dir=p["buffer_dir"],
                 checkpoint_dir=p["checkpoint_dir"],
@@ -84,11 +88,16 @@ class TrainerNode(LifecycleNode):
                 min_confidence=p["min_confidence"],
                 eval_episodes=p["eval_episodes"],
                 eval_max_steps=p["eval_max_steps"],
-                train=PolicyTrainConfig(steps=p["train_steps"], batch_size=p["batch_size"], seed=p["seed"]),
+                train=PolicyTrainConfig(
+                    steps=p["train_steps"],
+                    batch_size=p["batch_size"],
+                    seed=p["seed"],
+                    policy=PolicyConfig(channels=p["policy_channels"]),
+                ),
             )
             self.trainer = AugmentationTrainer(config, base)
-        except (ValueError, OSError) as exc:
-            self.get_logger().error(str(exc))
+        except Exception as exc:  # any configuration problem: report it, stay unconfigured
+            self.get_logger().error(f"configure failed: {exc!r}")
             return TransitionCallbackReturn.FAILURE
         if self.trainer.buffer.recovered_bytes:
             self.get_logger().warning(f"cut a torn record of {self.trainer.buffer.recovered_bytes} bytes")

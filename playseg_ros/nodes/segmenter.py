@@ -1,0 +1,180 @@
+"""segmenter: PlayStep in -> LabelledSegment out, Play Segmentation running online per episode.
+
+Each episode gets its own `StreamingSegmenter` (playseg_core.streaming); a segment is published the moment
+the online decoder decides it, carrying its PlaySteps so consumers need no other stream. Malformed steps
+(wrong image size or encoding, NaN action, a gap or repeat in step numbers) are logged with their reason
+and end that episode's segmentation (a gap cannot be segmented across); the node keeps running. An
+episode whose steps stop arriving without `episode_end` is dropped after `episode_timeout_s`.
+
+Lifecycle: configure loads the model; activate subscribes; deactivate unsubscribes (open episodes are
+kept); cleanup drops open episodes and the model.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import torch
+from playseg_msgs.msg import LabelledSegment, PlayStep
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+
+from playseg_core.streaming import StreamingSegmenter
+from playseg_core.training import load_checkpoint
+from playseg_ros import qos
+from playseg_ros.live_convert import MalformedStep, labelled_segment_msg, step_from_msg
+from playseg_ros.nodes.common import declare, require, run_node
+
+
+@dataclass
+class _OpenEpisode:
+    segmenter: StreamingSegmenter
+    steps: list[PlayStep] = field(default_factory=list)  # from the last decided boundary on
+    first_step: int = 0  # step number of steps[0]
+    last_seen: float = field(default_factory=time.monotonic)
+
+    @property
+    def next_step(self) -> int:
+        return self.first_step + len(self.steps)
+
+
+class SegmenterNode(LifecycleNode):
+    def __init__(self) -> None:
+        super().__init__("segmenter")
+        self.model_path = declare(self, "model", "", "PS checkpoint (playseg train)")
+        self.model_id = declare(
+            self, "model_id", "", "id put in LabelledSegment.model_id ('' = checkpoint file name)"
+        )
+        self.steps_topic = declare(self, "steps_topic", "/play/steps", "PlayStep input topic")
+        self.segments_topic = declare(self, "segments_topic", "/segments", "LabelledSegment output topic")
+        self.min_confidence = declare(
+            self, "min_confidence", 0.0, "publish only segments with label confidence >= this"
+        )
+        self.min_len = declare(self, "min_len", 1, "minimum segment length in steps")
+        self.episode_timeout_s = declare(
+            self, "episode_timeout_s", 60.0, "drop an episode silent for this long"
+        )
+        self.threads = declare(
+            self, "torch_threads", 1, "torch CPU threads (more threads than cores is slow)"
+        )
+        self.model = None
+        self.episodes: dict[str, _OpenEpisode] = {}
+        self.finished: set[str] = set()
+        self.published = 0
+        self._sub = None
+        self._pub = self.create_publisher(LabelledSegment, self.segments_topic, qos.SEGMENTS)
+        self._frame_shape = None
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        try:
+            require(bool(self.model_path), self, "model must be set")
+            require(self.min_len >= 1, self, "min_len must be >= 1")
+            require(self.episode_timeout_s > 0, self, "episode_timeout_s must be > 0")
+            require(self.threads >= 1, self, "torch_threads must be >= 1")
+            torch.set_num_threads(self.threads)
+            self.model, _ = load_checkpoint(self.model_path)
+        except ValueError as exc:
+            self.get_logger().error(str(exc))
+            return TransitionCallbackReturn.FAILURE
+        self.model_id = self.model_id or self.model_path.rsplit("/", 1)[-1]
+        self.create_timer(min(5.0, self.episode_timeout_s / 2), self._drop_silent_episodes)
+        self.get_logger().info(
+            f"model {self.model_path} (L_max {self.model.max_len}); {self.steps_topic} -> {self.segments_topic}"
+        )
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._sub = self.create_subscription(PlayStep, self.steps_topic, self._on_step, qos.PLAY_STEPS)
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        if self._sub is not None:
+            self.destroy_subscription(self._sub)
+            self._sub = None
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        if self.episodes:
+            self.get_logger().warning(
+                f"dropping {len(self.episodes)} unfinished episodes: {sorted(self.episodes)}"
+            )
+        self.episodes.clear()
+        self.model = None
+        return TransitionCallbackReturn.SUCCESS
+
+    def _on_step(self, msg: PlayStep) -> None:
+        try:
+            self._segment_step(msg)
+        except MalformedStep as exc:
+            self.get_logger().warning(f"{self.steps_topic}: malformed PlayStep, episode dropped: {exc}")
+            self.episodes.pop(msg.episode_id, None)
+            self.finished.add(msg.episode_id)
+        except Exception as exc:  # a failure on one episode must not take the node down
+            self.get_logger().error(
+                f"episode {msg.episode_id!r} step {msg.step}: segmentation failed, dropped: {exc!r}"
+            )
+            self.episodes.pop(msg.episode_id, None)
+            self.finished.add(msg.episode_id)
+
+    def _segment_step(self, msg: PlayStep) -> None:
+        data = step_from_msg(msg, self._frame_shape)
+        episode = self.episodes.get(data.episode_id)
+        if episode is None:
+            if data.episode_id in self.finished:
+                raise MalformedStep(
+                    f"episode {data.episode_id!r} step {data.step}: the episode already ended"
+                )
+            if data.step != 0:
+                raise MalformedStep(
+                    f"episode {data.episode_id!r} step {data.step}: episode must start at step 0"
+                )
+            episode = self.episodes[data.episode_id] = _OpenEpisode(
+                StreamingSegmenter(self.model, self.min_len)
+            )
+            self._frame_shape = self._frame_shape or data.frame.shape
+        elif data.step != episode.next_step:
+            kind = "gap" if data.step > episode.next_step else "repeat"
+            raise MalformedStep(
+                f"episode {data.episode_id!r} step {data.step}: step {kind}, expected step {episode.next_step}"
+            )
+        episode.steps.append(msg)
+        episode.last_seen = time.monotonic()
+        decided = episode.segmenter.push(data.frame)
+        if data.episode_end:
+            decided += episode.segmenter.finish()
+            del self.episodes[data.episode_id]
+            self.finished.add(data.episode_id)
+        for segment in decided:
+            self._publish(episode, segment)
+        if decided:
+            drop = decided[-1].end - episode.first_step
+            episode.steps = episode.steps[drop:]
+            episode.first_step += drop
+
+    def _publish(self, episode: _OpenEpisode, segment) -> None:
+        if segment.confidence < self.min_confidence:
+            return
+        steps = episode.steps[segment.start - episode.first_step : segment.end - episode.first_step + 1]
+        self._pub.publish(
+            labelled_segment_msg(segment, steps, self.model_id, self.get_clock().now().to_msg())
+        )
+        self.published += 1
+
+    def _drop_silent_episodes(self) -> None:
+        now = time.monotonic()
+        for episode_id, episode in list(self.episodes.items()):
+            if now - episode.last_seen > self.episode_timeout_s:
+                self.get_logger().warning(
+                    f"episode {episode_id!r}: no step for {self.episode_timeout_s} s and no episode_end: dropped "
+                    f"after step {episode.next_step - 1}"
+                )
+                del self.episodes[episode_id]
+                self.finished.add(episode_id)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(SegmenterNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

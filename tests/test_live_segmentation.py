@@ -1,0 +1,144 @@
+"""The segmenter node on a real ROS graph: live segments equal offline segmentation; bad steps are
+logged and survived."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+import torch
+from playseg_msgs.msg import LabelledSegment, PlayStep
+
+from playseg_core.babyai import INSTRUCTIONS, PlayConfig, generate_episode
+from playseg_core.models import PSModel
+from playseg_core.segmentation import segment_episode
+from playseg_core.training import default_model_config, load_checkpoint, save_checkpoint
+from playseg_ros import qos
+from playseg_ros.live_convert import play_step_msg
+from playseg_ros.play_bags import read_play_bag, write_play_bag
+
+
+@pytest.fixture(scope="module")
+def model_path(tmp_path_factory) -> Path:
+    # An untrained model segments arbitrarily, which is all the equality needs (and exercises many cuts).
+    torch.manual_seed(3)
+    path = tmp_path_factory.mktemp("model") / "ps.pt"
+    save_checkpoint(path, PSModel(default_model_config(len(INSTRUCTIONS)), list(INSTRUCTIONS)))
+    return path
+
+
+def _start_node(kind: str, log: Path, *params: str) -> subprocess.Popen:
+    args = [a for p in params for a in ("-p", p)]
+    cmd = [sys.executable, "-m", f"playseg_ros.nodes.{kind}", "--ros-args", *args]
+    return subprocess.Popen(cmd, stdout=open(log, "wb"), stderr=subprocess.STDOUT)  # noqa: SIM115
+
+
+def _stop(*procs: subprocess.Popen) -> None:
+    for proc in procs:
+        if proc.poll() is None:
+            proc.terminate()
+    for proc in procs:
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+class _Collector:
+    def __init__(self, topic: str = "/segments") -> None:
+        rclpy.init()
+        self.node = rclpy.create_node("test_segment_collector")
+        self.segments: list[LabelledSegment] = []
+        self.node.create_subscription(LabelledSegment, topic, self.segments.append, qos.SEGMENTS)
+        self.steps_pub = self.node.create_publisher(PlayStep, "/play/steps", qos.PLAY_STEPS)
+
+    def spin_until(self, condition, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and not condition():
+            rclpy.spin_once(self.node, timeout_sec=0.05)
+        return condition()
+
+    def close(self) -> None:
+        self.node.destroy_node()
+        rclpy.shutdown()
+
+
+def test_live_segments_equal_offline_segmentation(tmp_path, model_path):
+    episodes = [generate_episode(PlayConfig(), seed) for seed in (11, 12, 13)]
+    bag = tmp_path / "play"
+    write_play_bag(bag, episodes, annotated=False)
+    segmenter = _start_node("segmenter", tmp_path / "segmenter.log", f"model:={model_path}")
+    collector = _Collector()
+    try:
+        # Play only once the segmenter listens: volatile play steps are not replayed to late joiners.
+        assert collector.spin_until(lambda: collector.steps_pub.get_subscription_count() >= 1, 30)
+        player = _start_node(
+            "bag_player", tmp_path / "player.log", f"bag:={bag}", "rate:=0.0", "wait_for_subscribers:=1"
+        )
+        ends = {e.episode_id: e.num_steps for e in episodes}
+        done = lambda: sum(s.end_step == ends[s.episode_id] for s in collector.segments) == len(ends)  # noqa: E731
+        assert collector.spin_until(done, 90), (tmp_path / "segmenter.log").read_text()
+        _stop(player)
+    finally:
+        collector.close()
+        _stop(segmenter)
+
+    model, _ = load_checkpoint(model_path)
+    for episode in read_play_bag(bag):
+        offline = segment_episode(model, episode)
+        live = [s for s in collector.segments if s.episode_id == episode.episode_id]
+        assert [(s.start_step, s.end_step, s.instruction) for s in live] == [
+            (s.start, s.end, s.instruction) for s in offline
+        ]
+        np.testing.assert_allclose(
+            [s.label_confidence for s in live], [s.confidence for s in offline], atol=1e-4
+        )
+        np.testing.assert_allclose(
+            [s.segment_log_prob for s in live], [s.log_prob for s in offline], atol=1e-3
+        )
+        for msg in live:  # self-contained: the segment's own steps, frames equal to the episode's
+            assert [p.step for p in msg.steps] == list(range(msg.start_step, msg.end_step + 1))
+            frame = np.frombuffer(bytes(msg.steps[-1].observation.data), np.uint8).reshape(64, 64, 3)
+            np.testing.assert_array_equal(frame, episode.frames[msg.end_step])
+
+
+def test_malformed_steps_are_logged_and_the_node_keeps_running(tmp_path, model_path):
+    good = generate_episode(PlayConfig(), 21)
+    segmenter = _start_node("segmenter", tmp_path / "segmenter.log", f"model:={model_path}")
+    collector = _Collector()
+    try:
+        assert collector.spin_until(lambda: collector.steps_pub.get_subscription_count() >= 1, 30)
+        bad_encoding = play_step_msg(good, 0)
+        bad_encoding.episode_id = "bad-encoding"
+        bad_encoding.observation.encoding = "bgr8"
+        bad_size = play_step_msg(good, 0)
+        bad_size.episode_id = "bad-size"
+        bad_size.observation.data = bytes(10)
+        nan_action = play_step_msg(good, 0)
+        nan_action.episode_id = "nan-action"
+        nan_action.action = [float("nan")]
+        gap = [play_step_msg(good, t) for t in (0, 1, 3)]
+        for msg in gap:
+            msg.episode_id = "gap"
+        for msg in [bad_encoding, bad_size, nan_action, *gap]:
+            collector.steps_pub.publish(msg)
+        for t in range(good.num_steps + 1):
+            collector.steps_pub.publish(play_step_msg(good, t))
+        done = lambda: any(s.end_step == good.num_steps for s in collector.segments)  # noqa: E731
+        assert collector.spin_until(done, 60), (tmp_path / "segmenter.log").read_text()
+        assert segmenter.poll() is None
+    finally:
+        collector.close()
+        _stop(segmenter)
+    log = (tmp_path / "segmenter.log").read_text()
+    assert "'bad-encoding' step 0: observation.encoding is 'bgr8'" in log
+    assert "'bad-size' step 0: observation.data holds 10 bytes" in log
+    assert "'nan-action' step 0: action contains NaN" in log
+    assert "'gap' step 3: step gap, expected step 2" in log
+    assert {s.episode_id for s in collector.segments} == {good.episode_id}
