@@ -10,6 +10,13 @@ paper's DP with Python loops). Both must return the same segmentation; the scrip
 Without --model a randomly initialised default-size PS model is used (speed does not depend on the
 weights). Without --data, BabyAI play episodes are generated. --train-epochs N also times `train_ps` on
 the dataset's train/val splits and reports peak RSS.
+
+    .venv/bin/python benchmarks/bench_decode.py --make-data DIR [--split-episodes 800,200,500]
+
+writes the dataset the figures in docs/segmentation.md were measured on: BabyAI play episodes from
+consecutive seeds starting at 100000 (empty episodes skipped), split in order into train / val / test
+(800 + 200 annotated episodes = ~10,000 annotated segments, the paper's 10% start split; 500 test
+episodes of held-out play with ground truth).
 """
 
 from __future__ import annotations
@@ -46,6 +53,23 @@ def _episodes(data: str | None, count: int) -> tuple[list[Episode], list[str]]:
     return episodes, list(INSTRUCTIONS)
 
 
+def make_dataset(path: str, split_episodes: list[int], first_seed: int = 100_000) -> None:
+    from playseg_core.babyai import INSTRUCTIONS, PlayConfig, generate_episode
+    from playseg_core.dataset import DatasetWriter
+
+    seed = first_seed
+    with DatasetWriter(path, INSTRUCTIONS, {"source": "bench_decode.py --make-data"}) as writer:
+        for split, count in zip(("train", "val", "test"), split_episodes, strict=True):
+            added = 0
+            while added < count:
+                episode = generate_episode(PlayConfig(), seed)
+                seed += 1
+                if episode.num_steps > 0:
+                    writer.add(episode, split)
+                    added += 1
+    print(f"{path}: {sum(split_episodes)} episodes (train, val, test = {split_episodes})")
+
+
 def _time_segmentation(fn, model: PSModel, episodes: list[Episode]) -> tuple[float, list]:
     began = time.perf_counter()
     results = [fn(model, episode) for episode in episodes]
@@ -59,7 +83,12 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=20, help="episodes for our segmentation")
     parser.add_argument("--reference-episodes", type=int, default=3, help="episodes for the reference way")
     parser.add_argument("--train-epochs", type=int, default=0, help="also time training (needs --data)")
+    parser.add_argument("--make-data", help="write the benchmark dataset to this directory and exit")
+    parser.add_argument("--split-episodes", default="800,200,500", help="train,val,test episodes")
     args = parser.parse_args()
+    if args.make_data:
+        make_dataset(args.make_data, [int(n) for n in args.split_episodes.split(",")])
+        return
     torch.set_num_threads(1)
 
     episodes, instructions = _episodes(args.data, max(args.episodes, args.reference_episodes))

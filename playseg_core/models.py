@@ -24,6 +24,7 @@ class EncoderConfig:
     tile_size: int = 8  # BabyAI renders a grid of 8x8-pixel tiles: the first conv reads one tile
     tile_channels: int = 64
     grid_channels: int = 32
+    layout_channels: int = 4  # per-tile channels of the position-specific path (small: it overfits)
     feature_dim: int = 128
 
 
@@ -68,7 +69,8 @@ class FrameEncoder(nn.Module):
         self.tile_mix = nn.Conv2d(cfg.tile_channels, cfg.tile_channels, 1)
         self.neighbours = nn.Conv2d(cfg.tile_channels, cfg.grid_channels, 3, padding=1)
         self.neighbour_mix = nn.Conv2d(cfg.grid_channels, cfg.grid_channels, 1)
-        self.layout = nn.Linear(cfg.tile_channels * grid * grid, cfg.feature_dim)
+        self.layout_mix = nn.Conv2d(cfg.tile_channels, cfg.layout_channels, 1)
+        self.layout = nn.Linear(cfg.layout_channels * grid * grid, cfg.feature_dim)
         self.proj = nn.Linear(cfg.feature_dim + 2 * cfg.grid_channels, cfg.feature_dim)
 
     def forward(self, frames: torch.Tensor) -> torch.Tensor:
@@ -77,7 +79,7 @@ class FrameEncoder(nn.Module):
         tiles = F.relu(self.tile_mix(F.relu(self.tile(x))))
         local = F.relu(self.neighbour_mix(F.relu(self.neighbours(tiles))))
         pooled = torch.cat([local.amax((2, 3)), local.mean((2, 3))], dim=1)
-        layout = F.relu(self.layout(tiles.flatten(1)))
+        layout = F.relu(self.layout(self.layout_mix(tiles).flatten(1)))
         return self.proj(torch.cat([layout, pooled], dim=1))
 
 

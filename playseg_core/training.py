@@ -89,9 +89,10 @@ class TrainConfig:
     epochs: int = 15
     segments_per_batch: int = 64  # drawn from all annotated episodes
     lr: float = 3e-3
-    weight_decay: float = 1e-4
+    weight_decay: float = 1e-2
     k_max: int = 5  # negatives shift by 1..k_max steps (BabyAI: 5)
     dense_prefix_negatives: bool = True
+    augment: bool = True  # random rotation/mirror per training segment
     label_weight: float = 1.0
     num_threads: int = 2
     progress: bool = True  # tqdm bars
@@ -143,6 +144,7 @@ def make_batch(
     rng: np.random.Generator,
     negatives: bool = True,
     dense_prefix_negatives: bool = False,
+    augment: bool = False,
 ) -> Batch:
     """The windows of the annotated segments `items` (only positives if not `negatives`).
 
@@ -150,7 +152,9 @@ def make_batch(
     segments from many episodes, which trains far faster than whole episodes (many rooms per step).
     With `dense_prefix_negatives`, the true-start window is also supervised as "not ended" at every
     position before the end and at every position up to k_max after it (the end-earlier and end-later
-    negatives for all k at once).
+    negatives for all k at once). With `augment`, each segment's frames get one random rotation by a
+    multiple of 90 degrees and an optional mirror (the whole clip alike): facing, goals and instructions
+    are unchanged by them, so the model cannot lean on memorised room layouts.
     """
     regions = [(max(0, seg.start - k_max), min(ep.num_steps, seg.end + k_max)) for ep, seg in items]
     zero_row = sum(hi - lo + 1 for lo, hi in regions)
@@ -159,7 +163,12 @@ def make_batch(
     label_window, label_position, labels = [], [], []
     offset = 0
     for (ep, seg), (lo, hi) in zip(items, regions, strict=True):
-        frames.append(torch.from_numpy(np.array(ep.frames[lo : hi + 1], dtype=np.uint8)))
+        clip = np.array(ep.frames[lo : hi + 1], dtype=np.uint8)
+        if augment:
+            clip = np.rot90(clip, k=int(rng.integers(4)), axes=(1, 2))
+            if rng.integers(2):
+                clip = clip[:, :, ::-1]
+        frames.append(torch.from_numpy(np.ascontiguousarray(clip)))
         samples = segment_samples(seg.start, seg.end, ep.num_steps, max_len, k_max, rng)
         windows: dict[int, int] = {}  # start -> row
         for sample in samples:
@@ -328,6 +337,7 @@ def _run_epoch(loss_fn, model, episodes, classes, cfg, rng, optimizer, epoch, de
             rng,
             negatives=isinstance(model, PSModel),
             dense_prefix_negatives=cfg.dense_prefix_negatives,
+            augment=training and cfg.augment,
         )
         if batch.labels.numel() == 0:
             continue

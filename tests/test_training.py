@@ -93,7 +93,7 @@ def test_batch_windows_never_cross_episodes() -> None:
         assert torch.all(row[1 : length + 1] == 1) and row[0] == 0
 
 
-SMALL = {"image_size": 16, "tile_channels": 8, "grid_channels": 8, "feature_dim": 16}
+SMALL = {"image_size": 16, "tile_channels": 8, "grid_channels": 8, "layout_channels": 8, "feature_dim": 16}
 
 
 def _small_data() -> tuple[list, list]:
@@ -109,6 +109,7 @@ def _train_small_ps(dense: bool, epochs: int):
         segments_per_batch=5,
         lr=5e-3,
         dense_prefix_negatives=dense,
+        augment=False,
         progress=False,
         log_epochs=False,
         num_threads=1,
@@ -148,9 +149,34 @@ def test_short_ps_training_without_dense_prefixes_still_learns() -> None:
 def test_short_labeller_training_learns() -> None:
     train, val = _small_data()
     cfg = TrainConfig(
-        epochs=20, segments_per_batch=5, lr=5e-3, progress=False, log_epochs=False, num_threads=1
+        epochs=20,
+        segments_per_batch=5,
+        lr=5e-3,
+        augment=False,
+        progress=False,
+        log_epochs=False,
+        num_threads=1,
     )
     model_cfg = ModelConfig(EncoderConfig(**SMALL), TrunkConfig(16, 1, 3, 8), len(INSTRUCTIONS))
     result = train_labeller(train, val, INSTRUCTIONS, cfg, model_cfg)
     assert result.history[-1]["val"]["label_accuracy"] >= 0.9
     assert result.history[-1]["train"]["loss"] < 0.3 * result.history[0]["train"]["loss"]
+
+
+def test_augmentation_rotates_or_mirrors_each_clip_as_a_whole() -> None:
+    episode = synthetic_episode(3, num_segments=2, size=16)
+    items = [(episode, episode.segments[1])]  # one clip: the frames within k_max of this segment
+    plain = make_batch(items, label_index(INSTRUCTIONS), 8, 2, np.random.default_rng(0))
+    seen = set()
+    for seed in range(12):
+        augmented = make_batch(
+            items, label_index(INSTRUCTIONS), 8, 2, np.random.default_rng(seed), augment=True
+        )
+        original, changed = plain.frames.numpy(), augmented.frames.numpy()
+        for k in range(4):
+            for mirror in (False, True):
+                candidate = np.rot90(original, k=k, axes=(1, 2))
+                candidate = candidate[:, :, ::-1] if mirror else candidate
+                if np.array_equal(candidate, changed):
+                    seen.add((k, mirror))
+    assert len(seen) >= 3  # different seeds give different transforms, each a whole-clip dihedral one
