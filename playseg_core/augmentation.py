@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from playseg_core.augmentation_buffer import AugmentationBuffer, BufferedSegment
-from playseg_core.data_model import Episode
+from playseg_core.augmentation_buffer import AugmentationBuffer
+from playseg_core.data_model import Episode, SegmentClip
 from playseg_core.policy import PolicyNet, load_policy, save_policy
 from playseg_core.policy_training import (
     Demonstration,
@@ -44,10 +44,11 @@ def demonstrations_from_episodes(episodes: Iterable[Episode]) -> list[Demonstrat
     return demos
 
 
-def demonstration_from_buffered(segment: BufferedSegment) -> Demonstration:
-    if segment.states is None:
-        raise ValueError(f"segment {segment.episode_id}[{segment.start}, {segment.end}) has no states")
-    return segment.instruction, segment.states, segment.actions
+def demonstration_from_clip(clip: SegmentClip) -> Demonstration:
+    seg = clip.segment
+    if clip.states is None:
+        raise ValueError(f"segment {clip.episode_id}[{seg.start}, {seg.end}) has no states")
+    return seg.instruction, clip.states, clip.actions
 
 
 @dataclass
@@ -90,19 +91,19 @@ class AugmentationTrainer:
     def policy_version(self) -> int:
         return self.latest.version if self.latest else 0
 
-    def add(self, segment: BufferedSegment) -> bool:
+    def add(self, clip: SegmentClip) -> bool:
         """Store a segment durably. Returns True when a periodic retraining is due."""
         with self._lock:
-            self.buffer.append(segment)
+            self.buffer.append(clip)
             self._since_retrain += 1
             return self.config.retrain_every > 0 and self._since_retrain >= self.config.retrain_every
 
     def training_demos(self) -> list[Demonstration]:
         with self._lock:
             extracted = [
-                demonstration_from_buffered(s)
-                for s in self.buffer
-                if s.confidence >= self.config.min_confidence
+                demonstration_from_clip(clip)
+                for clip in self.buffer
+                if clip.segment.confidence >= self.config.min_confidence
             ]
             self._since_retrain = 0
         return self.base_demos + extracted

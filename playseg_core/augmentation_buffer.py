@@ -4,6 +4,8 @@ Layout: one file ``segments.log`` of records ``MAGIC | u32 header_len | u64 payl
 header (JSON) | payload (raw arrays)``. ``append`` returns only after the record is flushed and fsync'ed,
 so every segment the trainer acknowledged survives a crash. On open, a torn record at the tail (a crash
 mid-write) is cut off; a corrupt record elsewhere is an error naming the file and byte offset.
+Each record is one `SegmentClip`; the header holds its episode id, source and segment fields (start,
+end, instruction, confidence, log_prob), the payload its actions, states and frames (those present).
 """
 
 from __future__ import annotations
@@ -13,30 +15,15 @@ import os
 import struct
 import zlib
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from playseg_core.data_model import Segment, SegmentClip
+
 MAGIC = b"PSB1"
 _PREFIX = struct.Struct("<4sIQI")  # magic, header length, payload length, crc32 of header + payload
 LOG_NAME = "segments.log"
-
-
-@dataclass
-class BufferedSegment:
-    """A labelled segment with the observations and actions a policy learns from."""
-
-    episode_id: str
-    start: int
-    end: int
-    instruction: str
-    actions: np.ndarray  # (L, action_dim)
-    states: np.ndarray | None = None  # (L+1, *state_shape)
-    frames: np.ndarray | None = None  # (L+1, H, W, 3) uint8
-    confidence: float = 1.0
-    log_prob: float = 0.0
-    source: str = ""  # e.g. the segmentation model id, or "annotation"
 
 
 _ARRAYS = ("actions", "states", "frames")
@@ -62,17 +49,21 @@ class AugmentationBuffer:
         """Total actions over all buffered segments."""
         return self._steps
 
-    def append(self, segment: BufferedSegment) -> int:
+    def append(self, clip: SegmentClip) -> int:
         """Write one segment durably; returns its index once it is on disk."""
+        seg = clip.segment
         header: dict = {
-            key: getattr(segment, key)
-            for key in ("episode_id", "start", "end", "instruction", "confidence", "log_prob", "source")
+            "episode_id": clip.episode_id,
+            "start": seg.start,
+            "end": seg.end,
+            "instruction": seg.instruction,
+            "confidence": float(seg.confidence),
+            "log_prob": float(seg.log_prob),
+            "source": clip.source,
         }
-        header["confidence"] = float(header["confidence"])
-        header["log_prob"] = float(header["log_prob"])
         chunks, arrays = [], {}
         for name in _ARRAYS:
-            array = getattr(segment, name)
+            array = getattr(clip, name)
             if array is None:
                 continue
             array = np.ascontiguousarray(array)
@@ -87,15 +78,15 @@ class AugmentationBuffer:
         self._file.flush()
         os.fsync(self._file.fileno())
         self._offsets.append(offset)
-        self._steps += segment.end - segment.start
+        self._steps += seg.length
         return len(self._offsets) - 1
 
-    def __getitem__(self, index: int) -> BufferedSegment:
+    def __getitem__(self, index: int) -> SegmentClip:
         with open(self.path, "rb") as f:
             f.seek(self._offsets[index])
             return _read_record(f, self.path)[0]
 
-    def __iter__(self) -> Iterator[BufferedSegment]:
+    def __iter__(self) -> Iterator[SegmentClip]:
         self._file.flush()
         with open(self.path, "rb") as f:
             for offset in self._offsets:
@@ -120,11 +111,11 @@ class AugmentationBuffer:
         with open(self.path, "rb") as f:
             while good_end < size:
                 try:
-                    segment, next_offset = _read_record(f, self.path)
+                    clip, next_offset = _read_record(f, self.path)
                 except _TornRecord:
                     break
                 self._offsets.append(good_end)
-                self._steps += segment.end - segment.start
+                self._steps += clip.segment.length
                 good_end = next_offset
         if good_end < size:
             with open(self.path, "r+b") as f:
@@ -136,7 +127,7 @@ class _TornRecord(Exception):
     """The file ends inside a record (a crash mid-append)."""
 
 
-def _read_record(f, path: Path) -> tuple[BufferedSegment, int]:
+def _read_record(f, path: Path) -> tuple[SegmentClip, int]:
     offset = f.tell()
     prefix = f.read(_PREFIX.size)
     if len(prefix) < _PREFIX.size:
@@ -160,4 +151,15 @@ def _read_record(f, path: Path) -> tuple[BufferedSegment, int]:
         count = int(np.prod(spec["shape"], dtype=np.int64))
         arrays[name] = np.frombuffer(payload, dtype, count, cursor).reshape(spec["shape"])
         cursor += count * dtype.itemsize
-    return BufferedSegment(**header, **arrays), offset + _PREFIX.size + header_len + payload_len
+    try:
+        segment = Segment(
+            header.pop("start"),
+            header.pop("end"),
+            header.pop("instruction"),
+            header.pop("confidence"),
+            header.pop("log_prob"),
+        )
+        clip = SegmentClip(segment=segment, **header, **arrays)
+    except (KeyError, TypeError, ValueError) as error:
+        raise ValueError(f"{path}: record at byte {offset} is not a segment: {error}") from None
+    return clip, offset + _PREFIX.size + header_len + payload_len

@@ -63,6 +63,55 @@ class Episode:
         return int(self.actions.shape[0])
 
 
+@dataclass
+class SegmentClip:
+    """A labelled segment carrying its own data: a LabelledSegment message, a trainer buffer record.
+
+    ``segment`` is in the source episode's step numbering (with its label, confidence and log-score);
+    ``actions`` holds its ``length`` actions a_start..a_end-1, ``frames`` and ``states`` (each optional)
+    its ``length + 1`` observations o_start..o_end. ``source`` says who labelled it: the segmentation
+    model id, or "annotation".
+    """
+
+    episode_id: str
+    segment: Segment
+    actions: np.ndarray
+    frames: np.ndarray | None = None
+    states: np.ndarray | None = None
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        seg = self.segment
+        name = f"episode {self.episode_id!r} segment [{seg.start}, {seg.end})"
+        if self.actions.ndim != 2 or self.actions.shape[0] != seg.length:
+            raise ValueError(f"{name}: actions must be ({seg.length}, action_dim), got {self.actions.shape}")
+        frames = self.frames
+        if frames is not None and (
+            frames.ndim != 4
+            or frames.shape[0] != seg.length + 1
+            or frames.shape[-1] != 3
+            or frames.dtype != np.uint8
+        ):
+            raise ValueError(
+                f"{name}: frames must be ({seg.length + 1}, H, W, 3) uint8, got {frames.shape} {frames.dtype}"
+            )
+        if self.states is not None and self.states.shape[:1] != (seg.length + 1,):
+            raise ValueError(f"{name}: states must have {seg.length + 1} rows, got shape {self.states.shape}")
+
+    @classmethod
+    def from_episode(cls, episode: Episode, segment: Segment, source: str) -> SegmentClip:
+        """The clip of ``segment`` of ``episode`` (views into the episode's arrays)."""
+        start, end = segment.start, segment.end
+        return cls(
+            episode_id=episode.episode_id,
+            segment=segment,
+            actions=episode.actions[start:end],
+            frames=episode.frames[start : end + 1],
+            states=None if episode.states is None else episode.states[start : end + 1],
+            source=source,
+        )
+
+
 def check_episode(episode: Episode) -> None:
     """Raise ValueError naming the episode and field when the arrays or segments are inconsistent."""
     name = f"episode {episode.episode_id!r}"

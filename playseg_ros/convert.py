@@ -1,20 +1,29 @@
-"""Core Episode/Segment <-> playseg_msgs messages as rosbags typestore dataclasses (no rclpy).
+"""Core types <-> playseg_msgs messages, for both kinds of message object.
+
+Bags use rosbags' typestore dataclasses (`ROSBAGS`, no rclpy); the live nodes use the rclpy classes
+(`RCLPY`, imported on first use). The builders take the kind to build; the readers use attribute access
+only, so they accept either kind, and every field check lives here once.
 
 An episode ``(o_0, a_0, ..., o_T)`` is T+1 PlayStep messages with ``step = 0..T``; step t carries the
 frame o_t as a ``sensor_msgs/Image`` (rgb8), the state flattened with its shape, and the action a_t
-(empty on the last step, which has ``episode_end = true``). Reading validates every field and raises
-`StepError` naming the episode and step, so callers can add where the message came from.
+(empty on the last step, which has ``episode_end = true``). A LabelledSegment carries the steps
+start..end of its segment; the last one's action, if any, is the first action after the segment and is
+not part of it. Reading raises `StepError` naming the episode, step and field, so callers can add where
+the message came from.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+import array
+import importlib
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from functools import cache
 from typing import Any
 
 import numpy as np
 
-from playseg_core.data_model import Episode, Segment, check_segments
+from playseg_core.data_model import Episode, Segment, SegmentClip, check_segments
 from playseg_ros.typestore import playseg_typestore
 
 PLAY_STEP = "playseg_msgs/msg/PlayStep"
@@ -23,57 +32,69 @@ LABELLED_SEGMENT = "playseg_msgs/msg/LabelledSegment"
 RGB8 = "rgb8"
 
 
-class StepError(ValueError):
-    """A message that does not fit its episode; names the episode and step."""
-
-    def __init__(self, episode: str, step: int | None, detail: str) -> None:
-        self.episode, self.step, self.detail = episode, step, detail
-        where = f"episode {episode!r}" + (f", step {step}" if step is not None else "")
-        super().__init__(f"{where}: {detail}")
+# --- message kinds --------------------------------------------------------------------------------------
 
 
-def _types() -> dict[str, Any]:
-    return playseg_typestore().types
+@dataclass(frozen=True)
+class MessageKind:
+    """How to build one kind of message object: its class for a type name and its array fields."""
+
+    name: str
+    message_class: Callable[[str], type]
+    array: Callable[[np.ndarray, np.dtype], Any]  # a flat array field from values of the field's dtype
+
+    def make(self, type_name: str, **fields: Any) -> Any:
+        return self.message_class(type_name)(**fields)
 
 
-def header(stamp_ns: int, frame_id: str) -> Any:
+def _typestore_class(type_name: str) -> type:
+    return playseg_typestore().types[type_name]
+
+
+@cache
+def _rclpy_class(type_name: str) -> type:
+    package, kind, name = type_name.split("/")
+    return getattr(importlib.import_module(f"{package}.{kind}"), name)
+
+
+def _rclpy_array(values: np.ndarray, dtype: np.dtype) -> array.array:
+    # rclpy keeps numeric sequences as array.array; built from bytes there is no per-element check.
+    return array.array(np.dtype(dtype).char, np.ascontiguousarray(values, dtype).tobytes())
+
+
+ROSBAGS = MessageKind(
+    "rosbags", _typestore_class, lambda values, dtype: np.ascontiguousarray(values, dtype).reshape(-1)
+)
+RCLPY = MessageKind("rclpy", _rclpy_class, _rclpy_array)
+
+
+# --- building messages ----------------------------------------------------------------------------------
+
+
+def header(stamp_ns: int, frame_id: str, kind: MessageKind = ROSBAGS) -> Any:
     """A std_msgs/Header with the stamp in nanoseconds since the epoch."""
-    types = _types()
     sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    return types["std_msgs/msg/Header"](
-        stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id
-    )
+    stamp = kind.make("builtin_interfaces/msg/Time", sec=sec, nanosec=nanosec)
+    return kind.make("std_msgs/msg/Header", stamp=stamp, frame_id=frame_id)
 
 
 def stamp_ns(msg_header: Any) -> int:
     return int(msg_header.stamp.sec) * 1_000_000_000 + int(msg_header.stamp.nanosec)
 
 
-def image_message(frame: np.ndarray, msg_header: Any) -> Any:
+def image_message(frame: np.ndarray, msg_header: Any, kind: MessageKind = ROSBAGS) -> Any:
     """An rgb8 sensor_msgs/Image of an (H, W, 3) uint8 frame."""
     height, width, _ = frame.shape
-    return _types()["sensor_msgs/msg/Image"](
+    return kind.make(
+        "sensor_msgs/msg/Image",
         header=msg_header,
         height=height,
         width=width,
         encoding=RGB8,
         is_bigendian=0,
         step=width * 3,
-        data=np.ascontiguousarray(frame, dtype=np.uint8).reshape(-1),
+        data=kind.array(frame, np.uint8),
     )
-
-
-def frame_from_image(image: Any) -> np.ndarray:
-    """The (H, W, 3) uint8 frame of an rgb8 Image; ValueError for any other encoding or layout."""
-    if image.encoding != RGB8:
-        raise ValueError(f"observation encoding is {image.encoding!r}, expected {RGB8!r}")
-    height, width, row = int(image.height), int(image.width), int(image.step)
-    if row != width * 3:
-        raise ValueError(f"observation row step is {row} bytes, expected {width * 3} for width {width}")
-    data = np.asarray(image.data, dtype=np.uint8)
-    if data.size != height * row:
-        raise ValueError(f"observation has {data.size} bytes, expected {height} x {row} = {height * row}")
-    return data.reshape(height, width, 3)
 
 
 def play_step_message(
@@ -84,19 +105,20 @@ def play_step_message(
     action: np.ndarray | None,
     stamp: int,
     frame_id: str = "play",
+    kind: MessageKind = ROSBAGS,
 ) -> Any:
     """PlayStep for observation ``step``; ``action`` None marks the episode's last step."""
-    msg_header = header(stamp, frame_id)
-    flat_state = np.zeros(0, np.float32) if state is None else np.asarray(state, np.float32).reshape(-1)
-    shape = np.zeros(0, np.uint32) if state is None else np.asarray(np.shape(state), np.uint32)
-    return _types()[PLAY_STEP](
+    msg_header = header(stamp, frame_id, kind)
+    no_values = np.zeros(0)
+    return kind.make(
+        PLAY_STEP,
         header=msg_header,
         episode_id=episode_id,
         step=step,
-        observation=image_message(frame, msg_header),
-        state=flat_state,
-        state_shape=shape,
-        action=np.zeros(0, np.float32) if action is None else np.asarray(action, np.float32).reshape(-1),
+        observation=image_message(frame, msg_header, kind),
+        state=kind.array(no_values if state is None else state, np.float32),
+        state_shape=kind.array(no_values if state is None else np.shape(state), np.uint32),
+        action=kind.array(no_values if action is None else action, np.float32),
         episode_end=action is None,
     )
 
@@ -109,6 +131,7 @@ def play_step_messages(
     stamps: Sequence[int],
     first_step: int = 0,
     frame_id: str = "play",
+    kind: MessageKind = ROSBAGS,
 ) -> Iterator[Any]:
     """PlayStep messages of ``len(frames)`` observations numbered from ``first_step``.
 
@@ -119,24 +142,189 @@ def play_step_messages(
     for i in range(last + 1):
         state = None if states is None else states[i]
         action = None if i == last else actions[i]
-        yield play_step_message(episode_id, first_step + i, frames[i], state, action, stamps[i], frame_id)
+        yield play_step_message(
+            episode_id, first_step + i, frames[i], state, action, stamps[i], frame_id, kind
+        )
 
 
-def episode_messages(episode: Episode, stamps: Sequence[int], frame_id: str = "play") -> Iterator[Any]:
+def episode_messages(
+    episode: Episode, stamps: Sequence[int], frame_id: str = "play", kind: MessageKind = ROSBAGS
+) -> Iterator[Any]:
     """The T+1 PlayStep messages of an episode."""
     return play_step_messages(
-        episode.episode_id, episode.frames, episode.actions, episode.states, stamps, 0, frame_id
+        episode.episode_id, episode.frames, episode.actions, episode.states, stamps, 0, frame_id, kind
     )
 
 
-def annotation_message(episode_id: str, segment: Segment, stamp: int, frame_id: str = "play") -> Any:
-    return _types()[ANNOTATION](
-        header=header(stamp, frame_id),
+def episode_step_message(
+    episode: Episode, t: int, stamp: int = 0, frame_id: str = "play", kind: MessageKind = ROSBAGS
+) -> Any:
+    """Step t of an episode as a PlayStep (the last step, t = T, carries episode_end and no action)."""
+    state = None if episode.states is None else episode.states[t]
+    action = None if t == episode.num_steps else episode.actions[t]
+    return play_step_message(episode.episode_id, t, episode.frames[t], state, action, stamp, frame_id, kind)
+
+
+def annotation_message(
+    episode_id: str, segment: Segment, stamp: int, frame_id: str = "play", kind: MessageKind = ROSBAGS
+) -> Any:
+    return kind.make(
+        ANNOTATION,
+        header=header(stamp, frame_id, kind),
         episode_id=episode_id,
         start_step=segment.start,
         end_step=segment.end,
         instruction=segment.instruction,
     )
+
+
+def labelled_segment_message(
+    clip: SegmentClip,
+    stamp: int,
+    step_stamps: Sequence[int] | None = None,
+    frame_id: str = "play",
+    kind: MessageKind = ROSBAGS,
+) -> Any:
+    """A self-contained LabelledSegment of a clip with frames: its end - start + 1 PlaySteps, the last
+    one without action and with episode_end (the clip ends there)."""
+    segment = clip.segment
+    if clip.frames is None:
+        raise ValueError(
+            f"episode {clip.episode_id!r} segment [{segment.start}, {segment.end}): a LabelledSegment "
+            "needs the clip's frames"
+        )
+    stamps = list(step_stamps) if step_stamps is not None else [stamp] * (segment.length + 1)
+    steps = play_step_messages(
+        clip.episode_id, clip.frames, clip.actions, clip.states, stamps, segment.start, frame_id, kind
+    )
+    return labelled_segment_of_steps(
+        clip.episode_id, segment, list(steps), clip.source, stamp, frame_id, kind
+    )
+
+
+def labelled_segment_of_steps(
+    episode_id: str,
+    segment: Segment,
+    steps: list[Any],
+    model_id: str,
+    stamp: int,
+    frame_id: str = "play",
+    kind: MessageKind = ROSBAGS,
+) -> Any:
+    """A LabelledSegment carrying ``steps``, the PlayStep messages start..end (end inclusive)."""
+    if len(steps) != segment.length + 1:
+        raise ValueError(
+            f"segment [{segment.start}, {segment.end}) needs {segment.length + 1} steps, got {len(steps)}"
+        )
+    return kind.make(
+        LABELLED_SEGMENT,
+        header=header(stamp, frame_id, kind),
+        episode_id=episode_id,
+        start_step=segment.start,
+        end_step=segment.end,
+        instruction=segment.instruction,
+        label_confidence=float(segment.confidence),
+        segment_log_prob=float(segment.log_prob),
+        model_id=model_id,
+        steps=steps,
+    )
+
+
+# --- reading messages (either kind) ---------------------------------------------------------------------
+
+
+class StepError(ValueError):
+    """A message that cannot be used; names the episode, step and field."""
+
+    def __init__(self, episode: str, step: int | None, detail: str) -> None:
+        self.episode, self.step, self.detail = episode, step, detail
+        where = f"episode {episode!r}" + (f" step {step}" if step is not None else "")
+        super().__init__(f"{where}: {detail}")
+
+
+@dataclass
+class StepData:
+    """The content of one PlayStep as arrays."""
+
+    episode_id: str
+    step: int
+    frame: np.ndarray  # (H, W, 3) uint8
+    state: np.ndarray | None  # float32, shaped by state_shape
+    action: np.ndarray | None  # float32 (action_dim,); None on the final step (episode_end)
+    episode_end: bool
+
+
+def _values(field: Any, dtype: type) -> np.ndarray:
+    """A numeric sequence field (numpy array, array.array, bytes or list) as a flat numpy array."""
+    if isinstance(field, (bytes, bytearray, memoryview)):
+        return np.frombuffer(field, dtype)
+    return np.asarray(field, dtype).reshape(-1)
+
+
+def frame_from_image(image: Any, frame_shape: tuple[int, ...] | None = None) -> np.ndarray:
+    """The (H, W, 3) uint8 frame of an rgb8 Image; ValueError naming the field for anything else.
+
+    ``frame_shape`` (H, W, 3), when given, is enforced (earlier frames, or what a model takes).
+    """
+    if image.encoding != RGB8:
+        raise ValueError(f"observation.encoding is {image.encoding!r}, expected {RGB8!r}")
+    height, width, row = int(image.height), int(image.width), int(image.step)
+    if row != width * 3:
+        raise ValueError(f"observation.step is {row} bytes, expected {width * 3} for width {width}")
+    data = _values(image.data, np.uint8)
+    if data.size != height * row:
+        raise ValueError(
+            f"observation.data holds {data.size} bytes, expected {height} x {row} = {height * row}"
+        )
+    if frame_shape is not None and (height, width, 3) != tuple(frame_shape):
+        raise ValueError(f"observation is {height}x{width}, expected {frame_shape[0]}x{frame_shape[1]}")
+    return data.reshape(height, width, 3)
+
+
+def _state(msg: Any) -> np.ndarray | None:
+    state = _values(msg.state, np.float32)
+    shape = tuple(int(n) for n in msg.state_shape)
+    if not shape:
+        if not state.size:
+            return None
+        shape = (state.size,)  # a flat state published without its shape
+    if int(np.prod(shape)) != state.size:
+        raise ValueError(f"state has {state.size} values, state_shape {shape}")
+    return state.reshape(shape)
+
+
+def _action(msg: Any) -> np.ndarray | None:
+    action = _values(msg.action, np.float32)
+    if msg.episode_end:
+        if action.size:
+            raise ValueError("action is not empty on the episode_end step (the last observation has none)")
+        return None
+    if not action.size:
+        raise ValueError("action is empty but episode_end is false")
+    if not np.all(np.isfinite(action)):
+        raise ValueError(f"action contains NaN or inf: {action.tolist()}")
+    return action
+
+
+def step_from_message(msg: Any, frame_shape: tuple[int, ...] | None = None) -> StepData:
+    """Validate and unpack one PlayStep on its own; StepError naming the episode, step and field.
+
+    ``frame_shape`` (H, W, 3), when given, is enforced.
+    """
+    step = int(msg.step)
+    try:
+        frame = frame_from_image(msg.observation, frame_shape)
+        state, action = _state(msg), _action(msg)
+    except ValueError as error:
+        raise StepError(msg.episode_id, step, str(error)) from None
+    return StepData(msg.episode_id, step, frame, state, action, bool(msg.episode_end))
+
+
+def check_step_number(episode_id: str, step: int, expected: int) -> None:
+    """StepError unless ``step`` is the ``expected`` next step of the episode."""
+    if step != expected:
+        kind = "repeat" if step < expected else "gap"
+        raise StepError(episode_id, step, f"step {kind}, expected step {expected}")
 
 
 def segment_from_annotation(msg: Any) -> Segment:
@@ -148,83 +336,29 @@ def segment_from_annotation(msg: Any) -> Segment:
     return Segment(int(msg.start_step), int(msg.end_step), msg.instruction)
 
 
-@dataclass
-class SegmentClip:
-    """A labelled segment with its own data: what a LabelledSegment message carries.
-
-    ``segment`` is in the source episode's step numbering; ``frames`` holds its ``length + 1``
-    observations (o_start..o_end), ``actions`` its ``length`` actions, ``states`` matches frames or is None.
-    """
-
-    episode_id: str
-    segment: Segment
-    model_id: str
-    frames: np.ndarray
-    actions: np.ndarray
-    states: np.ndarray | None = None
-
-    @classmethod
-    def from_episode(cls, episode: Episode, segment: Segment, model_id: str) -> SegmentClip:
-        """The clip of ``segment`` (views into the episode's arrays)."""
-        start, end = segment.start, segment.end
-        states = None if episode.states is None else episode.states[start : end + 1]
-        return cls(
-            episode.episode_id,
-            segment,
-            model_id,
-            episode.frames[start : end + 1],
-            episode.actions[start:end],
-            states,
-        )
-
-
-def labelled_segment_message(
-    clip: SegmentClip, stamp: int, step_stamps: Sequence[int] | None = None, frame_id: str = "play"
-) -> Any:
-    """A self-contained LabelledSegment: the label plus the clip's end - start + 1 PlayStep messages."""
-    segment = clip.segment
-    stamps = list(step_stamps) if step_stamps is not None else [stamp] * (segment.length + 1)
-    steps = play_step_messages(
-        clip.episode_id, clip.frames, clip.actions, clip.states, stamps, segment.start, frame_id
-    )
-    return _types()[LABELLED_SEGMENT](
-        header=header(stamp, frame_id),
-        episode_id=clip.episode_id,
-        start_step=segment.start,
-        end_step=segment.end,
-        instruction=segment.instruction,
-        label_confidence=segment.confidence,
-        segment_log_prob=segment.log_prob,
-        model_id=clip.model_id,
-        steps=list(steps),
-    )
-
-
 def clip_from_labelled(msg: Any) -> SegmentClip:
-    """The SegmentClip of a LabelledSegment; StepError naming the episode and step if it is inconsistent."""
-    if not msg.start_step < msg.end_step:
+    """The SegmentClip of a LabelledSegment (every step validated); StepError naming episode and step."""
+    episode_id, start, end = msg.episode_id, int(msg.start_step), int(msg.end_step)
+    if not start < end:
+        raise StepError(episode_id, start, f"segment [{start}, {end}) is empty")
+    if len(msg.steps) != end - start + 1:
         raise StepError(
-            msg.episode_id, int(msg.start_step), f"segment [{msg.start_step}, {msg.end_step}) is empty"
+            episode_id,
+            start,
+            f"segment [{start}, {end}) needs steps {start}..{end}, got {len(msg.steps)} steps",
         )
-    segment = Segment(
-        int(msg.start_step),
-        int(msg.end_step),
-        msg.instruction,
-        float(msg.label_confidence),
-        float(msg.segment_log_prob),
-    )
-    builder = EpisodeBuilder(msg.episode_id, first_step=segment.start)
+    segment = Segment(start, end, msg.instruction, float(msg.label_confidence), float(msg.segment_log_prob))
+    builder = EpisodeBuilder(episode_id, first_step=start)
     for step in msg.steps:
         builder.add(step)
-    if builder.next_step != segment.end + 1 or not builder.finished:
-        raise StepError(
-            msg.episode_id,
-            builder.next_step - 1,
-            f"segment [{segment.start}, {segment.end}) needs steps {segment.start}..{segment.end} "
-            f"ending with episode_end, got {len(msg.steps)} steps",
-        )
-    episode = builder.build()
-    return SegmentClip(msg.episode_id, segment, msg.model_id, episode.frames, episode.actions, episode.states)
+    return SegmentClip(
+        episode_id=episode_id,
+        segment=segment,
+        actions=np.stack(builder.actions[: segment.length]),
+        frames=np.stack(builder.frames),
+        states=np.stack(builder.states) if builder.states else None,
+        source=msg.model_id,
+    )
 
 
 class EpisodeBuilder:
@@ -247,8 +381,8 @@ class EpisodeBuilder:
     def next_step(self) -> int:
         return self.first_step + len(self.frames)
 
-    def add(self, msg: Any) -> None:
-        """Append one PlayStep; StepError on a gap, repeat, bad frame/state/action or step after the end."""
+    def add(self, msg: Any) -> StepData:
+        """Append one PlayStep; StepError on a gap, repeat, bad field, change of shape or step after the end."""
         step = int(msg.step)
         if msg.episode_id != self.episode_id:
             raise StepError(self.episode_id, step, f"message of episode {msg.episode_id!r}")
@@ -256,45 +390,27 @@ class EpisodeBuilder:
             raise StepError(
                 self.episode_id, step, f"step after the episode ended at step {self.next_step - 1}"
             )
-        if step != self.next_step:
-            kind = "repeated" if step < self.next_step else "missing steps before it"
-            raise StepError(self.episode_id, step, f"expected step {self.next_step} ({kind})")
-        try:
-            frame = frame_from_image(msg.observation)
-        except ValueError as error:
-            raise StepError(self.episode_id, step, str(error)) from None
-        if self.frames and frame.shape != self.frames[0].shape:
+        check_step_number(self.episode_id, step, self.next_step)
+        data = step_from_message(msg, self.frames[0].shape if self.frames else None)
+        state_shape = None if data.state is None else data.state.shape
+        if self.frames and state_shape != self.state_shape:
             raise StepError(
-                self.episode_id, step, f"frame is {frame.shape}, earlier frames are {self.frames[0].shape}"
+                self.episode_id, step, f"state_shape {state_shape}, earlier steps {self.state_shape}"
             )
-        self._add_state(step, np.asarray(msg.state, np.float32), tuple(int(n) for n in msg.state_shape))
-        action = np.asarray(msg.action, np.float32)
-        if msg.episode_end:
-            if action.size:
-                raise StepError(self.episode_id, step, "the last step (episode_end) must have no action")
-            self.finished = True
-        else:
-            if not action.size:
-                raise StepError(self.episode_id, step, "empty action on a step that does not end the episode")
-            if self.actions and action.shape != self.actions[0].shape:
-                raise StepError(
-                    self.episode_id,
-                    step,
-                    f"action has {action.size} values, earlier ones {self.actions[0].size}",
-                )
-            self.actions.append(action)
-        self.frames.append(frame)
-
-    def _add_state(self, step: int, state: np.ndarray, shape: tuple[int, ...]) -> None:
-        expected_size = int(np.prod(shape)) if shape else 0
-        if state.size != expected_size:
-            raise StepError(self.episode_id, step, f"state has {state.size} values but state_shape {shape}")
-        if self.state_shape is None:
-            self.state_shape = shape
-        elif shape != self.state_shape:
-            raise StepError(self.episode_id, step, f"state_shape {shape}, earlier steps {self.state_shape}")
-        if shape:
-            self.states.append(state.reshape(shape))
+        if data.action is not None and self.actions and data.action.size != self.actions[0].size:
+            raise StepError(
+                self.episode_id,
+                step,
+                f"action has {data.action.size} values, earlier steps {self.actions[0].size}",
+            )
+        self.state_shape = state_shape
+        self.frames.append(data.frame)
+        if data.state is not None:
+            self.states.append(data.state)
+        if data.action is not None:
+            self.actions.append(data.action)
+        self.finished = data.episode_end
+        return data
 
     def build(self, segments: Sequence[Segment] = ()) -> Episode:
         """The Episode (steps renumbered from 0); StepError if it did not end or a segment does not fit."""

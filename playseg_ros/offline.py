@@ -13,7 +13,7 @@ from collections.abc import Iterator
 from dataclasses import asdict
 from pathlib import Path
 
-from playseg_core.data_model import Episode, Segment
+from playseg_core.data_model import Episode, Segment, SegmentClip
 
 
 def _is_bag(path: Path) -> bool:
@@ -114,7 +114,6 @@ def segment(
         f"({steps / max(seconds, 1e-9):.0f} steps/s)"
     )
     if kind == "bag":
-        from playseg_ros.convert import SegmentClip
         from playseg_ros.play_bags import write_segment_bag
 
         model_id = Path(model_path).name

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from playseg_core.data_model import Episode, Segment
+from playseg_core.data_model import Episode, Segment, SegmentClip
 from playseg_core.dataset import PlayDataset
 from playseg_ros.bag_io import BagError, BagReader, BagSummary, BagWriter, topic_info
 from playseg_ros.convert import (
@@ -25,7 +25,6 @@ from playseg_ros.convert import (
     LABELLED_SEGMENT,
     PLAY_STEP,
     EpisodeBuilder,
-    SegmentClip,
     StepError,
     annotation_message,
     clip_from_labelled,

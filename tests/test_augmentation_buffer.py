@@ -7,34 +7,27 @@ import textwrap
 import numpy as np
 import pytest
 
-from playseg_core.augmentation_buffer import AugmentationBuffer, BufferedSegment
+from playseg_core.augmentation_buffer import AugmentationBuffer
+from playseg_core.data_model import Segment, SegmentClip
 
 
-def _segment(i: int) -> BufferedSegment:
+def _segment(i: int) -> SegmentClip:
     rng = np.random.default_rng(i)
     length = 2 + i % 5
-    return BufferedSegment(
+    instruction = f"go to the red {('ball', 'box', 'key')[i % 3]}"
+    return SegmentClip(
         episode_id=f"ep{i // 3}",
-        start=i,
-        end=i + length,
-        instruction=f"go to the red {('ball', 'box', 'key')[i % 3]}",
+        segment=Segment(i, i + length, instruction, confidence=0.5 + i / 100, log_prob=-i / 10),
         actions=rng.integers(0, 7, (length, 1)).astype(np.float32),
         states=rng.integers(0, 11, (length + 1, 8, 8, 3)).astype(np.uint8),
         frames=rng.integers(0, 256, (length + 1, 4, 4, 3)).astype(np.uint8) if i % 2 else None,
-        confidence=0.5 + i / 100,
         source="test",
     )
 
 
-def _assert_same(a: BufferedSegment, b: BufferedSegment) -> None:
-    assert (a.episode_id, a.start, a.end, a.instruction, a.source) == (
-        b.episode_id,
-        b.start,
-        b.end,
-        b.instruction,
-        b.source,
-    )
-    assert a.confidence == pytest.approx(b.confidence)
+def _assert_same(a: SegmentClip, b: SegmentClip) -> None:
+    assert (a.episode_id, a.source) == (b.episode_id, b.source)
+    assert a.segment == b.segment  # confidence and log_prob are stored as float64: exact
     np.testing.assert_array_equal(a.actions, b.actions)
     np.testing.assert_array_equal(a.states, b.states)
     assert (a.frames is None) == (b.frames is None)
@@ -50,7 +43,7 @@ def test_roundtrip_and_reopen(tmp_path):
         _assert_same(buf[3], _segment(3))
     reopened = AugmentationBuffer(tmp_path / "buf")
     assert len(reopened) == 7
-    assert reopened.num_steps == sum(_segment(i).end - _segment(i).start for i in range(7))
+    assert reopened.num_steps == sum(_segment(i).segment.length for i in range(7))
     for i, seg in enumerate(reopened):
         _assert_same(seg, _segment(i))
     reopened.append(_segment(7))
@@ -101,13 +94,14 @@ def test_sigkill_after_acknowledgement_loses_nothing(tmp_path):
         textwrap.dedent(
             """
             import numpy as np
-            from playseg_core.augmentation_buffer import AugmentationBuffer, BufferedSegment
+            from playseg_core.augmentation_buffer import AugmentationBuffer
+            from playseg_core.data_model import Segment, SegmentClip
             def run(path):
                 buf = AugmentationBuffer(path)
                 for i in range(100000):
                     a = np.full((3, 1), i % 7, np.float32)
-                    buf.append(BufferedSegment(f"ep{i}", 0, 3, "go to the red ball", a,
-                                               states=np.zeros((4, 8, 8, 3), np.uint8)))
+                    buf.append(SegmentClip(f"ep{i}", Segment(0, 3, "go to the red ball"), a,
+                                           states=np.zeros((4, 8, 8, 3), np.uint8)))
                     print(i, flush=True)
             """
         )

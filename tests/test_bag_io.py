@@ -21,13 +21,12 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as RosbagsWriter
 from rosbags.typesys import get_types_from_msg
 
-from playseg_core.data_model import Episode, Segment
+from playseg_core.data_model import Episode, Segment, SegmentClip
 from playseg_ros.bag_io import BagError, BagReader, BagWriter, recover_bag, ros2msg_definition, topic_info
 from playseg_ros.cli import main as cli_main
 from playseg_ros.convert import (
     ANNOTATION,
     PLAY_STEP,
-    SegmentClip,
     annotation_message,
     episode_messages,
     stamp_ns,
@@ -110,7 +109,7 @@ def test_segment_bag_round_trip(tmp_path: Path, episodes: list[Episode]) -> None
     ]
     write_segment_bag(tmp_path / "seg", clips)
     got = read_segment_bag(tmp_path / "seg")
-    assert [(c.episode_id, c.segment, c.model_id) for c in got] == [
+    assert [(c.episode_id, c.segment, c.source) for c in got] == [
         ("ep-000", labelled, "ps-test"),
         ("ep-001", episodes[1].segments[0], "ps-test"),
     ]
@@ -382,10 +381,10 @@ def _other_size(msg: object) -> None:
 @pytest.mark.parametrize(
     ("corrupt", "detail"),
     [
-        (_set_width, "row step is 24 bytes, expected 21"),
-        (_set_encoding, "encoding is 'bgr8', expected 'rgb8'"),
-        (_cut_data, "has 189 bytes, expected 8 x 24 = 192"),
-        (_other_size, r"frame is \(4, 16, 3\), earlier frames are \(8, 8, 3\)"),
+        (_set_width, "observation.step is 24 bytes, expected 21"),
+        (_set_encoding, "observation.encoding is 'bgr8', expected 'rgb8'"),
+        (_cut_data, "observation.data holds 189 bytes, expected 8 x 24 = 192"),
+        (_other_size, "observation is 4x16, expected 8x8"),
     ],
 )
 def test_frame_of_wrong_size_or_encoding(tmp_path: Path, corrupt, detail: str) -> None:
@@ -400,7 +399,7 @@ def test_frame_of_wrong_size_or_encoding(tmp_path: Path, corrupt, detail: str) -
 
 @pytest.mark.parametrize(
     ("drop", "repeat", "step", "detail"),
-    [(3, None, 4, "expected step 3"), (None, 2, 2, "expected step 3 \\(repeated\\)")],
+    [(3, None, 4, "step gap, expected step 3"), (None, 2, 2, "step repeat, expected step 3")],
 )
 def test_gap_or_repeat_in_step_numbers(tmp_path: Path, drop, repeat, step: int, detail: str) -> None:
     messages = step_messages(make_episode(0, 6))

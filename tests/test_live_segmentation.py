@@ -19,7 +19,7 @@ from playseg_core.models import PSModel
 from playseg_core.segmentation import segment_episode
 from playseg_core.training import default_model_config, load_checkpoint, save_checkpoint
 from playseg_ros import qos
-from playseg_ros.live_convert import play_step_msg
+from playseg_ros.convert import RCLPY, episode_step_message
 from playseg_ros.play_bags import read_play_bag, write_play_bag
 
 
@@ -114,22 +114,22 @@ def test_malformed_steps_are_logged_and_the_node_keeps_running(tmp_path, model_p
     collector = _Collector()
     try:
         assert collector.spin_until(lambda: collector.steps_pub.get_subscription_count() >= 1, 30)
-        bad_encoding = play_step_msg(good, 0)
+        bad_encoding = episode_step_message(good, 0, kind=RCLPY)
         bad_encoding.episode_id = "bad-encoding"
         bad_encoding.observation.encoding = "bgr8"
-        bad_size = play_step_msg(good, 0)
+        bad_size = episode_step_message(good, 0, kind=RCLPY)
         bad_size.episode_id = "bad-size"
         bad_size.observation.data = bytes(10)
-        nan_action = play_step_msg(good, 0)
+        nan_action = episode_step_message(good, 0, kind=RCLPY)
         nan_action.episode_id = "nan-action"
         nan_action.action = [float("nan")]
-        gap = [play_step_msg(good, t) for t in (0, 1, 3)]
+        gap = [episode_step_message(good, t, kind=RCLPY) for t in (0, 1, 3)]
         for msg in gap:
             msg.episode_id = "gap"
         for msg in [bad_encoding, bad_size, nan_action, *gap]:
             collector.steps_pub.publish(msg)
         for t in range(good.num_steps + 1):
-            collector.steps_pub.publish(play_step_msg(good, t))
+            collector.steps_pub.publish(episode_step_message(good, t, kind=RCLPY))
         done = lambda: any(s.end_step == good.num_steps for s in collector.segments)  # noqa: E731
         assert collector.spin_until(done, 60), (tmp_path / "segmenter.log").read_text()
         assert segmenter.poll() is None

@@ -27,7 +27,7 @@ from playseg_core.babyai import PlayConfig, generate_episode
 from playseg_core.data_model import Episode
 from playseg_ros import qos
 from playseg_ros.bag_io import BagReader, BagWriter, topic_info
-from playseg_ros.live_convert import labelled_segment_msg, play_step_msg
+from playseg_ros.convert import RCLPY, episode_step_message, labelled_segment_of_steps
 from playseg_ros.play_bags import read_play_bag, write_play_bag
 from playseg_ros.typestore import playseg_typestore
 
@@ -169,7 +169,14 @@ class TrainerClient:
 
 def _segment_msgs(episode: Episode) -> list[LabelledSegment]:
     return [
-        labelled_segment_msg(seg, [play_step_msg(episode, t) for t in range(seg.start, seg.end + 1)], "test")
+        labelled_segment_of_steps(
+            episode.episode_id,
+            seg,
+            [episode_step_message(episode, t, kind=RCLPY) for t in range(seg.start, seg.end + 1)],
+            "test",
+            0,
+            kind=RCLPY,
+        )
         for seg in episode.segments
     ]
 
@@ -209,8 +216,12 @@ def test_trainer_sigkill_and_restart_keeps_every_acknowledged_segment(
     with AugmentationBuffer(tmp_path / "buffer") as buffer:
         assert len(buffer) == restored
         for stored, seg in zip(buffer, episode.segments, strict=False):
-            assert (stored.episode_id, stored.start, stored.end) == (episode.episode_id, seg.start, seg.end)
-            assert stored.instruction == seg.instruction and stored.source == "test"
+            assert (stored.episode_id, stored.segment.start, stored.segment.end) == (
+                episode.episode_id,
+                seg.start,
+                seg.end,
+            )
+            assert stored.segment.instruction == seg.instruction and stored.source == "test"
             np.testing.assert_array_equal(stored.actions, episode.actions[seg.start : seg.end])
             np.testing.assert_array_equal(stored.frames, episode.frames[seg.start : seg.end + 1])
             np.testing.assert_array_equal(stored.states, episode.states[seg.start : seg.end + 1])
@@ -306,7 +317,11 @@ def test_bag_player_rate_1_takes_the_recorded_duration(
     with BagWriter(bag) as writer:
         writer.add_topic(topic_info("/play/steps", "playseg_msgs/msg/PlayStep"))
         for i in range(count):
-            writer.write("/play/steps", serialize_message(play_step_msg(episode, i)), 10**18 + i * step_ns)
+            writer.write(
+                "/play/steps",
+                serialize_message(episode_step_message(episode, i, kind=RCLPY)),
+                10**18 + i * step_ns,
+            )
     received = _subscribe_raw(peer, "/play/steps", PlayStep, qos.PLAY_STEPS)
     player, _ = procs.node("bag_player", "player", bag=bag, rate=1.0, wait_for_subscribers=1)
     assert peer.spin_until(lambda: len(received) >= count, 60), f"received {len(received)} of {count}"

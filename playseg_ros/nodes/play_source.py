@@ -11,11 +11,10 @@ from __future__ import annotations
 import numpy as np
 from playseg_msgs.msg import Annotation, PlayStep
 from rclpy.node import Node
-from std_msgs.msg import Header
 
 from playseg_core.babyai import PlayConfig, generate_episode
 from playseg_ros import qos
-from playseg_ros.live_convert import play_step_msg
+from playseg_ros.convert import RCLPY, annotation_message, episode_step_message
 from playseg_ros.nodes.common import declare, require, run_node
 
 
@@ -75,8 +74,8 @@ class PlaySourceNode(Node):
             self.get_logger().info(f"{self.steps_pub.get_subscription_count()} subscribers: starting")
         if self.episode is None:
             self._next_episode()
-        stamp = self.get_clock().now().to_msg()
-        self.steps_pub.publish(play_step_msg(self.episode, self.t, stamp, frame_id="babyai"))
+        stamp = self.get_clock().now().nanoseconds
+        self.steps_pub.publish(episode_step_message(self.episode, self.t, stamp, "babyai", RCLPY))
         for seg in self.episode.segments:
             if seg.end == self.t:
                 if seg in self.annotated:
@@ -91,14 +90,8 @@ class PlaySourceNode(Node):
         else:
             self.t += 1
 
-    def _annotation(self, seg, stamp) -> Annotation:
-        return Annotation(
-            header=Header(stamp=stamp, frame_id="babyai"),
-            episode_id=self.episode.episode_id,
-            start_step=seg.start,
-            end_step=seg.end,
-            instruction=seg.instruction,
-        )
+    def _annotation(self, seg, stamp: int) -> Annotation:
+        return annotation_message(self.episode.episode_id, seg, stamp, "babyai", RCLPY)
 
 
 def main(args: list[str] | None = None) -> int:

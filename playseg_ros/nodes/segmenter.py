@@ -22,7 +22,13 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 from playseg_core.streaming import StreamingSegmenter
 from playseg_core.training import load_checkpoint
 from playseg_ros import qos
-from playseg_ros.live_convert import MalformedStep, labelled_segment_msg, step_from_msg
+from playseg_ros.convert import (
+    RCLPY,
+    StepError,
+    check_step_number,
+    labelled_segment_of_steps,
+    step_from_message,
+)
 from playseg_ros.nodes.common import declare, require, run_node
 
 
@@ -105,7 +111,7 @@ class SegmenterNode(LifecycleNode):
     def _on_step(self, msg: PlayStep) -> None:
         try:
             self._segment_step(msg)
-        except MalformedStep as exc:
+        except StepError as exc:
             self.get_logger().warning(f"{self.steps_topic}: malformed PlayStep, episode dropped: {exc}")
             self.episodes.pop(msg.episode_id, None)
             self.finished.add(msg.episode_id)
@@ -117,26 +123,18 @@ class SegmenterNode(LifecycleNode):
             self.finished.add(msg.episode_id)
 
     def _segment_step(self, msg: PlayStep) -> None:
-        data = step_from_msg(msg, self._frame_shape)
+        data = step_from_message(msg, self._frame_shape)
         episode = self.episodes.get(data.episode_id)
         if episode is None:
             if data.episode_id in self.finished:
-                raise MalformedStep(
-                    f"episode {data.episode_id!r} step {data.step}: the episode already ended"
-                )
-            if data.step != 0:
-                raise MalformedStep(
-                    f"episode {data.episode_id!r} step {data.step}: episode must start at step 0"
-                )
+                raise StepError(data.episode_id, data.step, "the episode already ended")
+            check_step_number(data.episode_id, data.step, 0)
             episode = self.episodes[data.episode_id] = _OpenEpisode(
                 StreamingSegmenter(self.model, self.min_len)
             )
             self._frame_shape = self._frame_shape or data.frame.shape
-        elif data.step != episode.next_step:
-            kind = "gap" if data.step > episode.next_step else "repeat"
-            raise MalformedStep(
-                f"episode {data.episode_id!r} step {data.step}: step {kind}, expected step {episode.next_step}"
-            )
+        else:
+            check_step_number(data.episode_id, data.step, episode.next_step)
         episode.steps.append(msg)
         episode.last_seen = time.monotonic()
         decided = episode.segmenter.push(data.frame)
@@ -155,8 +153,12 @@ class SegmenterNode(LifecycleNode):
         if segment.confidence < self.min_confidence:
             return
         steps = episode.steps[segment.start - episode.first_step : segment.end - episode.first_step + 1]
+        stamp = self.get_clock().now().nanoseconds
+        frame_id = steps[0].header.frame_id
         self._pub.publish(
-            labelled_segment_msg(segment, steps, self.model_id, self.get_clock().now().to_msg())
+            labelled_segment_of_steps(
+                steps[0].episode_id, segment, steps, self.model_id, stamp, frame_id, RCLPY
+            )
         )
         self.published += 1
 

@@ -20,7 +20,7 @@ from playseg_core.augmentation import AugmentationTrainer, TrainerConfig, demons
 from playseg_core.policy import PolicyConfig
 from playseg_core.policy_training import PolicyTrainConfig
 from playseg_ros import qos
-from playseg_ros.live_convert import buffered_segment_from_msg
+from playseg_ros.convert import clip_from_labelled
 from playseg_ros.nodes.common import declare, require, run_node
 from playseg_ros.play_bags import load_annotated_episodes
 
@@ -130,11 +130,11 @@ class TrainerNode(LifecycleNode):
     # -- data ------------------------------------------------------------------------------------------
     def _on_segment(self, msg: LabelledSegment) -> None:
         try:
-            segment = buffered_segment_from_msg(msg)
+            clip = clip_from_labelled(msg)
         except ValueError as exc:
             self.get_logger().error(f"dropped LabelledSegment on {self.p['segments_topic']}: {exc}")
             return
-        due = self.trainer.add(segment)
+        due = self.trainer.add(clip)
         self.publish_status()
         if due:
             self._start_retraining()
