@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from playseg_core.augmentation_buffer import AugmentationBuffer
-from playseg_core.data_model import Episode, SegmentClip
+from playseg_core.data_model import Episode, Segment, SegmentClip
 from playseg_core.policy import PolicyNet, load_policy, save_policy
 from playseg_core.policy_training import (
     Demonstration,
@@ -161,3 +161,33 @@ def _write_json_atomically(path: Path, data: dict) -> None:
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(data, indent=2))
     os.replace(tmp, path)
+
+
+def export_buffer_dataset(buffer: AugmentationBuffer, path: str | Path) -> int:
+    """Write every buffered segment as a one-segment episode of a playseg dataset (split 'train').
+
+    Episode ids are ``<source episode>:<start>-<end>``; segment confidence and log-score are kept.
+    Returns the number of segments written. The dataset appears at ``path`` only when complete.
+    """
+    from playseg_core.babyai import INSTRUCTIONS
+    from playseg_core.dataset import DatasetWriter
+
+    clips = list(buffer)
+    used = {clip.segment.instruction for clip in clips}
+    instructions = INSTRUCTIONS if used <= set(INSTRUCTIONS) else sorted(used)
+    with DatasetWriter(path, instructions, meta={"source": f"augmentation buffer {buffer.path}"}) as writer:
+        for clip in clips:
+            seg = clip.segment
+            if clip.frames is None:
+                raise ValueError(
+                    f"{buffer.path}: segment {clip.episode_id}[{seg.start}, {seg.end}) has no frames"
+                )
+            episode = Episode(
+                episode_id=f"{clip.episode_id}:{seg.start}-{seg.end}",
+                frames=np.asarray(clip.frames),
+                actions=np.asarray(clip.actions, np.float32),
+                states=None if clip.states is None else np.asarray(clip.states),
+                segments=[Segment(0, seg.length, seg.instruction, seg.confidence, seg.log_prob)],
+            )
+            writer.add(episode, "train", extra={"source": clip.source})
+    return len(clips)

@@ -16,7 +16,12 @@ from playseg_msgs.msg import LabelledSegment, TrainerStatus
 from playseg_msgs.srv import EvaluatePolicy, Retrain, SaveBuffer
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
-from playseg_core.augmentation import AugmentationTrainer, TrainerConfig, demonstrations_from_episodes
+from playseg_core.augmentation import (
+    AugmentationTrainer,
+    TrainerConfig,
+    demonstrations_from_episodes,
+    export_buffer_dataset,
+)
 from playseg_core.policy import PolicyConfig
 from playseg_core.policy_training import PolicyTrainConfig
 from playseg_ros import qos
@@ -182,8 +187,6 @@ class TrainerNode(LifecycleNode):
     def _on_save_buffer(
         self, request: SaveBuffer.Request, response: SaveBuffer.Response
     ) -> SaveBuffer.Response:
-        from playseg_ros.export import export_buffer_dataset
-
         try:
             response.segments = export_buffer_dataset(self.trainer.buffer, request.path)
             response.success, response.path = True, request.path

@@ -1,0 +1,89 @@
+"""Policy augmentation: versioned retraining on annotated + buffered segments, buffer export."""
+
+import numpy as np
+import pytest
+
+from playseg_core.augmentation import (
+    AugmentationTrainer,
+    TrainerConfig,
+    demonstrations_from_episodes,
+    export_buffer_dataset,
+)
+from playseg_core.babyai import PlayConfig, generate_episode
+from playseg_core.data_model import SegmentClip
+from playseg_core.dataset import PlayDataset
+from playseg_core.policy import PolicyConfig
+from playseg_core.policy_training import PolicyTrainConfig
+
+
+@pytest.fixture(scope="module")
+def episodes():
+    return [generate_episode(PlayConfig(), seed) for seed in (5, 6)]
+
+
+def _config(tmp_path) -> TrainerConfig:
+    train = PolicyTrainConfig(steps=15, batch_size=32, log_every=5, policy=PolicyConfig(channels=16))
+    return TrainerConfig(str(tmp_path / "buf"), str(tmp_path / "ckpt"), eval_episodes=4, train=train)
+
+
+def test_demonstrations_are_the_segments_states_and_actions(episodes):
+    demos = demonstrations_from_episodes(episodes)
+    assert len(demos) == sum(len(e.segments) for e in episodes)
+    instruction, states, actions = demos[1]
+    seg = episodes[0].segments[1]
+    assert instruction == seg.instruction
+    np.testing.assert_array_equal(states, episodes[0].states[seg.start : seg.end + 1])
+    np.testing.assert_array_equal(actions, episodes[0].actions[seg.start : seg.end])
+
+
+def test_retraining_writes_versions_that_survive_a_restart(tmp_path, episodes):
+    trainer = AugmentationTrainer(_config(tmp_path), demonstrations_from_episodes(episodes[:1]))
+    assert trainer.policy_version == 0
+    for seg in episodes[1].segments:
+        trainer.add(SegmentClip.from_episode(episodes[1], seg, "test-model"))
+    first = trainer.retrain()
+    second = trainer.retrain()
+    assert (first.version, second.version) == (1, 2)
+    assert first.num_base_segments == len(episodes[0].segments)
+    assert first.num_buffer_segments == len(episodes[1].segments)
+    assert 0.0 <= second.success_rate <= 1.0 and second.eval_episodes == 4
+    trainer.close()
+    reopened = AugmentationTrainer(_config(tmp_path))
+    assert reopened.policy_version == 2 and len(reopened.buffer) == len(episodes[1].segments)
+    # the same policy scores the same on the fixed evaluation episodes
+    assert reopened.evaluate().success_rate == second.success_rate
+    reopened.close()
+
+
+def test_low_confidence_segments_are_stored_but_not_trained_on(tmp_path, episodes):
+    config = _config(tmp_path)
+    config.min_confidence = 0.5
+    trainer = AugmentationTrainer(config)
+    for i, seg in enumerate(episodes[0].segments):
+        clip = SegmentClip.from_episode(episodes[0], seg, "m")
+        clip.segment = type(seg)(seg.start, seg.end, seg.instruction, confidence=0.9 if i % 2 else 0.1)
+        trainer.add(clip)
+    assert len(trainer.buffer) == len(episodes[0].segments)
+    assert len(trainer.training_demos()) == len(episodes[0].segments) // 2
+    trainer.close()
+
+
+def test_buffer_exports_as_a_dataset(tmp_path, episodes):
+    trainer = AugmentationTrainer(_config(tmp_path))
+    clips = [SegmentClip.from_episode(episodes[0], seg, "m") for seg in episodes[0].segments[:3]]
+    for clip in clips:
+        trainer.add(clip)
+    assert export_buffer_dataset(trainer.buffer, tmp_path / "exported") == 3
+    dataset = PlayDataset.open(tmp_path / "exported")
+    exported = list(dataset.episodes("train"))
+    assert [e.episode_id for e in exported] == [
+        f"{c.episode_id}:{c.segment.start}-{c.segment.end}" for c in clips
+    ]
+    for episode, clip in zip(exported, clips, strict=True):
+        np.testing.assert_array_equal(episode.frames, clip.frames)
+        np.testing.assert_array_equal(episode.actions, clip.actions)
+        assert [s.instruction for s in episode.segments] == [clip.segment.instruction]
+        assert episode.segments[0].length == clip.segment.length
+    with pytest.raises(FileExistsError):
+        export_buffer_dataset(trainer.buffer, tmp_path / "exported")
+    trainer.close()
