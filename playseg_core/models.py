@@ -24,7 +24,7 @@ class EncoderConfig:
     tile_size: int = 8  # BabyAI renders a grid of 8x8-pixel tiles: the first conv reads one tile
     tile_channels: int = 64
     grid_channels: int = 32
-    layout_channels: int = 4  # per-tile channels of the position-specific path (small: it overfits)
+    layout_channels: int = 16  # per-tile channels of the position-specific path
     feature_dim: int = 128
 
 

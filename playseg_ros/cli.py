@@ -161,7 +161,7 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     train = sub.add_parser("train", help="train the Play Segmentation model on a dataset's annotated splits")
     train.add_argument("--data", required=True, help="dataset directory (train + val splits are used)")
     train.add_argument("--out", required=True, help="checkpoint file to write (e.g. models/ps.pt)")
-    train.add_argument("--epochs", type=int, default=15)
+    train.add_argument("--epochs", type=int, default=8)
     train.add_argument("--lr", type=float, default=3e-3)
     train.add_argument("--batch-segments", type=int, default=64, help="annotated segments per batch")
     train.add_argument("--seed", type=int, default=0)
