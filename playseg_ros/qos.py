@@ -1,8 +1,8 @@
 """QoS per stream, chosen so that nothing is silently lost by default.
 
 - Play steps and labelled segments: RELIABLE + KEEP_ALL history (volatile). A segment decoder must see
-  every step in order, and the trainer must see every segment: a slow subscriber applies back-pressure to
-  the publisher instead of dropping (best effort would drop under load without a trace).
+  every step in order, and the trainer must see every segment: a slow subscriber's KEEP_ALL reader queues
+  the backlog instead of dropping (best effort would drop under load without a trace).
 - Annotations: RELIABLE + TRANSIENT_LOCAL (depth 1000), so a late-joining segmenter/trainer still gets
   the labels published before it started.
 - Trainer status: RELIABLE + TRANSIENT_LOCAL depth 1: a late subscriber sees the latest status at once.

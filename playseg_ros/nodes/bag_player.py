@@ -1,8 +1,9 @@
-"""bag_player: publishes a bag's messages at recorded speed, a multiple of it, or as fast as subscribers
-keep up (there is no `ros2 bag play` in the package registry).
+"""bag_player: publishes a bag's messages at recorded speed, a multiple of it, or as fast as possible
+(there is no `ros2 bag play` in the package registry).
 
-`rate` 1.0 = recorded speed, 2.0 = twice as fast, 0 = as fast as possible: with the reliable KEEP_ALL
-profile a publisher blocks while subscribers' queues are full instead of dropping, so nothing is lost.
+`rate` 1.0 = recorded speed, 2.0 = twice as fast, 0 = as fast as possible. Steps and segments are
+reliable KEEP_ALL on both sides, so nothing is dropped: a subscriber slower than the player queues the
+backlog in its reader (benchmarks/bench_live.py measures the resulting latency).
 `wait_for_subscribers` delays the start until each of `wait_topics` (default: the PlayStep topics) has that
 many subscribers (volatile topics have no history for late joiners). Annotation topics are published transient-local.
 """
