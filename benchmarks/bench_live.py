@@ -41,6 +41,7 @@ from playseg_core.segmentation import segment_episode
 from playseg_core.streaming import StreamingSegmenter
 from playseg_core.training import default_model_config, load_checkpoint, save_checkpoint
 from playseg_ros import qos
+from playseg_ros.launch import Graph, GraphSpec, NodeSpec
 from playseg_ros.play_bags import STEPS_TOPIC, read_play_bag
 
 SEGMENTS_TOPIC = "/segments"
@@ -129,52 +130,43 @@ class Listener:
         rclpy.try_shutdown()
 
 
-def start_node(kind: str, log: Path, *params: str) -> subprocess.Popen:
-    args = [a for p in params for a in ("-p", p)]
-    cmd = [sys.executable, "-m", f"playseg_ros.nodes.{kind}", "--ros-args", *args]
-    return subprocess.Popen(cmd, stdout=open(log, "wb"), stderr=subprocess.STDOUT)  # noqa: SIM115
-
-
-def stop(*procs: subprocess.Popen) -> None:
-    for proc in procs:
-        if proc.poll() is None:
-            proc.terminate()
-    for proc in procs:
-        try:
-            proc.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+def start_node(kind: str, work: Path, **parameters: object) -> Graph:
+    """One node process logging to work/<kind>.log (the `playseg up` machinery)."""
+    graph = Graph(GraphSpec([NodeSpec(kind, kind, parameters)], shutdown_timeout_s=15), log_dir=work)
+    graph.start()
+    return graph
 
 
 def live_run(args: argparse.Namespace, model_path: str, offline: Offline, work: Path) -> Listener:
     listener = Listener()
-    segmenter = start_node("segmenter", work / "segmenter.log", f"model:={model_path}")
+    segmenter = start_node("segmenter", work, model=str(model_path))
     player = None
     try:
         ready = lambda: (  # noqa: E731  the segmenter listens to steps and publishes segments to us
             listener.node.count_subscribers(STEPS_TOPIC) >= 2
             and listener.segments_sub.get_publisher_count() >= 1
         )
-        if not listener.spin_until(ready, 60, segmenter):
+        if not listener.spin_until(ready, 60, segmenter.processes["segmenter"]):
             raise SystemExit(f"segmenter did not come up:\n{(work / 'segmenter.log').read_text()}")
         player = start_node(
             "bag_player",
-            work / "player.log",
-            f"bag:={args.bag}",
-            f"rate:={float(args.rate)}",
-            f"topics:=[{STEPS_TOPIC}]",
-            "wait_for_subscribers:=2",  # the segmenter and this process
+            work,
+            bag=str(args.bag),
+            rate=float(args.rate),
+            topics=[STEPS_TOPIC],
+            wait_for_subscribers=2,  # the segmenter and this process
         )
         ended = lambda: {key[0] for key, _, _ in listener.segments if key[2] == offline.last_step[key[0]]}  # noqa: E731
         total_steps = sum(n + 1 for n in offline.last_step.values())
         done = lambda: len(ended()) == len(offline.last_step) and len(listener.step_time) >= total_steps  # noqa: E731
-        if not listener.spin_until(done, args.timeout, segmenter):
+        if not listener.spin_until(done, args.timeout, segmenter.processes["segmenter"]):
             print(f"incomplete after {args.timeout} s; segmenter log tail:", file=sys.stderr)
             print((work / "segmenter.log").read_text()[-2000:], file=sys.stderr)
         listener.spin_until(lambda: False, 0.5)  # stragglers (there should be none)
     finally:
-        stop(*(p for p in (player, segmenter) if p is not None))
+        for graph in (player, segmenter):
+            if graph is not None:
+                graph.stop()
     return listener
 
 

@@ -3,8 +3,6 @@ logged and survived."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -20,6 +18,7 @@ from playseg_core.segmentation import segment_episode
 from playseg_core.training import default_model_config, load_checkpoint, save_checkpoint
 from playseg_ros import qos
 from playseg_ros.convert import RCLPY, episode_step_message
+from playseg_ros.launch import Graph, GraphSpec, NodeSpec
 from playseg_ros.play_bags import read_play_bag, write_play_bag
 
 
@@ -32,22 +31,11 @@ def model_path(tmp_path_factory) -> Path:
     return path
 
 
-def _start_node(kind: str, log: Path, *params: str) -> subprocess.Popen:
-    args = [a for p in params for a in ("-p", p)]
-    cmd = [sys.executable, "-m", f"playseg_ros.nodes.{kind}", "--ros-args", *args]
-    return subprocess.Popen(cmd, stdout=open(log, "wb"), stderr=subprocess.STDOUT)  # noqa: SIM115
-
-
-def _stop(*procs: subprocess.Popen) -> None:
-    for proc in procs:
-        if proc.poll() is None:
-            proc.terminate()
-    for proc in procs:
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+def _start(tmp_path: Path, kind: str, **parameters: object) -> Graph:
+    """One node process, logging to tmp_path/<kind>.log (the `playseg up` machinery)."""
+    graph = Graph(GraphSpec([NodeSpec(kind, kind, parameters)], shutdown_timeout_s=10), log_dir=tmp_path)
+    graph.start()
+    return graph
 
 
 class _Collector:
@@ -73,21 +61,19 @@ def test_live_segments_equal_offline_segmentation(tmp_path, model_path):
     episodes = [generate_episode(PlayConfig(), seed) for seed in (11, 12, 13)]
     bag = tmp_path / "play"
     write_play_bag(bag, episodes, annotated=False)
-    segmenter = _start_node("segmenter", tmp_path / "segmenter.log", f"model:={model_path}")
+    segmenter = _start(tmp_path, "segmenter", model=str(model_path))
     collector = _Collector()
     try:
         # Play only once the segmenter listens: volatile play steps are not replayed to late joiners.
         assert collector.spin_until(lambda: collector.steps_pub.get_subscription_count() >= 1, 30)
-        player = _start_node(
-            "bag_player", tmp_path / "player.log", f"bag:={bag}", "rate:=0.0", "wait_for_subscribers:=1"
-        )
+        player = _start(tmp_path, "bag_player", bag=str(bag), rate=0.0, wait_for_subscribers=1)
         ends = {e.episode_id: e.num_steps for e in episodes}
         done = lambda: sum(s.end_step == ends[s.episode_id] for s in collector.segments) == len(ends)  # noqa: E731
         assert collector.spin_until(done, 90), (tmp_path / "segmenter.log").read_text()
-        _stop(player)
+        player.stop()
     finally:
         collector.close()
-        _stop(segmenter)
+        segmenter.stop()
 
     model, _ = load_checkpoint(model_path)
     for episode in read_play_bag(bag):
@@ -110,7 +96,7 @@ def test_live_segments_equal_offline_segmentation(tmp_path, model_path):
 
 def test_malformed_steps_are_logged_and_the_node_keeps_running(tmp_path, model_path):
     good = generate_episode(PlayConfig(), 21)
-    segmenter = _start_node("segmenter", tmp_path / "segmenter.log", f"model:={model_path}")
+    segmenter = _start(tmp_path, "segmenter", model=str(model_path))
     collector = _Collector()
     try:
         assert collector.spin_until(lambda: collector.steps_pub.get_subscription_count() >= 1, 30)
@@ -132,10 +118,10 @@ def test_malformed_steps_are_logged_and_the_node_keeps_running(tmp_path, model_p
             collector.steps_pub.publish(episode_step_message(good, t, kind=RCLPY))
         done = lambda: any(s.end_step == good.num_steps for s in collector.segments)  # noqa: E731
         assert collector.spin_until(done, 60), (tmp_path / "segmenter.log").read_text()
-        assert segmenter.poll() is None
+        assert segmenter.processes["segmenter"].poll() is None
     finally:
         collector.close()
-        _stop(segmenter)
+        segmenter.stop()
     log = (tmp_path / "segmenter.log").read_text()
     assert "'bad-encoding' step 0: observation.encoding is 'bgr8'" in log
     assert "'bad-size' step 0: observation.data holds 10 bytes" in log
