@@ -62,7 +62,7 @@ def ensure_ps_model(annotated_bag: Path, cache_dir: Path) -> Path:
         f"training the PS model on {len(train)} annotated episodes ({sum(len(e.segments) for e in train)} segments), "
         f"validating on {len(val)} ..."
     )
-    result = train_ps(train, val, INSTRUCTIONS, TrainConfig(epochs=8, num_threads=2))
+    result = train_ps(train, val, INSTRUCTIONS, TrainConfig(progress=sys.stderr.isatty()))
     cache_dir.mkdir(parents=True, exist_ok=True)
     save_checkpoint(model_path, result.model, {"trained_on": str(annotated_bag)})
     _log(f"PS model trained in {result.seconds:.0f} s -> {model_path}")

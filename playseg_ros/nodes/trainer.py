@@ -14,6 +14,7 @@ import threading
 
 from playseg_msgs.msg import LabelledSegment, TrainerStatus
 from playseg_msgs.srv import EvaluatePolicy, Retrain, SaveBuffer
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
 from playseg_core.augmentation import (
@@ -68,9 +69,11 @@ class TrainerNode(LifecycleNode):
         self._training = threading.Lock()
         self._sub = None
         self._status_pub = self.create_publisher(TrainerStatus, self.p["status_topic"], qos.STATUS)
-        self.create_service(Retrain, "~/retrain", self._on_retrain)
-        self.create_service(SaveBuffer, "~/save_buffer", self._on_save_buffer)
-        self.create_service(EvaluatePolicy, "~/evaluate", self._on_evaluate)
+        # Services may run for minutes (retrain with wait=true): their own group keeps segments flowing.
+        slow = MutuallyExclusiveCallbackGroup()
+        self.create_service(Retrain, "~/retrain", self._on_retrain, callback_group=slow)
+        self.create_service(SaveBuffer, "~/save_buffer", self._on_save_buffer, callback_group=slow)
+        self.create_service(EvaluatePolicy, "~/evaluate", self._on_evaluate, callback_group=slow)
         self.create_timer(self.p["status_period_s"], self.publish_status)
 
     # -- lifecycle -------------------------------------------------------------------------------------
