@@ -23,8 +23,8 @@ class EncoderConfig:
     image_size: int = 64
     tile_size: int = 8  # BabyAI renders a grid of 8x8-pixel tiles: the first conv reads one tile
     tile_channels: int = 64
-    grid_channels: int = 32
-    layout_channels: int = 16  # per-tile channels of the position-specific path
+    object_dim: int = 32  # per-tile "what is here" embedding
+    look_heads: int = 2  # attention maps over tiles ("the tile the agent faces", ...)
     feature_dim: int = 128
 
 
@@ -54,49 +54,63 @@ class ModelConfig:
 
 
 class FrameEncoder(nn.Module):
-    """Per-frame CNN over the tile grid, pooled two ways.
+    """Per-frame CNN over the tile grid; translation-equivariant up to attention and sum pooling.
 
-    The tile conv (kernel = stride = tile size) identifies each tile's content; a 3x3 conv relates a tile
-    to its neighbours ("the agent faces a red ball"). Global max/mean pooling makes such facts
-    position-free (what is faced, how many red balls exist); a linear map of the whole grid keeps where
-    things are (the agent's pose relative to the segment start).
+    The tile conv (kernel = stride = tile size) embeds each tile (object type and colour, the agent and
+    its direction). Two per-tile maps come from it: `what` (the tile's content) and `look` (a 3x3 conv:
+    "this tile is in front of the agent", from the neighbouring agent tile and its direction). Softmax
+    attention of `look` over the tiles reads out the content of the faced tile; the product of that with
+    the summed contents counts how many tiles hold the same thing (the article "the" vs "a"). Nothing
+    depends on where things are, so the model cannot memorise room layouts, and "what is faced" is a
+    product of where and what, so it holds for objects never faced in training.
     """
 
     def __init__(self, cfg: EncoderConfig) -> None:
         super().__init__()
-        grid = cfg.image_size // cfg.tile_size
         self.tile = nn.Conv2d(3, cfg.tile_channels, cfg.tile_size, stride=cfg.tile_size)
         self.tile_mix = nn.Conv2d(cfg.tile_channels, cfg.tile_channels, 1)
-        self.neighbours = nn.Conv2d(cfg.tile_channels, cfg.grid_channels, 3, padding=1)
-        self.neighbour_mix = nn.Conv2d(cfg.grid_channels, cfg.grid_channels, 1)
-        self.layout_mix = nn.Conv2d(cfg.tile_channels, cfg.layout_channels, 1)
-        self.layout = nn.Linear(cfg.layout_channels * grid * grid, cfg.feature_dim)
-        self.proj = nn.Linear(cfg.feature_dim + 2 * cfg.grid_channels, cfg.feature_dim)
+        self.what = nn.Conv2d(cfg.tile_channels, cfg.object_dim, 1)
+        self.look = nn.Conv2d(cfg.tile_channels, cfg.look_heads, 3, padding=1)
+        self.what_norm = nn.LayerNorm(cfg.object_dim)
+        # Per head: how sharply "looks like the faced tile" falls off with the embedding distance.
+        self.log_sharpness = nn.Parameter(torch.full((cfg.look_heads,), 2.0))
+        faced_dim = cfg.look_heads * cfg.object_dim
+        self.proj = nn.Sequential(
+            nn.Linear(faced_dim + cfg.look_heads, cfg.feature_dim),
+            nn.GELU(),
+            nn.Linear(cfg.feature_dim, cfg.feature_dim),
+        )
 
     def forward(self, frames: torch.Tensor) -> torch.Tensor:
         """(N, H, W, 3) uint8 -> (N, feature_dim)."""
         x = frames.permute(0, 3, 1, 2).float() / 255.0
         tiles = F.relu(self.tile_mix(F.relu(self.tile(x))))
-        local = F.relu(self.neighbour_mix(F.relu(self.neighbours(tiles))))
-        pooled = torch.cat([local.amax((2, 3)), local.mean((2, 3))], dim=1)
-        layout = F.relu(self.layout(self.layout_mix(tiles).flatten(1)))
-        return self.proj(torch.cat([layout, pooled], dim=1))
+        what = self.what_norm(self.what(tiles).flatten(2).transpose(1, 2))  # (N, tiles, object_dim)
+        look = torch.softmax(self.look(tiles).flatten(2), dim=-1)  # (N, heads, tiles)
+        faced = look @ what  # (N, heads, object_dim)
+        # Identical tiles have identical embeddings: count the tiles that look like the faced one.
+        distance = (what[:, None] - faced[:, :, None]).square().mean(-1)  # (N, heads, tiles)
+        count = torch.exp(-distance * self.log_sharpness.exp()[:, None]).sum(-1)
+        return self.proj(torch.cat([faced.flatten(1), count], dim=1))
 
 
 class CausalConvBlock(nn.Module):
-    """Pre-norm residual block: LayerNorm -> causal Conv1d over time -> GELU."""
+    """Pre-norm residual block: LayerNorm -> causal Conv1d over time -> GELU -> Linear (small init)."""
 
     def __init__(self, dim: int, kernel_size: int) -> None:
         super().__init__()
         self.norm = nn.LayerNorm(dim)
         self.conv = nn.Conv1d(dim, dim, kernel_size)
+        self.out = nn.Linear(dim, dim)
+        nn.init.normal_(self.out.weight, std=0.02)  # the residual stream starts as the frame content
+        nn.init.zeros_(self.out.bias)
         self.pad = kernel_size - 1
 
     def forward(self, h: torch.Tensor) -> torch.Tensor:
         """(B, P, dim) -> (B, P, dim); output p depends on inputs <= p only."""
         x = self.norm(h).transpose(1, 2)
         x = self.conv(F.pad(x, (self.pad, 0)))  # left padding only: causal
-        return h + F.gelu(x.transpose(1, 2))
+        return h + self.out(F.gelu(x.transpose(1, 2)))
 
 
 class StartCausalTrunk(nn.Module):
@@ -111,12 +125,17 @@ class StartCausalTrunk(nn.Module):
     def __init__(self, feature_dim: int, cfg: TrunkConfig) -> None:
         super().__init__()
         self.in_proj = nn.Linear(3 * feature_dim, cfg.hidden_dim)
+        self.in_norm = nn.LayerNorm(cfg.hidden_dim)
         self.offset = nn.Embedding(cfg.max_len + 1, cfg.hidden_dim)
+        nn.init.normal_(self.offset.weight, std=0.02)
         self.episode_start = nn.Parameter(torch.zeros(cfg.hidden_dim))
         self.blocks = nn.ModuleList(
             CausalConvBlock(cfg.hidden_dim, cfg.kernel_size) for _ in range(cfg.num_layers)
         )
+        self.memory_norm = nn.LayerNorm(cfg.hidden_dim)
         self.memory = nn.Linear(cfg.hidden_dim, cfg.hidden_dim)
+        nn.init.normal_(self.memory.weight, std=0.02)
+        nn.init.zeros_(self.memory.bias)
         self.norm = nn.LayerNorm(cfg.hidden_dim)
 
     def forward(self, windows: torch.Tensor, starts_episode: torch.Tensor | None = None) -> torch.Tensor:
@@ -126,7 +145,7 @@ class StartCausalTrunk(nn.Module):
         """
         num_pos = windows.shape[1]
         start = windows[:, :1].expand_as(windows)
-        h = self.in_proj(torch.cat([windows, start, windows - start], dim=-1))
+        h = self.in_norm(self.in_proj(torch.cat([windows, start, windows - start], dim=-1)))
         h = h + self.offset.weight[:num_pos]
         if starts_episode is not None:
             h = h + starts_episode.to(h.dtype)[:, None, None] * self.episode_start
@@ -134,7 +153,7 @@ class StartCausalTrunk(nn.Module):
             h = block(h)
         # A running max since the start: "did something happen earlier in this segment" (e.g. an end
         # already passed) is visible at every later position, beyond the convolutions' reach.
-        h = h + torch.cummax(self.memory(h), dim=1).values
+        h = h + torch.cummax(self.memory(self.memory_norm(h)), dim=1).values
         return self.norm(h)
 
 
@@ -164,6 +183,9 @@ class PSModel(nn.Module):
         self.trunk = StartCausalTrunk(cfg.encoder.feature_dim, cfg.trunk)
         self.end_head = nn.Linear(cfg.trunk.hidden_dim, 1)
         self.label_head = nn.Linear(cfg.trunk.hidden_dim, cfg.num_classes)
+        # Training only: the label from the end frame's features alone, an auxiliary loss that teaches
+        # the encoder "what is faced" directly (the trunk's mixing slows that down a lot at first).
+        self.frame_label_head = nn.Linear(cfg.encoder.feature_dim, cfg.num_classes)
 
     @property
     def max_len(self) -> int:

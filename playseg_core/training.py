@@ -86,14 +86,16 @@ def segment_samples(
 @dataclass
 class TrainConfig:
     seed: int = 0
-    epochs: int = 8
-    segments_per_batch: int = 64  # drawn from all annotated episodes
+    epochs: int = 16
+    segments_per_batch: int = 16  # drawn from all annotated episodes; small batches = more steps
     lr: float = 3e-3
     weight_decay: float = 1e-4
     k_max: int = 5  # negatives shift by 1..k_max steps (BabyAI: 5)
     dense_prefix_negatives: bool = True
     augment: bool = False  # random rotation/mirror per training segment (slower to learn; see docs)
     label_weight: float = 1.0
+    frame_label_weight: float = 1.0  # auxiliary label loss on the end frame's features (encoder)
+    end_pos_weight: float = 4.0  # weight of the end head's positives in the BCE (ends are rare)
     num_threads: int = 2
     progress: bool = True  # tqdm bars
     log_epochs: bool = True  # one line per epoch and split
@@ -245,7 +247,9 @@ def ps_loss(model: PSModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tenso
         hidden = model.trunk(windows, batch.starts_episode[members])
         logits = model.end_head(hidden).squeeze(-1)
         target, weight = batch.end_target[members, :length], batch.end_weight[members, :length]
-        bce = F.binary_cross_entropy_with_logits(logits, target, reduction="none")
+        bce = F.binary_cross_entropy_with_logits(
+            logits, target, reduction="none", pos_weight=logits.new_tensor(cfg.end_pos_weight)
+        )
         end_sum = end_sum + (bce * weight).sum()
         end_correct += int((((logits > 0).float() == target) & (weight > 0)).sum())
         # Label head: hidden state at the end of each positive whose window is in this group.
@@ -260,6 +264,10 @@ def ps_loss(model: PSModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tenso
     label_logits = model.label_head(label_hidden)
     label_loss = F.cross_entropy(label_logits, batch.labels)
     loss = end_loss + cfg.label_weight * label_loss
+    if cfg.frame_label_weight > 0:
+        end_frames = batch.window_index[batch.label_window, batch.label_position]
+        frame_logits = model.frame_label_head(features[end_frames])
+        loss = loss + cfg.frame_label_weight * F.cross_entropy(frame_logits, batch.labels)
     stats = BatchStats(
         loss=float(loss.detach()),
         end_loss=float(end_loss.detach()),

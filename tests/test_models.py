@@ -25,7 +25,7 @@ INSTRUCTIONS = [f"go to thing {c}" for c in range(NUM_CLASSES)]
 def tiny_ps_model(max_len: int = 6, seed: int = 0) -> PSModel:
     torch.manual_seed(seed)
     cfg = ModelConfig(
-        EncoderConfig(tile_channels=8, grid_channels=8, feature_dim=16),
+        EncoderConfig(tile_channels=8, object_dim=8, feature_dim=16),
         TrunkConfig(hidden_dim=16, num_layers=2, kernel_size=3, max_len=max_len),
         NUM_CLASSES,
     )
@@ -145,7 +145,7 @@ def test_checkpoint_round_trip_gives_identical_outputs(tmp_path) -> None:
 def test_labeller_checkpoint_round_trip(tmp_path) -> None:
     torch.manual_seed(0)
     cfg = ModelConfig(
-        EncoderConfig(tile_channels=8, grid_channels=8, feature_dim=16), TrunkConfig(16, 1, 3, 6), NUM_CLASSES
+        EncoderConfig(tile_channels=8, object_dim=8, feature_dim=16), TrunkConfig(16, 1, 3, 6), NUM_CLASSES
     )
     model = LabelModel(cfg, INSTRUCTIONS).eval()
     save_checkpoint(tmp_path / "lab.pt", model)
@@ -177,3 +177,18 @@ def test_corrupt_checkpoints_fail_clearly(tmp_path) -> None:
 
     with pytest.raises(ValueError, match="missing.pt.*no such file"):
         load_checkpoint(tmp_path / "missing.pt")
+
+
+def test_encoder_ignores_where_things_are() -> None:
+    """No position-specific path: moving the whole scene by one tile leaves the features unchanged."""
+    model = tiny_ps_model(seed=2)
+    rng = np.random.default_rng(0)
+    frame = np.zeros((64, 64, 3), np.uint8)
+    frame[16:40, 16:40] = rng.integers(0, 256, size=(24, 24, 3), dtype=np.uint8)  # away from the border
+    shifted = np.roll(frame, shift=(8, -8), axis=(0, 1))
+    other = frame.copy()
+    other[24:32, 24:32] = 255 - other[24:32, 24:32]  # a different tile content: features must change
+    with torch.no_grad():
+        features = model.encode_frames(torch.from_numpy(np.stack([frame, shifted, other])))
+    torch.testing.assert_close(features[1], features[0], rtol=1e-4, atol=1e-5)
+    assert not torch.allclose(features[2], features[0], atol=1e-4)

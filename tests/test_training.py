@@ -93,7 +93,7 @@ def test_batch_windows_never_cross_episodes() -> None:
         assert torch.all(row[1 : length + 1] == 1) and row[0] == 0
 
 
-SMALL = {"image_size": 16, "tile_channels": 8, "grid_channels": 8, "layout_channels": 8, "feature_dim": 16}
+SMALL = {"image_size": 16, "tile_channels": 8, "object_dim": 8, "feature_dim": 16}
 
 
 def _small_data() -> tuple[list, list]:
