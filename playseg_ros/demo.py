@@ -178,7 +178,7 @@ def run_demo(bags_dir: Path = Path("bags"), out_dir: Path = DEMO_DIR) -> int:
     try:
         _log("trainer: policy v1 on the annotated segments only (before augmentation) ...")
         before = client.call_retrain()
-        _log(f"policy v{before.policy_version}: success {before.eval_success_rate:.3f} ({before.message})")
+        _log(f"policy v{before.policy_version}: success {before.eval_success_rate:.3f}")
 
         truth_episodes = read_play_bag(play_bag, truth=True)
         player = Graph(
@@ -212,7 +212,7 @@ def run_demo(bags_dir: Path = Path("bags"), out_dir: Path = DEMO_DIR) -> int:
 
         _log("trainer: policy v2 on annotated + extracted segments (after augmentation) ...")
         after = client.call_retrain()
-        _log(f"policy v{after.policy_version}: success {after.eval_success_rate:.3f} ({after.message})")
+        _log(f"policy v{after.policy_version}: success {after.eval_success_rate:.3f}")
     finally:
         client.close()
         services.stop()
