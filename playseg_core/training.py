@@ -92,6 +92,7 @@ class TrainConfig:
     weight_decay: float = 1e-4
     k_max: int = 5  # negatives shift by 1..k_max steps (BabyAI: 5)
     dense_prefix_negatives: bool = True
+    dense_window_negatives: bool = False  # windows starting off a true start: every position is "no end"
     augment: bool = False  # random rotation/mirror per training segment (slower to learn; see docs)
     label_weight: float = 1.0
     frame_label_weight: float = 1.0  # auxiliary label loss on the end frame's features (encoder)
@@ -147,6 +148,7 @@ def make_batch(
     negatives: bool = True,
     dense_prefix_negatives: bool = False,
     augment: bool = False,
+    dense_window_negatives: bool = False,
 ) -> Batch:
     """The windows of the annotated segments `items` (only positives if not `negatives`).
 
@@ -194,6 +196,11 @@ def make_batch(
             row, length = windows[seg.start], seg.end - seg.start
             last = min(length + k_max, max_len, ep.num_steps - seg.start)
             weights[row][1 : last + 1] = 1.0  # targets stay 0 except at the true end
+        if negatives and dense_window_negatives:
+            true_starts = {s.start for s in ep.segments}
+            for start, row in windows.items():
+                if start not in true_starts:  # no true segment starts here: no position is an end
+                    weights[row][1 : min(max_len, hi - start) + 1] = 1.0
         offset += hi - lo + 1
 
     def stack(arrays: list[np.ndarray], dtype: type) -> torch.Tensor:
@@ -345,6 +352,7 @@ def _run_epoch(loss_fn, model, episodes, classes, cfg, rng, optimizer, epoch, de
             rng,
             negatives=isinstance(model, PSModel),
             dense_prefix_negatives=cfg.dense_prefix_negatives,
+            dense_window_negatives=cfg.dense_window_negatives,
             augment=training and cfg.augment,
         )
         if batch.labels.numel() == 0:

@@ -180,3 +180,31 @@ def test_augmentation_rotates_or_mirrors_each_clip_as_a_whole() -> None:
                 if np.array_equal(candidate, changed):
                     seen.add((k, mirror))
     assert len(seen) >= 3  # different seeds give different transforms, each a whole-clip dihedral one
+
+
+def test_dense_window_negatives_supervise_every_position_of_off_start_windows() -> None:
+    episode = synthetic_episode(5, num_segments=4)
+    true_starts = {s.start for s in episode.segments}
+    items = [(episode, episode.segments[2])]  # a middle segment: all negative kinds fit
+    classes = label_index(INSTRUCTIONS)
+    plain = make_batch(items, classes, 6, 3, np.random.default_rng(0), dense_prefix_negatives=True)
+    dense = make_batch(
+        items,
+        classes,
+        6,
+        3,
+        np.random.default_rng(0),
+        dense_prefix_negatives=True,
+        dense_window_negatives=True,
+    )
+    torch.testing.assert_close(dense.window_index, plain.window_index)  # same windows, more positions
+    assert torch.all(dense.end_target == plain.end_target)
+    assert dense.end_weight.sum() > plain.end_weight.sum()
+    first_frame = max(0, episode.segments[2].start - 3)
+    for row in range(len(dense.window_index)):
+        start = first_frame + int(dense.window_index[row, 0])
+        inside = int((dense.window_index[row] < len(dense.frames)).sum())  # positions with real frames
+        if start in true_starts:
+            torch.testing.assert_close(dense.end_weight[row], plain.end_weight[row])
+        else:
+            assert torch.all(dense.end_weight[row, 1:inside] == 1) and torch.all(dense.end_target[row] == 0)
