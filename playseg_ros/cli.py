@@ -161,9 +161,12 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     train = sub.add_parser("train", help="train the Play Segmentation model on a dataset's annotated splits")
     train.add_argument("--data", required=True, help="dataset directory (train + val splits are used)")
     train.add_argument("--out", required=True, help="checkpoint file to write (e.g. models/ps.pt)")
-    train.add_argument("--epochs", type=int, default=8)
-    train.add_argument("--lr", type=float, default=3e-3)
-    train.add_argument("--batch-segments", type=int, default=64, help="annotated segments per batch")
+    # Unset options take playseg_core.training.TrainConfig's defaults (the measured best setting).
+    train.add_argument("--epochs", type=int, help="training epochs (default: TrainConfig)")
+    train.add_argument("--lr", type=float, help="peak learning rate (default: TrainConfig)")
+    train.add_argument(
+        "--batch-segments", type=int, help="annotated segments per batch (default: TrainConfig)"
+    )
     train.add_argument("--seed", type=int, default=0)
     train.add_argument("--labeller", help="also train the stand-alone labelling model into this file")
     train.set_defaults(func=_cmd_train)

@@ -25,7 +25,13 @@ def _peak_rss_mb() -> float:
 
 
 def train(
-    data: str, out: str, epochs: int, lr: float, batch_segments: int, seed: int, labeller: str | None
+    data: str,
+    out: str,
+    epochs: int | None,
+    lr: float | None,
+    batch_segments: int | None,
+    seed: int,
+    labeller: str | None,
 ) -> int:
     """Train the PS model (and optionally the stand-alone labeller) on a dataset's train/val splits."""
     from playseg_core.dataset import PlayDataset
@@ -35,7 +41,8 @@ def train(
     dataset = PlayDataset.open(data)
     train_eps = list(dataset.episodes("train"))
     val_eps = list(dataset.episodes("val"))
-    cfg = TrainConfig(seed=seed, epochs=epochs, lr=lr, segments_per_batch=batch_segments)
+    given = {"epochs": epochs, "lr": lr, "segments_per_batch": batch_segments}
+    cfg = TrainConfig(seed=seed, **{key: value for key, value in given.items() if value is not None})
     result = train_ps(train_eps, val_eps, dataset.instructions, cfg)
     calibration = calibrate_on_annotated(result.model, val_eps, 0.95) if val_eps else None
     extra = {
