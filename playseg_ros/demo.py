@@ -25,6 +25,7 @@ from playseg_core.babyai import INSTRUCTIONS
 
 DEMO_DIR = Path("build/demo")
 PLAY_TIMEOUT_S = 240.0
+SEGMENT_TIMEOUT_S = 300.0
 
 
 def _log(message: str) -> None:
@@ -84,7 +85,7 @@ class _DemoClient:
         self.rclpy = rclpy
         self.node = rclpy.create_node("playseg_demo")
         self.segments = 0
-        self.last_segment_at = time.monotonic()
+        self.last_end: dict[str, int] = {}  # episode id -> end step of its latest segment
         self.status = None
         self.node.create_subscription(LabelledSegment, "/segments", self._on_segment, qos.SEGMENTS)
         self.node.create_subscription(TrainerStatus, "/trainer/status", self._on_status, qos.STATUS)
@@ -93,7 +94,7 @@ class _DemoClient:
 
     def _on_segment(self, msg) -> None:
         self.segments += 1
-        self.last_segment_at = time.monotonic()
+        self.last_end[msg.episode_id] = max(msg.end_step, self.last_end.get(msg.episode_id, 0))
 
     def _on_status(self, msg) -> None:
         self.status = msg
@@ -202,9 +203,21 @@ def run_demo(bags_dir: Path = Path("bags"), out_dir: Path = DEMO_DIR) -> int:
         player.start()
         started = time.monotonic()
         client.spin_until(lambda: player.processes["bag_player"].poll() is not None, PLAY_TIMEOUT_S)
-        # The segmenter decides the last segments at each episode's end: wait until the stream is quiet.
-        client.spin_until(lambda: time.monotonic() - client.last_segment_at > 3.0, 60.0)
+
+        # The segmenter may lag behind the player (its reader queues the backlog): done when every episode's
+        # last segment, the one ending at its final step, has arrived.
+        def complete() -> int:
+            return sum(client.last_end.get(e.episode_id) == e.num_steps for e in truth_episodes)
+
+        if not client.spin_until(lambda: complete() == len(truth_episodes), SEGMENT_TIMEOUT_S):
+            _log(
+                f"warning: after {SEGMENT_TIMEOUT_S:.0f} s, {complete()} of {len(truth_episodes)} episodes are complete"
+            )
         player.stop()
+        # Retrain only once the trainer acknowledged every segment we saw (its status counts them).
+        client.spin_until(
+            lambda: client.status is not None and client.status.buffer_segments >= client.segments, 60.0
+        )
         _log(
             f"segmenter published {client.segments} LabelledSegments in {time.monotonic() - started:.1f} s; "
             f"trainer buffer: {client.status.buffer_segments if client.status else '?'} segments"

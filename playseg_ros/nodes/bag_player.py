@@ -14,6 +14,7 @@ import threading
 import time
 
 import rclpy
+from rclpy.duration import Duration
 from rclpy.node import Node
 
 from playseg_ros import qos
@@ -32,7 +33,12 @@ class BagPlayerNode(Node):
             self, "wait_for_subscribers", 0, "start once each of wait_topics has this many subscribers"
         )
         wait_topics = declare(self, "wait_topics", [""], "topics to wait on (empty = the PlayStep topics)")
-        self.exit_when_done = declare(self, "exit_when_done", True, "shut down after the last message")
+        self.exit_when_done = declare(
+            self, "exit_when_done", True, "shut down once subscribers acknowledged the last message"
+        )
+        self.delivery_timeout_s = declare(
+            self, "delivery_timeout_s", 300.0, "at the end, wait this long at most for acknowledgements"
+        )
         require(bool(self.bag), self, "bag must be set")
         require(self.rate >= 0, self, "rate must be >= 0")
         self.reader = BagReader(self.bag)
@@ -72,8 +78,16 @@ class BagPlayerNode(Node):
         finally:
             self.done.set()
             if self.exit_when_done:
-                time.sleep(1.0)  # let reliable publishers deliver the tail before the process ends
+                self._wait_until_delivered()
                 rclpy.try_shutdown()
+
+    def _wait_until_delivered(self) -> None:
+        """Reliable messages not yet acknowledged die with the process: wait until every subscriber's
+        reader holds them (a slow subscriber queues them there), at most `delivery_timeout_s`."""
+        deadline = Duration(seconds=self.delivery_timeout_s)
+        for topic, publisher in self.publishers_by_topic.items():
+            if not publisher.wait_for_all_acked(deadline):
+                self.get_logger().warning(f"{topic}: not every subscriber acknowledged within {deadline}")
 
     def _wait_for_subscribers(self) -> None:
         if self.wait_for_subscribers <= 0:
