@@ -31,7 +31,10 @@ def encode_episode(model: PSModel, episode: Episode) -> torch.Tensor:
     return torch.cat([model.encode_frames(chunk) for chunk in frames.split(ENCODE_CHUNK)])
 
 
-def _labelled(model: PSModel, start: int, end: int, label_logits: torch.Tensor, log_prob: float) -> Segment:
+def labelled_segment(
+    model: PSModel, start: int, end: int, label_logits: torch.Tensor, log_prob: float
+) -> Segment:
+    """The segment [start, end) labelled with the most probable instruction (confidence = its probability)."""
     probs = torch.softmax(label_logits.double(), dim=-1)
     best = int(probs.argmax())
     return Segment(start, end, model.instructions[best], float(probs[best]), float(log_prob))
@@ -54,7 +57,7 @@ def segment_episode(model: PSModel, episode: Episode, min_len: int = 1) -> list[
     segments = []
     for (start, end), log_prob in zip(decoded.segments, decoded.segment_log_scores, strict=True):
         label_logits = model.label_head(hidden[start, end - start])
-        segments.append(_labelled(model, start, end, label_logits, log_prob))
+        segments.append(labelled_segment(model, start, end, label_logits, log_prob))
     return segments
 
 
@@ -89,5 +92,5 @@ def reference_style_segment(model: PSModel, episode: Episode, min_len: int = 1) 
     segments = []
     for (start, end), log_prob in zip(decoded.segments, decoded.segment_log_scores, strict=True):
         hidden = model.trunk(model.encode_frames(frames[start : end + 1])[None], starts[start])
-        segments.append(_labelled(model, start, end, model.label_head(hidden[0, -1]), log_prob))
+        segments.append(labelled_segment(model, start, end, model.label_head(hidden[0, -1]), log_prob))
     return segments

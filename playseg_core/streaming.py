@@ -16,7 +16,7 @@ import torch
 from playseg_core.data_model import Segment
 from playseg_core.decoding import OnlineDecoder
 from playseg_core.models import PSModel
-from playseg_core.segmentation import _labelled as labelled_segment
+from playseg_core.segmentation import labelled_segment
 
 
 class StreamingSegmenter:
@@ -60,6 +60,7 @@ class StreamingSegmenter:
         segments = []
         for start, end in decided:
             window = torch.stack(self._features[start - self._offset : end + 1 - self._offset])
+            # As PSModel.label_logits, on the kept window (its start flag is the episode's, not the window's).
             hidden = self.model.trunk(window[None], torch.tensor([start == 0]))
             label_logits = self.model.label_head(hidden[0, -1])
             segments.append(labelled_segment(self.model, start, end, label_logits, scores[(start, end)]))
