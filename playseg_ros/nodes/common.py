@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import signal
 import sys
+import threading
 from collections.abc import Callable
 from typing import Any
 
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import InvalidParameterTypeException
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
@@ -40,7 +41,7 @@ def require(condition: bool, node: Node, message: str) -> None:
         raise ValueError(f"{node.get_name()}: invalid parameter: {message}")
 
 
-def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threads: int = 2) -> int:
+def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threads: int = 1) -> int:
     """Init rclpy, build the node, autostart lifecycle nodes, spin until Ctrl-C, clean up.
 
     A LifecycleNode with parameter ``autostart`` true (the default) configures and activates itself;
@@ -51,8 +52,17 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threa
     # transitions (which close files) can still run.
     rclpy.init(args=sys.argv if args is None else args, signal_handler_options=SignalHandlerOptions.NO)
     # Installed explicitly: a process started in the background by a shell inherits SIGINT ignored.
-    signal.signal(signal.SIGINT, _raise_keyboard_interrupt)
-    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    # The first signal only asks the spin loop to stop, so no callback is cut off half-way (a message the
+    # executor already took would be lost); a second one interrupts at once.
+    stop = threading.Event()
+
+    def request_stop(signum: int, frame: object) -> None:
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+
+    signal.signal(signal.SIGINT, request_stop)
+    signal.signal(signal.SIGTERM, request_stop)
     node = None
     executor = None
     code = 0
@@ -65,9 +75,10 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threa
                     node.get_logger().error("configure failed")
                     return 1
                 node.trigger_activate()
-        executor = MultiThreadedExecutor(num_threads=threads)
+        # One thread runs each callback to completion inside spin_once: nothing is in flight at a stop.
+        executor = SingleThreadedExecutor() if threads == 1 else MultiThreadedExecutor(num_threads=threads)
         executor.add_node(node)
-        while rclpy.ok():  # short waits, so that Python's signal handlers get to run
+        while rclpy.ok() and not stop.is_set():  # short waits, so the stop request is seen promptly
             executor.spin_once(timeout_sec=0.2)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -84,11 +95,7 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threa
     return code
 
 
-def _raise_keyboard_interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt
-
-
-def _stop_executor(executor: MultiThreadedExecutor) -> None:
+def _stop_executor(executor: SingleThreadedExecutor | MultiThreadedExecutor) -> None:
     """Let callbacks still running in worker threads (a recorder's write) finish before cleanup."""
     try:
         executor.shutdown()

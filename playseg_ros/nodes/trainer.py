@@ -229,7 +229,7 @@ class TrainerNode(LifecycleNode):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(TrainerNode, args)
+    return run_node(TrainerNode, args, threads=2)  # services run beside the segment subscription
 
 
 if __name__ == "__main__":
