@@ -36,7 +36,7 @@ from rosbags.rosbag2 import Reader as Rosbag2Reader
 from rosbags.rosbag2 import ReaderError
 from rosbags.typesys.store import Typestore
 
-from playseg_ros.typestore import msg_dir, playseg_typestore
+from playseg_ros.typestore import msg_dir, playseg_typestore, split_type_name
 
 METADATA_FILE = "metadata.yaml"
 METADATA_VERSION = 9  # rosbag2 (Jazzy, Kilted) metadata format; rosbags reads versions up to 9
@@ -75,16 +75,6 @@ class BagError(ValueError):
 # --- message definitions ------------------------------------------------------------------------------
 
 
-def _split_type_name(type_name: str) -> tuple[str, str]:
-    """'pkg/msg/Type' or 'pkg/Type' -> ('pkg', 'Type')."""
-    parts = type_name.split("/")
-    if len(parts) == 3 and parts[1] == "msg":
-        return parts[0], parts[2]
-    if len(parts) == 2:
-        return parts[0], parts[1]
-    raise ValueError(f"message type name {type_name!r} is not 'package/msg/Type' or 'package/Type'")
-
-
 def _msg_search_dirs(package: str) -> list[Path]:
     prefixes = [Path(sys.prefix), *(Path(p) for p in os.environ.get("AMENT_PREFIX_PATH", "").split(":") if p)]
     dirs = [prefix / "share" / package / "msg" for prefix in prefixes]
@@ -95,7 +85,7 @@ def _msg_search_dirs(package: str) -> list[Path]:
 
 def msg_file_text(type_name: str) -> str:
     """The text of the installed ``.msg`` file of ``type_name`` (exactly as rosbag2 embeds it)."""
-    package, name = _split_type_name(type_name)
+    package, name = split_type_name(type_name)
     for directory in _msg_search_dirs(package):
         path = directory / f"{name}.msg"
         if path.is_file():
@@ -126,7 +116,7 @@ def ros2msg_definition(type_name: str) -> str:
     seen: set[str] = set()
 
     def render(name: str) -> str:
-        package, _ = _split_type_name(name)
+        package, _ = split_type_name(name)
         text = msg_file_text(name)
         for dependency in _msg_dependencies(text, package):
             if dependency not in seen:

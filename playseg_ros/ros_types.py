@@ -4,17 +4,14 @@ from __future__ import annotations
 
 import importlib
 
+from playseg_ros.typestore import split_type_name
+
 
 def message_class(type_name: str) -> type:
     """'playseg_msgs/msg/PlayStep' (or 'playseg_msgs/PlayStep') -> the generated rclpy class."""
-    parts = type_name.split("/")
-    if len(parts) == 2:
-        parts = [parts[0], "msg", parts[1]]
-    if len(parts) != 3 or not all(parts):
-        raise ValueError(f"not a ROS message type name: {type_name!r}")
-    package, kind, name = parts
+    package, name = split_type_name(type_name)
     try:
-        module = importlib.import_module(f"{package}.{kind}")
+        module = importlib.import_module(f"{package}.msg")
         return getattr(module, name)
     except (ImportError, AttributeError) as exc:
         raise ValueError(f"message type {type_name!r} is not installed in this environment") from exc

@@ -19,6 +19,16 @@ PLAYSEG_MSG_TYPES = ("PlayStep", "Annotation", "LabelledSegment", "TrainerStatus
 _REPO_MSG_DIR = Path(__file__).resolve().parent.parent / "msg_defs" / "playseg_msgs" / "msg"
 
 
+def split_type_name(type_name: str) -> tuple[str, str]:
+    """'pkg/msg/Type' or 'pkg/Type' -> ('pkg', 'Type')."""
+    parts = type_name.split("/")
+    if len(parts) == 3 and parts[1] == "msg" and all(parts):
+        return parts[0], parts[2]
+    if len(parts) == 2 and all(parts):
+        return parts[0], parts[1]
+    raise ValueError(f"message type name {type_name!r} is not 'package/msg/Type' or 'package/Type'")
+
+
 def msg_dir() -> Path:
     """Directory holding playseg_msgs' .msg files (installed copy first, then the source tree)."""
     for candidate in (Path(sys.prefix) / "share" / "playseg_msgs" / "msg", _REPO_MSG_DIR):

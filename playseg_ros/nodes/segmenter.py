@@ -111,14 +111,13 @@ class SegmenterNode(LifecycleNode):
     def _on_step(self, msg: PlayStep) -> None:
         try:
             self._segment_step(msg)
-        except StepError as exc:
-            self.get_logger().warning(f"{self.steps_topic}: malformed PlayStep, episode dropped: {exc}")
-            self.episodes.pop(msg.episode_id, None)
-            self.finished.add(msg.episode_id)
-        except Exception as exc:  # a failure on one episode must not take the node down
-            self.get_logger().error(
-                f"episode {msg.episode_id!r} step {msg.step}: segmentation failed, dropped: {exc!r}"
-            )
+        except Exception as exc:  # a bad step or a failure on one episode must not take the node down
+            if isinstance(exc, StepError):
+                self.get_logger().warning(f"{self.steps_topic}: malformed PlayStep, episode dropped: {exc}")
+            else:
+                self.get_logger().error(
+                    f"episode {msg.episode_id!r} step {msg.step}: segmentation failed, dropped: {exc!r}"
+                )
             self.episodes.pop(msg.episode_id, None)
             self.finished.add(msg.episode_id)
 
