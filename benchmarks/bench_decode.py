@@ -27,6 +27,7 @@ import time
 
 import torch
 
+from playseg_core.babyai import NUM_ACTIONS
 from playseg_core.data_model import Episode
 from playseg_core.models import PSModel
 from playseg_core.segmentation import reference_style_segment, segment_episode
@@ -96,7 +97,7 @@ def main() -> None:
         model, _ = load_checkpoint(args.model)
     else:
         torch.manual_seed(0)
-        model = PSModel(default_model_config(len(instructions)), instructions).eval()
+        model = PSModel(default_model_config(len(instructions), num_actions=NUM_ACTIONS), instructions).eval()
     params = sum(p.numel() for p in model.parameters())
     print(f"model: {params / 1e3:.0f}k parameters, L_max {model.max_len}; 1 CPU thread")
 
@@ -123,7 +124,8 @@ def main() -> None:
         dataset = PlayDataset.open(args.data)
         train_eps, val_eps = list(dataset.episodes("train")), list(dataset.episodes("val"))
         cfg = TrainConfig(epochs=args.train_epochs, progress=False, log_epochs=False, num_threads=2)
-        result = train_ps(train_eps, val_eps, dataset.instructions, cfg)
+        model_cfg = default_model_config(len(dataset.instructions), num_actions=NUM_ACTIONS)
+        result = train_ps(train_eps, val_eps, dataset.instructions, cfg, model_cfg)
         segments = sum(len(e.segments) for e in train_eps)
         peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         print(

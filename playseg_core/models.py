@@ -7,12 +7,19 @@ The PS trunk is causal in time *from the segment start*: for a window starting a
 (frame o_{i+p}) sees only o_i .. o_{i+p}, the start frame's features and the offset p. One pass over the
 window therefore scores every candidate end j = i+p at once, and all T windows of an episode go through
 the trunk as one batch (see `PSModel.end_logits`).
+
+Step features: row t of the sequence the trunk reads is the frame features of o_t, followed (when the
+model reads actions, ``ModelConfig.num_actions > 0``) by an embedding of a_{t-1}, the action that led to
+o_t (row 0: a "no action" embedding). Frames alone often cannot tell a turn towards an object from a step
+up to it, and in BabyAI play that decides whether facing an object ends a task (see
+docs/segmentation.md "Reading the actions").
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -38,11 +45,17 @@ class TrunkConfig:
 
 @dataclass
 class ModelConfig:
-    """Configuration of a PS model or a labelling model (same parts, different heads)."""
+    """Configuration of a PS model or a labelling model (same parts, different heads).
+
+    num_actions: size of the discrete action space the model reads (BabyAI: 7); 0 = frames only.
+    action_dim: size of the action embedding appended to each step's frame features.
+    """
 
     encoder: EncoderConfig
     trunk: TrunkConfig
     num_classes: int = 36
+    num_actions: int = 0
+    action_dim: int = 16
 
     @staticmethod
     def from_dict(raw: dict) -> ModelConfig:
@@ -50,7 +63,34 @@ class ModelConfig:
             encoder=EncoderConfig(**raw["encoder"]),
             trunk=TrunkConfig(**raw["trunk"]),
             num_classes=int(raw["num_classes"]),
+            # Checkpoints written before actions were read have neither key: frames only.
+            num_actions=int(raw.get("num_actions", 0)),
+            action_dim=int(raw.get("action_dim", 16)),
         )
+
+    @property
+    def step_dim(self) -> int:
+        """Width of a step feature row: frame features (+ action embedding)."""
+        return self.encoder.feature_dim + (self.action_dim if self.num_actions else 0)
+
+
+def previous_actions(actions: np.ndarray, num_actions: int, where: str = "actions") -> np.ndarray:
+    """(T, 1) discrete action indices -> (T+1,) int64 index of a_{t-1} per observation o_t.
+
+    Row 0 holds ``num_actions`` ("no action led here"). Raises ValueError naming `where` when an action
+    is not a single integer in 0..num_actions-1.
+    """
+    actions = np.asarray(actions)
+    if actions.ndim != 2 or actions.shape[1] != 1:
+        raise ValueError(f"{where}: a model reading discrete actions needs shape (T, 1), got {actions.shape}")
+    values = actions[:, 0]
+    whole = np.isfinite(values) & (values == np.round(values))
+    if not whole.all() or (values < 0).any() or (values >= num_actions).any():
+        bad = int(np.flatnonzero(~whole | (values < 0) | (values >= num_actions))[0])
+        raise ValueError(
+            f"{where}[{bad}] = {float(values[bad])}: not a discrete action index in 0..{num_actions - 1}"
+        )
+    return np.concatenate([[num_actions], values.astype(np.int64)])
 
 
 class FrameEncoder(nn.Module):
@@ -122,9 +162,9 @@ class StartCausalTrunk(nn.Module):
     segment, which the negatives teach the model to look for.
     """
 
-    def __init__(self, feature_dim: int, cfg: TrunkConfig) -> None:
+    def __init__(self, step_dim: int, cfg: TrunkConfig) -> None:
         super().__init__()
-        self.in_proj = nn.Linear(3 * feature_dim, cfg.hidden_dim)
+        self.in_proj = nn.Linear(3 * step_dim, cfg.hidden_dim)
         self.in_norm = nn.LayerNorm(cfg.hidden_dim)
         self.offset = nn.Embedding(cfg.max_len + 1, cfg.hidden_dim)
         nn.init.normal_(self.offset.weight, std=0.02)
@@ -172,28 +212,75 @@ def episode_windows(features: torch.Tensor, window_len: int) -> torch.Tensor:
     return padded.unfold(0, window_len, 1)[:num_steps].transpose(1, 2)
 
 
-class PSModel(nn.Module):
-    """Play Segmentation: p_seg(segment [i, j) ends at j | o_i..o_j) and p(label | o_i..o_j)."""
+class StepModel(nn.Module):
+    """The parts PS and the labelling model share: frame encoder, action embedding, start-causal trunk."""
 
     def __init__(self, cfg: ModelConfig, instructions: list[str] | None = None) -> None:
         super().__init__()
         self.cfg = cfg
         self.instructions = _class_names(instructions, cfg.num_classes)
         self.encoder = FrameEncoder(cfg.encoder)
-        self.trunk = StartCausalTrunk(cfg.encoder.feature_dim, cfg.trunk)
-        self.end_head = nn.Linear(cfg.trunk.hidden_dim, 1)
-        self.label_head = nn.Linear(cfg.trunk.hidden_dim, cfg.num_classes)
-        # Training only: the label from the end frame's features alone, an auxiliary loss that teaches
-        # the encoder "what is faced" directly (the trunk's mixing slows that down a lot at first).
-        self.frame_label_head = nn.Linear(cfg.encoder.feature_dim, cfg.num_classes)
+        # Index num_actions = "no action" (the first observation of an episode).
+        self.action_embedding = None
+        if cfg.num_actions:
+            self.action_embedding = nn.Embedding(cfg.num_actions + 1, cfg.action_dim)
+            # Small at first, as the offset embedding: with unit-scale action vectors the trunk leaned on
+            # the actions from the start and the encoder learnt "what is faced" far more slowly.
+            nn.init.normal_(self.action_embedding.weight, std=0.02)
+        self.trunk = StartCausalTrunk(cfg.step_dim, cfg.trunk)
 
     @property
     def max_len(self) -> int:
         return self.cfg.trunk.max_len
 
+    @property
+    def reads_actions(self) -> bool:
+        return self.action_embedding is not None
+
     def encode_frames(self, frames: torch.Tensor) -> torch.Tensor:
-        """(N, 64, 64, 3) uint8 -> (N, d); encode an episode once and reuse the features."""
+        """(N, 64, 64, 3) uint8 -> (N, feature_dim): the frame encoder alone."""
         return self.encoder(frames)
+
+    def encode_steps(self, frames: torch.Tensor, prev_actions: torch.Tensor | None = None) -> torch.Tensor:
+        """(N, 64, 64, 3) uint8 frames, (N,) index of the action that led to each -> (N, step_dim).
+
+        prev_actions comes from `previous_actions` (index num_actions = none); a frames-only model
+        ignores it. Encode an episode once and reuse the rows: each depends on its own step only.
+        """
+        features = self.encoder(frames)
+        if self.action_embedding is None:
+            return features
+        if prev_actions is None:
+            raise ValueError("this model reads actions: encode_steps needs prev_actions")
+        if prev_actions.shape != (frames.shape[0],):
+            raise ValueError(
+                f"prev_actions must have shape ({frames.shape[0]},), got {tuple(prev_actions.shape)}"
+            )
+        return torch.cat([features, self.action_embedding(prev_actions.long())], dim=-1)
+
+    def frame_part(self, features: torch.Tensor) -> torch.Tensor:
+        """The frame-encoder columns of step features."""
+        return features[..., : self.cfg.encoder.feature_dim]
+
+
+class PSModel(StepModel):
+    """Play Segmentation: p_seg(segment [i, j) ends at j | o_i..o_j) and p(label | o_i..o_j)."""
+
+    def __init__(self, cfg: ModelConfig, instructions: list[str] | None = None) -> None:
+        super().__init__(cfg, instructions)
+        self.end_head = nn.Linear(cfg.trunk.hidden_dim, 1)
+        self.label_head = nn.Linear(cfg.trunk.hidden_dim, cfg.num_classes)
+        # Training only: the label from the end frame's features alone, an auxiliary loss that teaches
+        # the encoder "what is faced" directly (the trunk's mixing slows that down a lot at first).
+        self.frame_label_head = nn.Linear(cfg.encoder.feature_dim, cfg.num_classes)
+        # Added to the end logit when segmenting, never in training: set after training to correct for
+        # the positives' weight in the loss (calibration.py). Part of the state dict, so every path that
+        # segments with this checkpoint (offline, streaming, nodes) cuts the same way.
+        self.register_buffer("end_bias", torch.zeros(()))
+
+    def end_logit(self, hidden: torch.Tensor) -> torch.Tensor:
+        """(..., hidden) -> (...): logit that the segment ends at that position, end bias included."""
+        return self.end_head(hidden).squeeze(-1) + self.end_bias
 
     def window_hidden(self, features: torch.Tensor) -> torch.Tensor:
         """(T+1, d) -> (T, L_max+1, hidden): trunk states of the window starting at every step."""
@@ -202,7 +289,7 @@ class PSModel(nn.Module):
 
     def end_logits_from_hidden(self, hidden: torch.Tensor) -> torch.Tensor:
         """(T, L_max+1, hidden) -> (T, L_max); position 0 (an empty segment) is dropped."""
-        return self.end_head(hidden[:, 1:]).squeeze(-1)
+        return self.end_logit(hidden[:, 1:])
 
     def end_logits(self, features: torch.Tensor) -> torch.Tensor:
         """(T+1, d) -> (T, L_max): [i, k] = logit that the segment [i, i+k+1) ends at i+k+1.
@@ -229,35 +316,24 @@ class PSModel(nn.Module):
             windows[row, :length] = features_window[n - length :]
         starts_episode = (lengths == n) & first_is_episode_start
         hidden = self.trunk(windows, starts_episode)
-        logits = self.end_head(hidden[torch.arange(n - 1), lengths - 1]).squeeze(-1)
+        logits = self.end_logit(hidden[torch.arange(n - 1), lengths - 1])
         column[: n - 1] = logits
         return column
 
     def label_logits(self, features: torch.Tensor, start: int, end: int) -> torch.Tensor:
-        """(T+1, d) features, segment [start, end) -> (num_classes,) label logits at its end."""
+        """(T+1, step_dim) features, segment [start, end) -> (num_classes,) label logits at its end."""
         if not 0 < end - start <= self.max_len:
             raise ValueError(f"segment [{start}, {end}) must have 1..{self.max_len} steps")
         hidden = self.trunk(features[start : end + 1].unsqueeze(0), torch.tensor([start == 0]))
         return self.label_head(hidden[0, -1])
 
 
-class LabelModel(nn.Module):
+class LabelModel(StepModel):
     """Labelling model p_LM(instruction | o_i..o_j): encoder + start-causal trunk + mean/last pooling."""
 
     def __init__(self, cfg: ModelConfig, instructions: list[str] | None = None) -> None:
-        super().__init__()
-        self.cfg = cfg
-        self.instructions = _class_names(instructions, cfg.num_classes)
-        self.encoder = FrameEncoder(cfg.encoder)
-        self.trunk = StartCausalTrunk(cfg.encoder.feature_dim, cfg.trunk)
+        super().__init__(cfg, instructions)
         self.head = nn.Linear(2 * cfg.trunk.hidden_dim, cfg.num_classes)
-
-    @property
-    def max_len(self) -> int:
-        return self.cfg.trunk.max_len
-
-    def encode_frames(self, frames: torch.Tensor) -> torch.Tensor:
-        return self.encoder(frames)
 
     def logits_from_windows(
         self, windows: torch.Tensor, lengths: torch.Tensor, starts_episode: torch.Tensor | None = None

@@ -14,7 +14,7 @@ import torch
 
 from playseg_core.data_model import Episode, Segment
 from playseg_core.decoding import decode_segments, log_sigmoid, reference_style_decode
-from playseg_core.models import PSModel
+from playseg_core.models import PSModel, StepModel, previous_actions
 
 ENCODE_CHUNK = 2048  # frames per encoder call: bounds memory on long episodes
 
@@ -24,11 +24,28 @@ def episode_frames(episode: Episode) -> torch.Tensor:
     return torch.from_numpy(np.array(episode.frames, dtype=np.uint8))
 
 
+def episode_prev_actions(model: StepModel, episode: Episode) -> torch.Tensor | None:
+    """(T+1,) index of the action that led to each observation, or None for a frames-only model."""
+    if not model.reads_actions:
+        return None
+    where = f"episode {episode.episode_id} actions"
+    return torch.from_numpy(previous_actions(episode.actions, model.cfg.num_actions, where))
+
+
 @torch.no_grad()
-def encode_episode(model: PSModel, episode: Episode) -> torch.Tensor:
-    """(T+1, d) features, each frame encoded once."""
+def encode_episode(model: StepModel, episode: Episode) -> torch.Tensor:
+    """(T+1, step_dim) step features, each step encoded once."""
     frames = episode_frames(episode)
-    return torch.cat([model.encode_frames(chunk) for chunk in frames.split(ENCODE_CHUNK)])
+    actions = episode_prev_actions(model, episode)
+    chunks = range(0, frames.shape[0], ENCODE_CHUNK)
+    return torch.cat(
+        [
+            model.encode_steps(
+                frames[c : c + ENCODE_CHUNK], None if actions is None else actions[c : c + ENCODE_CHUNK]
+            )
+            for c in chunks
+        ]
+    )
 
 
 def labelled_segment(
@@ -65,7 +82,7 @@ def segment_episode(model: PSModel, episode: Episode, min_len: int = 1) -> list[
 def reference_style_segment(model: PSModel, episode: Episode, min_len: int = 1) -> list[Segment]:
     """Same result as `segment_episode`, computed the reference's way (benchmarking only).
 
-    Every prefix o_i .. o_j (j - i <= L_max) goes through the full model separately, frames encoded anew
+    Every prefix o_i .. o_j (j - i <= L_max) goes through the full model separately, steps encoded anew
     each time; then the DP over (number of segments, end) of `reference_style_decode`.
     """
     model.eval()
@@ -73,13 +90,20 @@ def reference_style_segment(model: PSModel, episode: Episode, min_len: int = 1) 
     if num_steps == 0:
         return []
     frames = episode_frames(episode)
+    actions = episode_prev_actions(model, episode)
+
+    def encode(start: int, end: int) -> torch.Tensor:  # the prefix o_start .. o_end, encoded anew
+        return model.encode_steps(
+            frames[start : end + 1], None if actions is None else actions[start : end + 1]
+        )
+
     max_len = min(model.max_len, num_steps)
     end_logit: dict[tuple[int, int], float] = {}
     starts = [torch.tensor([start == 0]) for start in range(num_steps)]
     for start in range(num_steps):
         for end in range(start + 1, min(start + max_len, num_steps) + 1):
-            hidden = model.trunk(model.encode_frames(frames[start : end + 1])[None], starts[start])
-            end_logit[(start, end)] = float(model.end_head(hidden[0, -1]))
+            hidden = model.trunk(encode(start, end)[None], starts[start])
+            end_logit[(start, end)] = float(model.end_logit(hidden[0, -1]))
 
     def score_segment(start: int, end: int) -> float:
         # log s(i, j): not ending at every t in (i, j), then ending at j; summed in order like cumsum.
@@ -91,6 +115,6 @@ def reference_style_segment(model: PSModel, episode: Episode, min_len: int = 1) 
     decoded = reference_style_decode(score_segment, num_steps, min_len, max_len)
     segments = []
     for (start, end), log_prob in zip(decoded.segments, decoded.segment_log_scores, strict=True):
-        hidden = model.trunk(model.encode_frames(frames[start : end + 1])[None], starts[start])
+        hidden = model.trunk(encode(start, end)[None], starts[start])
         segments.append(labelled_segment(model, start, end, model.label_head(hidden[0, -1]), log_prob))
     return segments

@@ -15,12 +15,12 @@ import torch
 
 from playseg_core.data_model import Segment
 from playseg_core.decoding import OnlineDecoder
-from playseg_core.models import PSModel
+from playseg_core.models import PSModel, previous_actions
 from playseg_core.segmentation import labelled_segment
 
 
 class StreamingSegmenter:
-    """Segments one episode incrementally: `push(frame)` per observation, `finish()` at episode end."""
+    """Segments one episode incrementally: `push(frame, action)` per step, `finish()` at episode end."""
 
     def __init__(self, model: PSModel, min_len: int = 1) -> None:
         model.eval()
@@ -29,15 +29,36 @@ class StreamingSegmenter:
         self._features: list[torch.Tensor] = []  # only the last L_max+1 are needed; older are dropped
         self._offset = 0  # step index of self._features[0]
         self._segments: list[Segment] = []
+        self._pending_action: int | None = None  # a_t of the last pushed o_t: read with o_{t+1}
 
     @property
     def num_frames(self) -> int:
         return self._offset + len(self._features)
 
     @torch.no_grad()
-    def push(self, frame: np.ndarray) -> list[Segment]:
-        """Add observation o_t (t = 0, 1, ...); returns the segments decided by it."""
-        feature = self.model.encode_frames(torch.from_numpy(np.array(frame, np.uint8))[None])[0]
+    def push(self, frame: np.ndarray, action: np.ndarray | None = None) -> list[Segment]:
+        """Add observation o_t (t = 0, 1, ...) and a_t, the action taken after it; returns the segments
+        decided by o_t.
+
+        `action` is what a PlayStep carries with o_t; a model that reads actions needs it for every
+        observation but the episode's last (it is read with o_{t+1}). A frames-only model ignores it.
+        """
+        prev = None
+        if self.model.reads_actions:
+            if self._pending_action is None and self.num_frames > 0:
+                raise ValueError(f"observation {self.num_frames}: the previous step carried no action")
+            prev = torch.tensor(
+                [self.model.cfg.num_actions if self.num_frames == 0 else self._pending_action]
+            )
+            self._pending_action = None
+            if action is not None and np.asarray(action).size:
+                where = f"action of step {self.num_frames}"
+                self._pending_action = int(
+                    previous_actions(
+                        np.asarray(action, np.float32).reshape(1, -1), self.model.cfg.num_actions, where
+                    )[1]
+                )
+        feature = self.model.encode_steps(torch.from_numpy(np.array(frame, np.uint8))[None], prev)[0]
         self._features.append(feature)
         if self.num_frames < 2:
             return []

@@ -31,6 +31,7 @@ from playseg_core.models import (
     ModelConfig,
     PSModel,
     TrunkConfig,
+    previous_actions,
 )
 
 NEGATIVE_KINDS = ("end_later", "end_earlier", "widened", "before", "shift_left", "shift_right")
@@ -102,8 +103,9 @@ class TrainConfig:
     log_epochs: bool = True  # one line per epoch and split
 
 
-def default_model_config(num_classes: int, max_len: int = 25) -> ModelConfig:
-    return ModelConfig(EncoderConfig(), TrunkConfig(max_len=max_len), num_classes)
+def default_model_config(num_classes: int, max_len: int = 25, num_actions: int = 0) -> ModelConfig:
+    """The measured default model; `num_actions` > 0 makes it read discrete actions (BabyAI: 7)."""
+    return ModelConfig(EncoderConfig(), TrunkConfig(max_len=max_len), num_classes, num_actions=num_actions)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -120,6 +122,7 @@ class Batch:
     """
 
     frames: torch.Tensor  # (N, H, W, 3) uint8, the frames of all episodes of the batch
+    prev_actions: torch.Tensor | None  # (N,) index of the action that led to each frame (None: unused)
     window_index: torch.Tensor  # (S, L_max+1) rows into features (N = a zero row past an episode end)
     starts_episode: torch.Tensor  # (S,) bool: the window starts at step 0
     end_target: torch.Tensor  # (S, L_max+1) 1 where a segment ends at that position
@@ -149,6 +152,7 @@ def make_batch(
     dense_prefix_negatives: bool = False,
     augment: bool = False,
     dense_window_negatives: bool = False,
+    num_actions: int = 0,
 ) -> Batch:
     """The windows of the annotated segments `items` (only positives if not `negatives`).
 
@@ -158,12 +162,16 @@ def make_batch(
     position before the end and at every position up to k_max after it (the end-earlier and end-later
     negatives for all k at once). With `augment`, each segment's frames get one random rotation by a
     multiple of 90 degrees and an optional mirror (the whole clip alike): facing, goals and instructions
-    are unchanged by them, so the model cannot lean on memorised room layouts.
+    are unchanged by them, so the model cannot lean on memorised room layouts. With `num_actions` > 0
+    (a model that reads actions) the batch also carries the action that led to each frame.
     """
+    if augment and num_actions:
+        # A mirror swaps left and right turns: the actions would need the env's own remapping.
+        raise ValueError("augment is not supported for models that read actions")
     regions = [(max(0, seg.start - k_max), min(ep.num_steps, seg.end + k_max)) for ep, seg in items]
     zero_row = sum(hi - lo + 1 for lo, hi in regions)
     num_pos = max_len + 1
-    frames, rows, starts_episode, targets, weights = [], [], [], [], []
+    frames, prev_actions, rows, starts_episode, targets, weights = [], [], [], [], [], []
     label_window, label_position, labels = [], [], []
     offset = 0
     for (ep, seg), (lo, hi) in zip(items, regions, strict=True):
@@ -173,6 +181,11 @@ def make_batch(
             if rng.integers(2):
                 clip = clip[:, :, ::-1]
         frames.append(torch.from_numpy(np.ascontiguousarray(clip)))
+        if num_actions:
+            where = f"episode {ep.episode_id} actions"
+            prev_actions.append(
+                torch.from_numpy(previous_actions(ep.actions, num_actions, where)[lo : hi + 1])
+            )
         samples = segment_samples(seg.start, seg.end, ep.num_steps, max_len, k_max, rng)
         windows: dict[int, int] = {}  # start -> row
         for sample in samples:
@@ -208,6 +221,7 @@ def make_batch(
 
     return Batch(
         frames=torch.cat(frames),
+        prev_actions=torch.cat(prev_actions) if num_actions else None,
         window_index=stack(rows, np.int64),
         starts_episode=torch.tensor(starts_episode, dtype=torch.bool),
         end_target=stack(targets, np.float32),
@@ -242,7 +256,7 @@ class BatchStats:
 
 def ps_loss(model: PSModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tensor, BatchStats]:
     """BCE on the end head at the supervised positions + CE on the label head at positive ends."""
-    features = model.encode_frames(batch.frames)
+    features = model.encode_steps(batch.frames, batch.prev_actions)
     num_windows, num_pos = batch.window_index.shape
     end_sum = features.new_zeros(())
     label_hidden = features.new_zeros(len(batch.labels), model.cfg.trunk.hidden_dim)
@@ -252,7 +266,7 @@ def ps_loss(model: PSModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tenso
         length = min(length, num_pos)
         windows = _gather_windows(features, batch.window_index[members, :length])
         hidden = model.trunk(windows, batch.starts_episode[members])
-        logits = model.end_head(hidden).squeeze(-1)
+        logits = model.end_head(hidden).squeeze(-1)  # the raw head: end_bias is for segmenting only
         target, weight = batch.end_target[members, :length], batch.end_weight[members, :length]
         bce = F.binary_cross_entropy_with_logits(
             logits, target, reduction="none", pos_weight=logits.new_tensor(cfg.end_pos_weight)
@@ -273,7 +287,7 @@ def ps_loss(model: PSModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tenso
     loss = end_loss + cfg.label_weight * label_loss
     if cfg.frame_label_weight > 0:
         end_frames = batch.window_index[batch.label_window, batch.label_position]
-        frame_logits = model.frame_label_head(features[end_frames])
+        frame_logits = model.frame_label_head(model.frame_part(features[end_frames]))
         loss = loss + cfg.frame_label_weight * F.cross_entropy(frame_logits, batch.labels)
     stats = BatchStats(
         loss=float(loss.detach()),
@@ -289,7 +303,7 @@ def ps_loss(model: PSModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tenso
 
 def labeller_loss(model: LabelModel, batch: Batch) -> tuple[torch.Tensor, BatchStats]:
     """CE of the labelling model on the positives of the batch (one window per positive)."""
-    features = model.encode_frames(batch.frames)
+    features = model.encode_steps(batch.frames, batch.prev_actions)
     windows = _gather_windows(features, batch.window_index[batch.label_window])
     starts_episode = batch.starts_episode[batch.label_window]
     logits = model.logits_from_windows(windows, batch.label_position, starts_episode)
@@ -354,6 +368,7 @@ def _run_epoch(loss_fn, model, episodes, classes, cfg, rng, optimizer, epoch, de
             dense_prefix_negatives=cfg.dense_prefix_negatives,
             dense_window_negatives=cfg.dense_window_negatives,
             augment=training and cfg.augment,
+            num_actions=model.cfg.num_actions,
         )
         if batch.labels.numel() == 0:
             continue
@@ -485,7 +500,10 @@ def load_checkpoint(path: str | Path) -> tuple[PSModel | LabelModel, dict]:
         model_class = _KINDS[payload["kind"]]
         cfg = ModelConfig.from_dict(payload["config"])
         model = model_class(cfg, [str(s) for s in payload["instructions"]])
-        model.load_state_dict(payload["state_dict"])
+        state = dict(payload["state_dict"])
+        if model_class is PSModel:
+            state.setdefault("end_bias", torch.zeros(()))  # checkpoints from before the end bias
+        model.load_state_dict(state)
     except Exception as error:
         raise ValueError(f"checkpoint {path}: not a playseg checkpoint ({error!r})") from error
     model.eval()

@@ -138,7 +138,30 @@ def _add_up_command(sub: argparse._SubParsersAction) -> None:
 def _cmd_train(args: argparse.Namespace) -> int:
     from playseg_ros.offline import train
 
-    return train(args.data, args.out, args.epochs, args.lr, args.batch_segments, args.seed, args.labeller)
+    try:
+        return train(
+            args.data,
+            args.out,
+            args.epochs,
+            args.lr,
+            args.batch_segments,
+            args.seed,
+            args.labeller,
+            args.actions,
+        )
+    except ValueError as error:
+        print(f"playseg train: {error}", file=sys.stderr)
+        return 1
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from playseg_ros.offline import calibrate
+
+    try:
+        return calibrate(args.model, args.data, args.out)
+    except (ValueError, FileNotFoundError) as error:
+        print(f"playseg calibrate: {error}", file=sys.stderr)
+        return 1
 
 
 def _cmd_segment(args: argparse.Namespace) -> int:
@@ -169,7 +192,20 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     )
     train.add_argument("--seed", type=int, default=0)
     train.add_argument("--labeller", help="also train the stand-alone labelling model into this file")
+    train.add_argument(
+        "--actions",
+        default="auto",
+        help="discrete actions the model reads: a count N, 'none' (frames only), or 'auto' (default: "
+        "BabyAI's 7 when every action is one integer in 0..6, else none)",
+    )
     train.set_defaults(func=_cmd_train)
+    calibrate = sub.add_parser(
+        "calibrate", help="re-choose a PS model's end bias and label threshold on a dataset's val split"
+    )
+    calibrate.add_argument("--model", required=True, help="PS checkpoint (rewritten unless --out is given)")
+    calibrate.add_argument("--data", required=True, help="dataset whose annotated val split is used")
+    calibrate.add_argument("--out", help="write the calibrated checkpoint here instead")
+    calibrate.set_defaults(func=_cmd_calibrate)
     segment = sub.add_parser("segment", help="cut play into labelled segments with a trained PS model")
     segment.add_argument("--model", required=True, help="PS checkpoint from `playseg train`")
     segment.add_argument("--input", required=True, help="dataset directory or play bag directory")

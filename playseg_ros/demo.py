@@ -34,6 +34,7 @@ def _log(message: str) -> None:
 
 def _cache_key(bag: Path) -> str:
     """The bag's content and the model/training code: a cached model is reused only if both are the same."""
+    import playseg_core.calibration
     import playseg_core.models
     import playseg_core.training
 
@@ -42,6 +43,7 @@ def _cache_key(bag: Path) -> str:
         *sorted(bag.glob("*.mcap")),
         Path(playseg_core.models.__file__),
         Path(playseg_core.training.__file__),
+        Path(playseg_core.calibration.__file__),
     ]:
         digest.update(file.read_bytes())
     return digest.hexdigest()[:16]
@@ -49,7 +51,9 @@ def _cache_key(bag: Path) -> str:
 
 def ensure_ps_model(annotated_bag: Path, cache_dir: Path) -> Path:
     """Train the PS model on the annotated bag unless a model for this exact bag is cached."""
-    from playseg_core.training import TrainConfig, save_checkpoint, train_ps
+    from playseg_core.babyai import NUM_ACTIONS
+    from playseg_core.calibration import calibrate_ps_model
+    from playseg_core.training import TrainConfig, default_model_config, save_checkpoint, train_ps
     from playseg_ros.play_bags import read_play_bag
 
     model_path = cache_dir / f"ps-{_cache_key(annotated_bag)}.pt"
@@ -63,10 +67,16 @@ def ensure_ps_model(annotated_bag: Path, cache_dir: Path) -> Path:
         f"training the PS model on {len(train)} annotated episodes ({sum(len(e.segments) for e in train)} segments), "
         f"validating on {len(val)} ..."
     )
-    result = train_ps(train, val, INSTRUCTIONS, TrainConfig(progress=sys.stderr.isatty()))
+    model_cfg = default_model_config(len(INSTRUCTIONS), num_actions=NUM_ACTIONS)
+    result = train_ps(train, val, INSTRUCTIONS, TrainConfig(progress=sys.stderr.isatty()), model_cfg)
+    calibrated = calibrate_ps_model(result.model, val)
     cache_dir.mkdir(parents=True, exist_ok=True)
-    save_checkpoint(model_path, result.model, {"trained_on": str(annotated_bag)})
-    _log(f"PS model trained in {result.seconds:.0f} s -> {model_path}")
+    save_checkpoint(model_path, result.model, {"trained_on": str(annotated_bag), **calibrated})
+    bias = calibrated["end_bias"]
+    _log(
+        f"PS model trained in {result.seconds:.0f} s -> {model_path}; end bias {bias['bias']:+.2f} "
+        f"(val boundary F1 {bias['f1']:.3f}, {bias['f1_without_bias']:.3f} without it)"
+    )
     return model_path
 
 

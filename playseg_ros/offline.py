@@ -13,6 +13,8 @@ from collections.abc import Iterator
 from dataclasses import asdict
 from pathlib import Path
 
+import numpy as np
+
 from playseg_core.data_model import Episode, Segment, SegmentClip
 
 
@@ -24,6 +26,63 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
 
 
+def _num_actions(choice: str, episodes: list[Episode]) -> int:
+    """`playseg train --actions`: a count, "none", or "auto" (BabyAI's action space if the data fits it)."""
+    from playseg_core.babyai import NUM_ACTIONS
+
+    if choice == "none":
+        return 0
+    if choice != "auto":
+        try:
+            count = int(choice)
+        except ValueError:
+            raise ValueError(f"--actions must be a count, 'none' or 'auto', got {choice!r}") from None
+        if count < 0:
+            raise ValueError(f"--actions must be >= 0, got {count}")
+        return count
+    for episode in episodes:
+        values = np.asarray(episode.actions)
+        whole = values.ndim == 2 and values.shape[1] == 1 and bool(np.all(values == np.round(values)))
+        if not whole or values.min(initial=0) < 0 or values.max(initial=0) >= NUM_ACTIONS:
+            return 0
+    return NUM_ACTIONS
+
+
+def _print_calibration(calibrated: dict[str, dict]) -> None:
+    bias, labels = calibrated["end_bias"], calibrated["calibration"]
+    print(
+        f"end bias {bias['bias']:+.2f}: val boundary P {bias['precision']:.3f} R {bias['recall']:.3f} "
+        f"F1 {bias['f1']:.3f} (best F1 {bias['best_f1']:.3f} +- {bias['f1_standard_error']:.3f}; "
+        f"{bias['f1_without_bias']:.3f} without a bias)"
+    )
+    print(
+        f"label threshold {labels['threshold']:.3f} for {labels['target_accuracy']:.2f} accuracy "
+        f"keeps {labels['coverage']:.1%} of {labels['num_segments']} val segments"
+    )
+
+
+def calibrate(model_path: str, data: str, out: str | None) -> int:
+    """Re-calibrate a PS checkpoint's end bias and label threshold on a dataset's annotated val split."""
+    from playseg_core.calibration import calibrate_ps_model
+    from playseg_core.dataset import PlayDataset
+    from playseg_core.models import PSModel
+    from playseg_core.training import load_checkpoint, save_checkpoint
+
+    model, extra = load_checkpoint(model_path)
+    if not isinstance(model, PSModel):
+        raise ValueError(f"{model_path}: a labelling-model checkpoint; calibrate needs a PS model")
+    val_eps = list(PlayDataset.open(data).episodes("val"))
+    if not any(episode.segments for episode in val_eps):
+        raise ValueError(f"{data}: the val split has no annotated segments to calibrate on")
+    calibrated = calibrate_ps_model(model, val_eps, 0.95)
+    save_checkpoint(
+        out or model_path, model, {**extra, **calibrated, "calibrated_on": str(Path(data).resolve())}
+    )
+    print(f"{out or model_path}: calibrated on {len(val_eps)} val episodes of {data}")
+    _print_calibration(calibrated)
+    return 0
+
+
 def train(
     data: str,
     out: str,
@@ -32,25 +91,36 @@ def train(
     batch_segments: int | None,
     seed: int,
     labeller: str | None,
+    actions: str = "auto",
 ) -> int:
     """Train the PS model (and optionally the stand-alone labeller) on a dataset's train/val splits."""
+    from playseg_core.calibration import calibrate_ps_model
     from playseg_core.dataset import PlayDataset
-    from playseg_core.labelling import calibrate_on_annotated
-    from playseg_core.training import TrainConfig, save_checkpoint, train_labeller, train_ps
+    from playseg_core.training import (
+        TrainConfig,
+        default_model_config,
+        save_checkpoint,
+        train_labeller,
+        train_ps,
+    )
 
     dataset = PlayDataset.open(data)
     train_eps = list(dataset.episodes("train"))
     val_eps = list(dataset.episodes("val"))
     given = {"epochs": epochs, "lr": lr, "segments_per_batch": batch_segments}
     cfg = TrainConfig(seed=seed, **{key: value for key, value in given.items() if value is not None})
-    result = train_ps(train_eps, val_eps, dataset.instructions, cfg)
-    calibration = calibrate_on_annotated(result.model, val_eps, 0.95) if val_eps else None
+    num_actions = _num_actions(actions, train_eps)
+    model_cfg = default_model_config(len(dataset.instructions), num_actions=num_actions)
+    print(f"model reads {f'{num_actions} discrete actions' if num_actions else 'frames only'}", flush=True)
+    result = train_ps(train_eps, val_eps, dataset.instructions, cfg, model_cfg)
+    calibrated = calibrate_ps_model(result.model, val_eps, 0.95) if val_eps else {}
     extra = {
         "train": asdict(cfg),
         "history": result.history,
         "seconds": result.seconds,
         "dataset": str(Path(data).resolve()),
-        "calibration": asdict(calibration) if calibration else {},
+        "calibration": {},
+        **calibrated,
     }
     save_checkpoint(out, result.model, extra)
     last = result.history[-1]
@@ -59,13 +129,10 @@ def train(
         f"val label accuracy {last.get('val', last['train'])['label_accuracy']:.3f}; "
         f"peak RSS {_peak_rss_mb():.0f} MB"
     )
-    if calibration:
-        print(
-            f"label threshold {calibration.threshold:.3f} for {calibration.target_accuracy:.2f} accuracy "
-            f"keeps {calibration.coverage:.1%} of {calibration.num_segments} val segments"
-        )
+    if calibrated:
+        _print_calibration(calibrated)
     if labeller:
-        lab = train_labeller(train_eps, val_eps, dataset.instructions, cfg)
+        lab = train_labeller(train_eps, val_eps, dataset.instructions, cfg, model_cfg)
         save_checkpoint(labeller, lab.model, {"train": asdict(cfg), "history": lab.history})
         final = lab.history[-1].get("val", lab.history[-1]["train"])
         print(f"{labeller}: labeller, val accuracy {final['label_accuracy']:.3f}, {lab.seconds:.0f} s")

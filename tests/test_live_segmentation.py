@@ -12,7 +12,7 @@ import rclpy
 import torch
 from playseg_msgs.msg import LabelledSegment, PlayStep
 
-from playseg_core.babyai import INSTRUCTIONS, PlayConfig, generate_episode
+from playseg_core.babyai import INSTRUCTIONS, NUM_ACTIONS, PlayConfig, generate_episode
 from playseg_core.models import PSModel
 from playseg_core.segmentation import segment_episode
 from playseg_core.training import default_model_config, load_checkpoint, save_checkpoint
@@ -25,9 +25,12 @@ from playseg_ros.play_bags import read_play_bag, write_play_bag
 @pytest.fixture(scope="module")
 def model_path(tmp_path_factory) -> Path:
     # An untrained model segments arbitrarily, which is all the equality needs (and exercises many cuts).
+    # It reads actions, as the trained default does: the node must hand each step's action over.
     torch.manual_seed(3)
     path = tmp_path_factory.mktemp("model") / "ps.pt"
-    save_checkpoint(path, PSModel(default_model_config(len(INSTRUCTIONS)), list(INSTRUCTIONS)))
+    model = PSModel(default_model_config(len(INSTRUCTIONS), num_actions=NUM_ACTIONS), list(INSTRUCTIONS))
+    model.end_bias.fill_(-0.5)  # a calibrated checkpoint's bias must apply live as offline
+    save_checkpoint(path, model)
     return path
 
 
@@ -109,10 +112,14 @@ def test_malformed_steps_are_logged_and_the_node_keeps_running(tmp_path, model_p
         nan_action = episode_step_message(good, 0, kind=RCLPY)
         nan_action.episode_id = "nan-action"
         nan_action.action = [float("nan")]
+        bad_action = [episode_step_message(good, t, kind=RCLPY) for t in (0, 1)]
+        for msg in bad_action:
+            msg.episode_id = "bad-action"
+        bad_action[0].action = [9.0]  # BabyAI has actions 0..6
         gap = [episode_step_message(good, t, kind=RCLPY) for t in (0, 1, 3)]
         for msg in gap:
             msg.episode_id = "gap"
-        for msg in [bad_encoding, bad_size, nan_action, *gap]:
+        for msg in [bad_encoding, bad_size, nan_action, *bad_action, *gap]:
             collector.steps_pub.publish(msg)
         for t in range(good.num_steps + 1):
             collector.steps_pub.publish(episode_step_message(good, t, kind=RCLPY))
@@ -127,4 +134,5 @@ def test_malformed_steps_are_logged_and_the_node_keeps_running(tmp_path, model_p
     assert "'bad-size' step 0: observation.data holds 10 bytes" in log
     assert "'nan-action' step 0: action contains NaN" in log
     assert "'gap' step 3: step gap, expected step 2" in log
+    assert "'bad-action' step 0: segmentation failed" in log and "= 9.0: not a discrete action index" in log
     assert {s.episode_id for s in collector.segments} == {good.episode_id}

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import asdict
+
 import numpy as np
 import pytest
 import torch
@@ -13,6 +15,7 @@ from playseg_core.models import (
     ModelConfig,
     PSModel,
     TrunkConfig,
+    previous_actions,
 )
 from playseg_core.training import load_checkpoint, save_checkpoint
 
@@ -22,12 +25,14 @@ NUM_CLASSES = 4
 INSTRUCTIONS = [f"go to thing {c}" for c in range(NUM_CLASSES)]
 
 
-def tiny_ps_model(max_len: int = 6, seed: int = 0) -> PSModel:
+def tiny_ps_model(max_len: int = 6, seed: int = 0, num_actions: int = 0) -> PSModel:
     torch.manual_seed(seed)
     cfg = ModelConfig(
         EncoderConfig(tile_channels=8, object_dim=8, feature_dim=16),
         TrunkConfig(hidden_dim=16, num_layers=2, kernel_size=3, max_len=max_len),
         NUM_CLASSES,
+        num_actions=num_actions,
+        action_dim=4,
     )
     return PSModel(cfg, INSTRUCTIONS).eval()
 
@@ -35,23 +40,36 @@ def tiny_ps_model(max_len: int = 6, seed: int = 0) -> PSModel:
 PALETTE = np.array([[230, 40, 40], [40, 230, 40], [40, 40, 230], [230, 230, 40]], np.uint8)
 
 
-def synthetic_episode(seed: int, num_segments: int = 6, max_seg_len: int = 5, size: int = 64) -> Episode:
+def synthetic_episode(
+    seed: int, num_segments: int = 6, max_seg_len: int = 5, size: int = 64, ends_in_actions: bool = False
+) -> Episode:
     """Play-like frames of 8x8 tiles: the top-left tile in the colour of the current instruction's
-    class, a marker tile at every segment end, and a flickering tile so that frames differ."""
+    class, a marker tile at every segment end, and a flickering tile so that frames differ.
+
+    With `ends_in_actions`, only the actions show where segments end: one class for the whole episode,
+    no marker, every segment's last action 2 and the others 0 or 1.
+    """
     rng = np.random.default_rng(seed)
     lengths = rng.integers(1, max_seg_len + 1, size=num_segments)
     classes = rng.integers(0, NUM_CLASSES, size=num_segments)
+    if ends_in_actions:
+        classes[:] = classes[0]
     num_steps = int(lengths.sum())
     frames = np.zeros((num_steps + 1, size, size, 3), np.uint8)
     segments, start = [], 0
     for length, cls in zip(lengths.tolist(), classes.tolist(), strict=True):
         end = start + length
         frames[start + 1 : end + 1, :8, :8] = PALETTE[cls]
-        frames[end, 8:16, 8:16] = 255  # the "goal reached" marker
+        if not ends_in_actions:
+            frames[end, 8:16, 8:16] = 255  # the "goal reached" marker
         segments.append(Segment(start, end, INSTRUCTIONS[cls]))
         start = end
     frames[:, :8, 8:16, 1] = rng.integers(0, 120, size=(num_steps + 1, 1, 1), dtype=np.uint8)
     actions = rng.integers(0, 3, size=(num_steps, 1)).astype(np.float32)
+    if ends_in_actions:
+        frames[0, :8, :8] = PALETTE[classes[0]]
+        actions = rng.integers(0, 2, size=(num_steps, 1)).astype(np.float32)
+        actions[[seg.end - 1 for seg in segments]] = 2
     return Episode(f"synthetic-{seed}", frames, actions, segments=segments)
 
 
@@ -63,10 +81,10 @@ def random_features(num_frames: int, dim: int = 16, seed: int = 1) -> torch.Tens
     return torch.randn(num_frames, dim, generator=torch.Generator().manual_seed(seed))
 
 
-@pytest.mark.parametrize("num_steps", [3, 6, 14])
-def test_end_column_equals_diagonal_of_end_logits(num_steps: int) -> None:
-    model = tiny_ps_model(max_len=6)
-    features = random_features(num_steps + 1)
+@pytest.mark.parametrize(("num_steps", "num_actions"), [(3, 0), (6, 0), (14, 0), (14, 3)])
+def test_end_column_equals_diagonal_of_end_logits(num_steps: int, num_actions: int) -> None:
+    model = tiny_ps_model(max_len=6, num_actions=num_actions)
+    features = random_features(num_steps + 1, dim=model.cfg.step_dim)
     with torch.no_grad():
         matrix = model.end_logits(features)
         assert matrix.shape == (num_steps, 6)
@@ -124,6 +142,49 @@ def test_label_logits_validate_segment_length() -> None:
     assert model.label_logits(features, 2, 6).shape == (NUM_CLASSES,)
     with pytest.raises(ValueError, match="1..4 steps"):
         model.label_logits(features, 2, 7)
+
+
+def test_previous_actions_shift_by_one_and_name_the_bad_entry() -> None:
+    np.testing.assert_array_equal(previous_actions(np.array([[2.0], [0.0], [1.0]]), 3), [3, 2, 0, 1])
+    assert previous_actions(np.zeros((0, 1)), 3).tolist() == [3]  # a lone observation: "no action"
+    with pytest.raises(ValueError, match=r"ep7 actions\[1\] = 1.5: not a discrete action index in 0..2"):
+        previous_actions(np.array([[0.0], [1.5]]), 3, "ep7 actions")
+    with pytest.raises(ValueError, match=r"ep7 actions\[0\] = 3.0"):
+        previous_actions(np.array([[3.0]]), 3, "ep7 actions")
+    with pytest.raises(ValueError, match=r"needs shape \(T, 1\)"):
+        previous_actions(np.zeros((4, 2)), 3, "ep7 actions")
+
+
+def test_an_action_model_reads_the_action_that_led_to_each_frame() -> None:
+    model = tiny_ps_model(num_actions=3)
+    frames = torch.from_numpy(synthetic_episode(2).frames[:8])
+    actions = torch.tensor([3, 0, 1, 2, 0, 1, 2, 0])
+    with torch.no_grad():
+        base = model.end_logits(model.encode_steps(frames, actions))
+        changed_actions = actions.clone()
+        changed_actions[4] = 2  # a_3, the action that led to o_4: windows holding o_4 change
+        other = model.end_logits(model.encode_steps(frames, changed_actions))
+        assert model.encode_steps(frames, actions).shape == (8, 16 + 4)
+    torch.testing.assert_close(other[1, :2], base[1, :2])  # [1, 2) and [1, 3) end before o_4
+    assert not torch.allclose(other[1, 2], base[1, 2])  # [1, 4) ends at o_4
+    with pytest.raises(ValueError, match="encode_steps needs prev_actions"):
+        model.encode_steps(frames)
+
+
+def test_checkpoint_of_an_action_model_round_trips_and_old_configs_read_frames_only(tmp_path) -> None:
+    model = tiny_ps_model(seed=2, num_actions=3)
+    save_checkpoint(tmp_path / "ps.pt", model)
+    loaded, _ = load_checkpoint(tmp_path / "ps.pt")
+    assert loaded.cfg.num_actions == 3 and loaded.reads_actions
+    frames, actions = torch.from_numpy(synthetic_episode(1).frames[:6]), torch.tensor([3, 0, 1, 2, 0, 1])
+    with torch.no_grad():
+        torch.testing.assert_close(
+            loaded.end_logits(loaded.encode_steps(frames, actions)),
+            model.end_logits(model.encode_steps(frames, actions)),
+        )
+    old = asdict(tiny_ps_model().cfg)
+    del old["num_actions"], old["action_dim"]  # written before models read actions
+    assert ModelConfig.from_dict(old).num_actions == 0
 
 
 def test_checkpoint_round_trip_gives_identical_outputs(tmp_path) -> None:

@@ -9,21 +9,25 @@ import pytest
 import torch
 from test_models import INSTRUCTIONS, synthetic_episode, tiny_ps_model
 
-from playseg_core.decoding import OnlineDecoder
-from playseg_core.labelling import (
+from playseg_core.calibration import (
+    calibrate_end_bias,
     calibrate_on_annotated,
+    calibrate_ps_model,
     calibrate_threshold,
-    keep_confident,
-    label_segments,
 )
+from playseg_core.data_model import Episode
+from playseg_core.decoding import OnlineDecoder
+from playseg_core.labelling import keep_confident, label_segments
+from playseg_core.metrics import evaluate
 from playseg_core.segmentation import encode_episode, reference_style_segment, segment_episode
 
 torch.set_num_threads(1)
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_reference_style_equals_fast_segmentation(seed: int) -> None:
-    model = tiny_ps_model(max_len=5, seed=seed)
+@pytest.mark.parametrize(("seed", "num_actions", "end_bias"), [(0, 0, 0.0), (1, 0, 0.0), (2, 3, -0.7)])
+def test_reference_style_equals_fast_segmentation(seed: int, num_actions: int, end_bias: float) -> None:
+    model = tiny_ps_model(max_len=5, seed=seed, num_actions=num_actions)
+    model.end_bias.fill_(end_bias)
     episode = synthetic_episode(seed, num_segments=4, max_seg_len=4)
     fast = segment_episode(model, episode)
     slow = reference_style_segment(model, episode)
@@ -107,3 +111,39 @@ def test_calibrate_on_annotated_and_keep_confident() -> None:
     segments = segment_episode(model, episodes[0])
     kept = keep_confident(segments, calibration.threshold)
     assert all(s.confidence >= calibration.threshold for s in kept)
+
+
+def _boundary_f1(model, episodes) -> float:
+    pred = {ep.episode_id: segment_episode(model, ep) for ep in episodes}
+    truth = {ep.episode_id: ep.segments for ep in episodes}
+    return evaluate(pred, truth, {ep.episode_id: ep.num_steps for ep in episodes})["boundary_f1_tol0"]
+
+
+def test_calibrated_end_bias_is_the_best_candidate_when_segmenting() -> None:
+    model = tiny_ps_model(max_len=5, seed=4)
+    episodes = [synthetic_episode(s, num_segments=4, max_seg_len=4) for s in range(4)]
+    candidates = (-4.0, -2.0, 0.0, 2.0, 4.0)
+    result = calibrate_end_bias(model, episodes, candidates)
+    assert model.end_bias.item() == 0.0  # calibration alone does not change the model
+    f1 = {}
+    for bias in candidates:  # the production path with the bias set: the calibration's choice wins
+        model.end_bias.fill_(bias)
+        f1[bias] = _boundary_f1(model, episodes)
+    assert len(set(f1.values())) > 1  # the candidates really segment differently
+    assert result.best_f1 == pytest.approx(max(f1.values())) and result.f1_standard_error > 0
+    assert result.bias in candidates and result.f1 == pytest.approx(f1[result.bias])
+    # one-standard-error rule: within one SE of the best F1, the highest precision
+    eligible = [b for b in candidates if f1[b] >= result.best_f1 - result.f1_standard_error - 1e-9]
+    assert result.precision == pytest.approx(max(p for b, p, _, _ in result.sweep if b in eligible))
+    assert result.f1_without_bias == pytest.approx(f1[0.0]) and result.num_episodes == 4
+    unannotated = Episode("play-0", np.zeros((3, 64, 64, 3), np.uint8), np.zeros((2, 1), np.float32))
+    with pytest.raises(ValueError, match="annotated episodes"):
+        calibrate_end_bias(model, [unannotated])
+
+
+def test_calibrate_ps_model_sets_the_end_bias_and_records_both_calibrations() -> None:
+    model = tiny_ps_model(max_len=5, seed=4)
+    episodes = [synthetic_episode(s, num_segments=4, max_seg_len=4) for s in range(3)]
+    record = calibrate_ps_model(model, episodes, target_accuracy=0.5)
+    assert model.end_bias.item() == record["end_bias"]["bias"]
+    assert record["calibration"]["num_segments"] == 12 and record["calibration"]["target_accuracy"] == 0.5

@@ -136,7 +136,7 @@ class SegmenterNode(LifecycleNode):
             check_step_number(data.episode_id, data.step, episode.next_step)
         episode.steps.append(msg)
         episode.last_seen = time.monotonic()
-        decided = episode.segmenter.push(data.frame)
+        decided = episode.segmenter.push(data.frame, data.action)
         if data.episode_end:
             decided += episode.segmenter.finish()
             del self.episodes[data.episode_id]

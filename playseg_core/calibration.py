@@ -1,0 +1,176 @@
+"""Calibration of a trained PS model on held-out annotated play: the end bias and the label threshold.
+
+Both are chosen on the annotated validation split, never on the play being segmented:
+- `calibrate_end_bias`: the bias added to the end logit when segmenting (``PSModel.end_bias``), for the
+  best exact boundary F1 (one-standard-error rule). Training weights the rare positive ends, which inflates the end probability
+  the decoder reads as a hazard; the bias takes that back by as much as held-out play says.
+- `calibrate_on_annotated` / `calibrate_threshold`: the lowest label confidence whose kept segments
+  reach a target label accuracy (e.g. 0.95), used to filter extracted segments (labelling.py).
+`calibrate_ps_model` does both and returns what a checkpoint records about them.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+from playseg_core.data_model import Episode
+from playseg_core.decoding import decode_segments
+from playseg_core.labelling import label_segments
+from playseg_core.metrics import BoundaryCounts, match_boundaries
+from playseg_core.models import LabelModel, PSModel
+from playseg_core.segmentation import encode_episode
+
+END_BIAS_CANDIDATES: tuple[float, ...] = tuple(float(b) for b in np.arange(-3.0, 1.01, 0.25))
+"""End biases `calibrate_end_bias` tries by default."""
+
+
+@dataclass(frozen=True)
+class EndBiasCalibration:
+    """The end bias chosen on held-out annotated episodes, and the boundary scores it gave there.
+
+    sweep: (bias, precision, recall, F1) of every candidate, for reports.
+    """
+
+    bias: float
+    precision: float
+    recall: float
+    f1: float
+    best_f1: float  # the highest F1 of any candidate
+    f1_standard_error: float  # of best_f1, from the number of true boundaries
+    f1_without_bias: float  # at bias 0 (the raw end head), for comparison
+    num_episodes: int
+    sweep: list[tuple[float, float, float, float]]
+
+
+@torch.no_grad()
+def calibrate_end_bias(
+    model: PSModel, episodes: Iterable[Episode], candidates: Sequence[float] = END_BIAS_CANDIDATES
+) -> EndBiasCalibration:
+    """The end bias to segment with, chosen on annotated `episodes` by exact boundary F1 (final boundary
+    included), with the one-standard-error rule: among the candidates whose F1 is within one standard
+    error of the best, the one with the highest precision (ties: the lower bias).
+
+    Why the rule: in BabyAI play F1 is flat over a wide range of biases (decoys trade one-for-one with
+    missed ends, docs/segmentation.md "What the data allows"), and where held-out data cannot tell
+    candidates apart, fewer and surer cuts are preferred. The model is not changed: set
+    ``model.end_bias`` to the result's bias to segment with it (`calibrate_ps_model` does).
+    """
+    if not candidates:
+        raise ValueError("calibrate_end_bias needs at least one candidate bias")
+    model.eval()
+    raw_logits, true_ends = [], []
+    for episode in episodes:
+        if episode.num_steps == 0 or not episode.segments:
+            continue
+        hidden = model.window_hidden(encode_episode(model, episode))
+        raw_logits.append((model.end_logits_from_hidden(hidden) - model.end_bias).double().numpy())
+        true_ends.append([seg.end for seg in episode.segments])
+    if not raw_logits:
+        raise ValueError("calibrate_end_bias needs annotated episodes; none of the given ones has segments")
+    scores: dict[float, BoundaryCounts] = {}
+    for bias in sorted({float(b) for b in candidates} | {0.0}):
+        counts = BoundaryCounts(0, 0, 0)
+        for logits, ends in zip(raw_logits, true_ends, strict=True):
+            max_len = min(model.max_len, logits.shape[0])
+            pred = [end for _, end in decode_segments(logits[:, :max_len] + bias, max_len=max_len).segments]
+            counts += BoundaryCounts(match_boundaries(pred, ends), len(pred), len(ends))
+        scores[bias] = counts
+    allowed = sorted({float(b) for b in candidates})
+    best_f1 = max(scores[b].f1 for b in allowed)
+    standard_error = math.sqrt(best_f1 * (1.0 - best_f1) / scores[allowed[0]].num_truth)
+    eligible = [b for b in allowed if scores[b].f1 >= best_f1 - standard_error - 1e-12]
+    chosen = max(eligible, key=lambda b: (scores[b].precision, -b))
+    return EndBiasCalibration(
+        bias=chosen,
+        precision=scores[chosen].precision,
+        recall=scores[chosen].recall,
+        f1=scores[chosen].f1,
+        best_f1=best_f1,
+        f1_standard_error=standard_error,
+        f1_without_bias=scores[0.0].f1,
+        num_episodes=len(raw_logits),
+        sweep=[(b, scores[b].precision, scores[b].recall, scores[b].f1) for b in allowed],
+    )
+
+
+def calibrate_threshold(
+    confidences: Sequence[float] | np.ndarray, correct: Sequence[bool] | np.ndarray, target_accuracy: float
+) -> float:
+    """The lowest threshold whose kept items (confidence >= threshold) reach `target_accuracy`.
+
+    Lowest = the most items kept. Items with equal confidence are kept or dropped together. Returns
+    +inf (keep nothing) when no threshold reaches the target, and the lowest confidence (keep
+    everything) when all items together already do.
+    """
+    conf = np.asarray(confidences, dtype=np.float64)
+    hits = np.asarray(correct, dtype=bool)
+    if conf.shape != hits.shape or conf.ndim != 1:
+        raise ValueError(f"confidences {conf.shape} and correct {hits.shape} must be equal-length 1-D")
+    if not 0.0 < target_accuracy <= 1.0:
+        raise ValueError(f"target_accuracy must be in (0, 1], got {target_accuracy}")
+    if conf.size == 0:
+        return math.inf
+    order = np.argsort(-conf, kind="stable")
+    conf, hits = conf[order], hits[order]
+    kept_accuracy = np.cumsum(hits) / np.arange(1, conf.size + 1)
+    # Only cut where the confidence changes (ties stay together).
+    cut = np.append(conf[1:] != conf[:-1], True)
+    good = np.nonzero(cut & (kept_accuracy >= target_accuracy))[0]
+    if good.size == 0:
+        return math.inf
+    return float(conf[good[-1]])
+
+
+@dataclass(frozen=True)
+class LabelCalibration:
+    threshold: float
+    target_accuracy: float
+    accuracy_kept: float  # label accuracy of the held-out segments the threshold keeps
+    coverage: float  # share of held-out segments kept
+    accuracy_all: float  # label accuracy without a threshold
+    num_segments: int
+
+
+def calibrate_on_annotated(
+    model: PSModel | LabelModel, episodes: Iterable[Episode], target_accuracy: float
+) -> LabelCalibration:
+    """Label the annotated segments of held-out `episodes` and calibrate the threshold on them."""
+    confidences, correct = [], []
+    for episode in episodes:
+        spans = [(seg.start, seg.end) for seg in episode.segments if seg.length <= model.max_len]
+        truth = {(seg.start, seg.end): seg.instruction for seg in episode.segments}
+        for predicted in label_segments(model, episode, spans):
+            confidences.append(predicted.confidence)
+            correct.append(predicted.instruction == truth[(predicted.start, predicted.end)])
+    if not confidences:
+        raise ValueError("calibration needs annotated segments; the held-out episodes have none")
+    threshold = calibrate_threshold(confidences, correct, target_accuracy)
+    conf, hits = np.asarray(confidences), np.asarray(correct)
+    kept = conf >= threshold
+    return LabelCalibration(
+        threshold=threshold,
+        target_accuracy=target_accuracy,
+        accuracy_kept=float(hits[kept].mean()) if kept.any() else float("nan"),
+        coverage=float(kept.mean()),
+        accuracy_all=float(hits.mean()),
+        num_segments=int(conf.size),
+    )
+
+
+def calibrate_ps_model(
+    model: PSModel, val_episodes: Sequence[Episode], target_accuracy: float = 0.95
+) -> dict[str, dict]:
+    """Set ``model.end_bias`` from `val_episodes` and calibrate the label threshold on them.
+
+    Returns the checkpoint's record: ``{"end_bias": ..., "calibration": ...}`` (the label threshold
+    under "calibration", where segmenting commands look for it).
+    """
+    end_bias = calibrate_end_bias(model, val_episodes)
+    model.end_bias.fill_(end_bias.bias)
+    labels = calibrate_on_annotated(model, val_episodes, target_accuracy)
+    return {"end_bias": asdict(end_bias), "calibration": asdict(labels)}
