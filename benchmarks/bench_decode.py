@@ -123,7 +123,9 @@ def main() -> None:
 
         dataset = PlayDataset.open(args.data)
         train_eps, val_eps = list(dataset.episodes("train")), list(dataset.episodes("val"))
-        cfg = TrainConfig(epochs=args.train_epochs, progress=False, log_epochs=False, num_threads=2)
+        cfg = TrainConfig(
+            epochs=args.train_epochs, min_steps=0, progress=False, log_epochs=False, num_threads=2
+        )
         model_cfg = default_model_config(len(dataset.instructions), num_actions=NUM_ACTIONS)
         result = train_ps(train_eps, val_eps, dataset.instructions, cfg, model_cfg)
         segments = sum(len(e.segments) for e in train_eps)

@@ -88,6 +88,9 @@ def segment_samples(
 class TrainConfig:
     seed: int = 0
     epochs: int = 16
+    # Small datasets train for more epochs, up to at least this many optimizer steps: at the demo scale
+    # (100 steps per epoch) 1,600 steps often ended before the encoder learnt "what is faced".
+    min_steps: int = 3200
     segments_per_batch: int = 16  # drawn from all annotated episodes; small batches = more steps
     lr: float = 3e-3
     weight_decay: float = 1e-4
@@ -301,13 +304,18 @@ def ps_loss(model: PSModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tenso
     return loss, stats
 
 
-def labeller_loss(model: LabelModel, batch: Batch) -> tuple[torch.Tensor, BatchStats]:
-    """CE of the labelling model on the positives of the batch (one window per positive)."""
+def labeller_loss(model: LabelModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tensor, BatchStats]:
+    """CE of the labelling model on the positives of the batch (one window per positive), plus the
+    auxiliary CE of `frame_label_head` on each end frame's encoder features (as in `ps_loss`)."""
     features = model.encode_steps(batch.frames, batch.prev_actions)
     windows = _gather_windows(features, batch.window_index[batch.label_window])
     starts_episode = batch.starts_episode[batch.label_window]
     logits = model.logits_from_windows(windows, batch.label_position, starts_episode)
     loss = F.cross_entropy(logits, batch.labels)
+    if cfg.frame_label_weight > 0:
+        end_frames = batch.window_index[batch.label_window, batch.label_position]
+        frame_logits = model.frame_label_head(model.frame_part(features[end_frames]))
+        loss = loss + cfg.frame_label_weight * F.cross_entropy(frame_logits, batch.labels)
     correct = int((logits.argmax(-1) == batch.labels).sum())
     n = int(batch.labels.numel())
     return loss, BatchStats(float(loss.detach()), 0.0, float(loss.detach()), 0, 0, correct, n)
@@ -391,6 +399,11 @@ class TrainResult:
     seconds: float
 
 
+def epochs_to_train(cfg: TrainConfig, steps_per_epoch: int) -> int:
+    """`cfg.epochs`, or more when that many epochs would stay below `cfg.min_steps` optimizer steps."""
+    return max(cfg.epochs, -(-cfg.min_steps // max(1, steps_per_epoch)))
+
+
 def _fit(model, loss_fn, train_eps, val_eps, instructions, cfg: TrainConfig, name: str) -> TrainResult:
     torch.set_num_threads(cfg.num_threads)
     torch.manual_seed(cfg.seed)
@@ -402,8 +415,9 @@ def _fit(model, loss_fn, train_eps, val_eps, instructions, cfg: TrainConfig, nam
     optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     num_segments = sum(len(ep.segments) for ep in train_eps)
     steps_per_epoch = -(-num_segments // cfg.segments_per_batch)
+    epochs = epochs_to_train(cfg, steps_per_epoch)
     schedule = torch.optim.lr_scheduler.OneCycleLR(
-        optimizer, max_lr=cfg.lr, total_steps=cfg.epochs * steps_per_epoch, pct_start=0.05
+        optimizer, max_lr=cfg.lr, total_steps=epochs * steps_per_epoch, pct_start=0.05
     )
 
     class _Stepper:  # the schedule advances once per optimizer step
@@ -417,7 +431,7 @@ def _fit(model, loss_fn, train_eps, val_eps, instructions, cfg: TrainConfig, nam
     history: list[dict] = []
     best_key, best_state = None, None
     began = time.perf_counter()
-    for epoch in range(1, cfg.epochs + 1):
+    for epoch in range(1, epochs + 1):
         train_report = _run_epoch(
             loss_fn, model, train_eps, classes, cfg, rng, _Stepper(), epoch, f"{name} {epoch}"
         )
@@ -465,7 +479,15 @@ def train_labeller(
     """Train the stand-alone labelling model on the annotated segments (positives only)."""
     torch.manual_seed(cfg.seed)
     model = LabelModel(model_cfg or default_model_config(len(instructions)), list(instructions))
-    return _fit(model, labeller_loss, train_episodes, val_episodes, instructions, cfg, "labeller")
+    return _fit(
+        model,
+        lambda m, b: labeller_loss(m, b, cfg),
+        train_episodes,
+        val_episodes,
+        instructions,
+        cfg,
+        "labeller",
+    )
 
 
 # ----------------------------------------------------------------------------------------------------

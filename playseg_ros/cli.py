@@ -185,7 +185,9 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     train.add_argument("--data", required=True, help="dataset directory (train + val splits are used)")
     train.add_argument("--out", required=True, help="checkpoint file to write (e.g. models/ps.pt)")
     # Unset options take playseg_core.training.TrainConfig's defaults (the measured best setting).
-    train.add_argument("--epochs", type=int, help="training epochs (default: TrainConfig)")
+    train.add_argument(
+        "--epochs", type=int, help="exactly this many epochs (default: TrainConfig's, more on small data)"
+    )
     train.add_argument("--lr", type=float, help="peak learning rate (default: TrainConfig)")
     train.add_argument(
         "--batch-segments", type=int, help="annotated segments per batch (default: TrainConfig)"

@@ -10,7 +10,7 @@ import resource
 import sys
 import time
 from collections.abc import Iterator
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -109,6 +109,8 @@ def train(
     val_eps = list(dataset.episodes("val"))
     given = {"epochs": epochs, "lr": lr, "segments_per_batch": batch_segments}
     cfg = TrainConfig(seed=seed, **{key: value for key, value in given.items() if value is not None})
+    if epochs is not None:  # asked for exactly this many epochs
+        cfg = replace(cfg, min_steps=0)
     num_actions = _num_actions(actions, train_eps)
     model_cfg = default_model_config(len(dataset.instructions), num_actions=num_actions)
     print(f"model reads {f'{num_actions} discrete actions' if num_actions else 'frames only'}", flush=True)

@@ -11,6 +11,7 @@ from playseg_core.segmentation import segment_episode
 from playseg_core.training import (
     NEGATIVE_KINDS,
     TrainConfig,
+    epochs_to_train,
     label_index,
     make_batch,
     segment_samples,
@@ -109,6 +110,7 @@ def _small_data(ends_in_actions: bool = False) -> tuple[list, list]:
 def _train_small_ps(dense: bool, epochs: int, num_actions: int = 0, ends_in_actions: bool = False):
     train, val = _small_data(ends_in_actions)
     cfg = TrainConfig(
+        min_steps=0,
         epochs=epochs,
         segments_per_batch=5,
         lr=5e-3,
@@ -175,6 +177,7 @@ def test_short_ps_training_without_dense_prefixes_still_learns() -> None:
 def test_short_labeller_training_learns() -> None:
     train, val = _small_data()
     cfg = TrainConfig(
+        min_steps=0,
         epochs=20,
         segments_per_batch=5,
         lr=5e-3,
@@ -234,3 +237,10 @@ def test_dense_window_negatives_supervise_every_position_of_off_start_windows() 
             torch.testing.assert_close(dense.end_weight[row], plain.end_weight[row])
         else:
             assert torch.all(dense.end_weight[row, 1:inside] == 1) and torch.all(dense.end_target[row] == 0)
+
+
+def test_small_datasets_train_for_at_least_min_steps() -> None:
+    assert epochs_to_train(TrainConfig(epochs=16, min_steps=3200), steps_per_epoch=500) == 16  # paper scale
+    assert epochs_to_train(TrainConfig(epochs=16, min_steps=3200), steps_per_epoch=100) == 32  # demo scale
+    assert epochs_to_train(TrainConfig(epochs=16, min_steps=3200), steps_per_epoch=99) == 33
+    assert epochs_to_train(TrainConfig(epochs=3, min_steps=0), steps_per_epoch=1) == 3
