@@ -2,7 +2,7 @@
 "What the data allows".
 
 Usage:
-    .venv/bin/python benchmarks/babyai_ambiguity.py --data data/ps10k [--split test]
+    .venv/bin/python benchmarks/babyai_ambiguity.py --data data/ps10k [--split test] [--pred runs/ps10k-test]
 
 A "go to X" task ends the moment the agent faces an X. Mid-task the agent also faces other objects
 (passing by, turning); those moments look like ends. From the symbolic states this script counts:
@@ -13,6 +13,10 @@ A "go to X" task ends the moment the agent faces an X. Mid-task the agent also f
 - the boundary precision / recall of two reference rules that know each true segment start: cut at
   every decoy and end (what a frame-only end detector does), and the Bayes rule over (steps since
   the start, the last two actions), fitted on the same split (optimistic: an upper-bound estimate).
+With --pred (the output of `playseg segment` on that split) it also counts the predicted segments whose
+instruction is completed at their end (the agent faces an object of the predicted colour and type that
+it did not face at the start): a cut at a decoy with the decoy's label is a valid demonstration even
+though exact-match precision counts it wrong.
 """
 
 from __future__ import annotations
@@ -69,6 +73,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     parser.add_argument("--data", required=True, help="dataset with states and ground truth")
     parser.add_argument("--split", default="test")
+    parser.add_argument("--pred", help="`playseg segment` output for that split: count valid segments")
     args = parser.parse_args()
     dataset = PlayDataset.open(args.data)
     if dataset.states is None:
@@ -110,6 +115,42 @@ def main() -> None:
     tp = sum(cells[(key, True)] for key in chosen)
     fp = sum(cells[(key, False)] for key in chosen)
     print(f"Bayes rule on (offset, last two actions):   {scores(tp, fp)}")
+    if args.pred:
+        valid, shortest, total = count_completed_instructions(
+            dataset, args.split, PlayDataset.open(args.pred)
+        )
+        print(
+            f"{args.pred}: {total} predicted segments; {valid} ({valid / total:.3f}) complete their instruction,"
+        )
+        print(
+            f"  {shortest} ({shortest / total:.3f}) on a shortest path to it (as good as a bot demonstration)"
+        )
+
+
+def count_completed_instructions(truth: PlayDataset, split: str, pred: PlayDataset) -> tuple[int, int, int]:
+    """(predicted segments whose instruction is completed at their end, those of them that take a
+    shortest path to it, predicted segments)."""
+    from minigrid.core.constants import COLOR_TO_IDX, OBJECT_TO_IDX
+
+    states = {}
+    for index in truth.episode_indices(split):
+        episode = truth.episode(index, truth=True)
+        states[episode.episode_id] = np.asarray(episode.states)
+    valid = shortest = total = 0
+    for split_name in pred.splits:
+        for episode in pred.episodes(split_name, truth=True):
+            episode_states = states[episode.episode_id]
+            for segment in episode.segments:
+                *_, colour, obj_type = segment.instruction.split()
+                goal = (OBJECT_TO_IDX[obj_type], COLOR_TO_IDX[colour])
+                faced = faced_object(episode_states[segment.end])
+                total += 1
+                if faced == goal and faced != faced_object(episode_states[segment.start]):
+                    valid += 1
+                    shortest += (
+                        steps_to_face(episode_states[segment.start], goal) == segment.end - segment.start
+                    )
+    return valid, shortest, total
 
 
 if __name__ == "__main__":
