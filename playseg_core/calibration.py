@@ -72,15 +72,15 @@ def calibrate_end_bias(
         true_ends.append([seg.end for seg in episode.segments])
     if not raw_logits:
         raise ValueError("calibrate_end_bias needs annotated episodes; none of the given ones has segments")
+    allowed = sorted({float(b) for b in candidates})
     scores: dict[float, BoundaryCounts] = {}
-    for bias in sorted({float(b) for b in candidates} | {0.0}):
+    for bias in sorted(set(allowed) | {0.0}):  # 0.0 too, for f1_without_bias
         counts = BoundaryCounts(0, 0, 0)
         for logits, ends in zip(raw_logits, true_ends, strict=True):
             max_len = min(model.max_len, logits.shape[0])
             pred = [end for _, end in decode_segments(logits[:, :max_len] + bias, max_len=max_len).segments]
             counts += BoundaryCounts(match_boundaries(pred, ends), len(pred), len(ends))
         scores[bias] = counts
-    allowed = sorted({float(b) for b in candidates})
     best_f1 = max(scores[b].f1 for b in allowed)
     standard_error = math.sqrt(best_f1 * (1.0 - best_f1) / scores[allowed[0]].num_truth)
     eligible = [b for b in allowed if scores[b].f1 >= best_f1 - standard_error - 1e-12]

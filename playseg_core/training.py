@@ -288,10 +288,7 @@ def ps_loss(model: PSModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tenso
     label_logits = model.label_head(label_hidden)
     label_loss = F.cross_entropy(label_logits, batch.labels)
     loss = end_loss + cfg.label_weight * label_loss
-    if cfg.frame_label_weight > 0:
-        end_frames = batch.window_index[batch.label_window, batch.label_position]
-        frame_logits = model.frame_label_head(model.frame_part(features[end_frames]))
-        loss = loss + cfg.frame_label_weight * F.cross_entropy(frame_logits, batch.labels)
+    loss = loss + _frame_label_loss(model, batch, features, cfg)
     stats = BatchStats(
         loss=float(loss.detach()),
         end_loss=float(end_loss.detach()),
@@ -304,6 +301,17 @@ def ps_loss(model: PSModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tenso
     return loss, stats
 
 
+def _frame_label_loss(
+    model: PSModel | LabelModel, batch: Batch, features: torch.Tensor, cfg: TrainConfig
+) -> torch.Tensor:
+    """Auxiliary CE of `frame_label_head` on each positive's end-frame encoder features (weighted)."""
+    if cfg.frame_label_weight <= 0:
+        return features.new_zeros(())
+    end_frames = batch.window_index[batch.label_window, batch.label_position]
+    frame_logits = model.frame_label_head(model.frame_part(features[end_frames]))
+    return cfg.frame_label_weight * F.cross_entropy(frame_logits, batch.labels)
+
+
 def labeller_loss(model: LabelModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tensor, BatchStats]:
     """CE of the labelling model on the positives of the batch (one window per positive), plus the
     auxiliary CE of `frame_label_head` on each end frame's encoder features (as in `ps_loss`)."""
@@ -312,10 +320,7 @@ def labeller_loss(model: LabelModel, batch: Batch, cfg: TrainConfig) -> tuple[to
     starts_episode = batch.starts_episode[batch.label_window]
     logits = model.logits_from_windows(windows, batch.label_position, starts_episode)
     loss = F.cross_entropy(logits, batch.labels)
-    if cfg.frame_label_weight > 0:
-        end_frames = batch.window_index[batch.label_window, batch.label_position]
-        frame_logits = model.frame_label_head(model.frame_part(features[end_frames]))
-        loss = loss + cfg.frame_label_weight * F.cross_entropy(frame_logits, batch.labels)
+    loss = loss + _frame_label_loss(model, batch, features, cfg)
     correct = int((logits.argmax(-1) == batch.labels).sum())
     n = int(batch.labels.numel())
     return loss, BatchStats(float(loss.detach()), 0.0, float(loss.detach()), 0, 0, correct, n)

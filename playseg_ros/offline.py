@@ -13,8 +13,6 @@ from collections.abc import Iterator
 from dataclasses import asdict, replace
 from pathlib import Path
 
-import numpy as np
-
 from playseg_core.data_model import Episode, Segment, SegmentClip
 
 
@@ -29,6 +27,7 @@ def _peak_rss_mb() -> float:
 def _num_actions(choice: str, episodes: list[Episode]) -> int:
     """`playseg train --actions`: a count, "none", or "auto" (BabyAI's action space if the data fits it)."""
     from playseg_core.babyai import NUM_ACTIONS
+    from playseg_core.models import previous_actions
 
     if choice == "none":
         return 0
@@ -40,11 +39,11 @@ def _num_actions(choice: str, episodes: list[Episode]) -> int:
         if count < 0:
             raise ValueError(f"--actions must be >= 0, got {count}")
         return count
-    for episode in episodes:
-        values = np.asarray(episode.actions)
-        whole = values.ndim == 2 and values.shape[1] == 1 and bool(np.all(values == np.round(values)))
-        if not whole or values.min(initial=0) < 0 or values.max(initial=0) >= NUM_ACTIONS:
-            return 0
+    try:  # the model's own check of discrete actions: one integer in 0..NUM_ACTIONS-1 per step
+        for episode in episodes:
+            previous_actions(episode.actions, NUM_ACTIONS)
+    except ValueError:
+        return 0
     return NUM_ACTIONS
 
 
