@@ -24,7 +24,7 @@ setup(
             "playseg-recorder = playseg_ros.nodes.recorder:main",
             "playseg-segmenter = playseg_ros.nodes.segmenter:main",
             "playseg-trainer = playseg_ros.nodes.trainer:main",
-            "playseg-play-source = playseg_ros.nodes.play_source:main",
+            "playseg-play-source = playseg_ros.babyai.play_source:main",
             "playseg-bag-player = playseg_ros.nodes.bag_player:main",
         ],
     },

@@ -26,7 +26,7 @@ from collections import Counter, deque
 
 import numpy as np
 
-from playseg_core.dataset import PlayDataset
+from playseg_core.data.dataset import PlayDataset
 
 # minigrid: object type ids of box, ball, key; directions 0..3 as (dx, dy); cells an agent can enter.
 OBJECT_IDS = (5, 6, 7)

@@ -20,15 +20,15 @@ import time
 import numpy as np
 import torch
 
-from playseg_core.augmentation import demonstrations_from_episodes
-from playseg_core.babyai import PlayConfig, generate_episode
-from playseg_core.data_model import Episode
-from playseg_core.dataset import PlayDataset
-from playseg_core.labelling import keep_confident
-from playseg_core.policy import PolicyConfig
-from playseg_core.policy_training import PolicyTrainConfig, evaluate_policy, train_policy
-from playseg_core.segmentation import segment_episode
-from playseg_core.training import load_checkpoint
+from playseg_core.augment.retraining import demonstrations_from_episodes
+from playseg_core.data.dataset import PlayDataset
+from playseg_core.data.episode import Episode
+from playseg_core.domains.babyai.imitation import PolicyTrainConfig, evaluate_policy, train_policy
+from playseg_core.domains.babyai.play import PlayConfig, generate_episode
+from playseg_core.domains.babyai.policy import PolicyConfig
+from playseg_core.ps.labelling import keep_confident
+from playseg_core.ps.segmentation import segment_episode
+from playseg_core.ps.training import load_checkpoint
 
 PLAY_SEED = 200_000
 

@@ -19,9 +19,9 @@ import numpy as np
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
-from playseg_core.data_model import Episode, Segment
-from playseg_ros.bag_io import BagReader, BagWriter, topic_info
-from playseg_ros.convert import header, image_message
+from playseg_core.data.episode import Episode, Segment
+from playseg_ros.bag import BagReader, BagWriter, topic_info
+from playseg_ros.messages import header, image_message
 from playseg_ros.play_bags import read_play_bag, write_play_bag
 from playseg_ros.typestore import playseg_typestore
 

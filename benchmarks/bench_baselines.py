@@ -17,11 +17,11 @@ import argparse
 import numpy as np
 import torch
 
-from playseg_core.dataset import PlayDataset
-from playseg_core.labelling import label_segments
-from playseg_core.metrics import evaluate
-from playseg_core.models import LabelModel
-from playseg_core.training import load_checkpoint
+from playseg_core.data.dataset import PlayDataset
+from playseg_core.ps.labelling import label_segments
+from playseg_core.ps.metrics import evaluate
+from playseg_core.ps.model import LabelModel
+from playseg_core.ps.training import load_checkpoint
 
 
 def random_windows(

@@ -26,23 +26,24 @@ import resource
 import time
 
 import torch
+from reference_style import reference_style_segment
 
-from playseg_core.babyai import NUM_ACTIONS
-from playseg_core.data_model import Episode
-from playseg_core.models import PSModel
-from playseg_core.segmentation import reference_style_segment, segment_episode
-from playseg_core.training import TrainConfig, default_model_config, load_checkpoint, train_ps
+from playseg_core.data.episode import Episode
+from playseg_core.domains.babyai.play import NUM_ACTIONS
+from playseg_core.ps.model import PSModel
+from playseg_core.ps.segmentation import segment_episode
+from playseg_core.ps.training import TrainConfig, default_model_config, load_checkpoint, train_ps
 
 
 def _episodes(data: str | None, count: int) -> tuple[list[Episode], list[str]]:
     if data:
-        from playseg_core.dataset import PlayDataset
+        from playseg_core.data.dataset import PlayDataset
 
         dataset = PlayDataset.open(data)
         split = "test" if dataset.episode_indices("test") else dataset.splits[0]
         episodes = [dataset.episode(i) for i in dataset.episode_indices(split)[:count]]
         return episodes, list(dataset.instructions)
-    from playseg_core.babyai import INSTRUCTIONS, PlayConfig, generate_episode
+    from playseg_core.domains.babyai.play import INSTRUCTIONS, PlayConfig, generate_episode
 
     episodes = []
     seed = 10_000
@@ -55,8 +56,8 @@ def _episodes(data: str | None, count: int) -> tuple[list[Episode], list[str]]:
 
 
 def make_dataset(path: str, split_episodes: list[int], first_seed: int = 100_000) -> None:
-    from playseg_core.babyai import INSTRUCTIONS, PlayConfig, generate_episode
-    from playseg_core.dataset import DatasetWriter
+    from playseg_core.data.dataset import DatasetWriter
+    from playseg_core.domains.babyai.play import INSTRUCTIONS, PlayConfig, generate_episode
 
     seed = first_seed
     with DatasetWriter(path, INSTRUCTIONS, {"source": "bench_decode.py --make-data"}) as writer:
@@ -119,7 +120,7 @@ def main() -> None:
     print(f"speed-up: {ours_rate / ref_rate:.0f}x; identical segmentations: {same}")
 
     if args.train_epochs:
-        from playseg_core.dataset import PlayDataset
+        from playseg_core.data.dataset import PlayDataset
 
         dataset = PlayDataset.open(args.data)
         train_eps, val_eps = list(dataset.episodes("train")), list(dataset.episodes("val"))

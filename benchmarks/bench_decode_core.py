@@ -12,12 +12,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from reference_style import reference_style_decode
 
-from playseg_core.decoding import (
+from playseg_core.ps.decoding import (
     OnlineDecoder,
     decode_segments,
     end_columns,
-    reference_style_decode,
     segment_log_scores,
 )
 

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from playseg_core.babyai import PlayConfig, generate_episode
-from playseg_core.generate import generate_dataset, get_preset
+from playseg_core.domains.babyai.generate import generate_dataset, get_preset
+from playseg_core.domains.babyai.play import PlayConfig, generate_episode
 
 
 @dataclass

@@ -34,12 +34,12 @@ import torch
 from playseg_msgs.msg import LabelledSegment, PlayStep
 from rclpy.subscription import MessageInfo
 
-from playseg_core.babyai import INSTRUCTIONS
-from playseg_core.data_model import Episode
-from playseg_core.models import PSModel
-from playseg_core.segmentation import segment_episode
-from playseg_core.streaming import StreamingSegmenter
-from playseg_core.training import default_model_config, load_checkpoint, save_checkpoint
+from playseg_core.data.episode import Episode
+from playseg_core.domains.babyai.play import INSTRUCTIONS
+from playseg_core.ps.model import PSModel
+from playseg_core.ps.segmentation import segment_episode
+from playseg_core.ps.streaming import StreamingSegmenter
+from playseg_core.ps.training import default_model_config, load_checkpoint, save_checkpoint
 from playseg_ros import qos
 from playseg_ros.launch import Graph, GraphSpec, NodeSpec
 from playseg_ros.play_bags import STEPS_TOPIC, read_play_bag

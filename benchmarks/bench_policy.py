@@ -14,14 +14,14 @@ import time
 
 import numpy as np
 
-from playseg_core.policy import PolicyConfig
-from playseg_core.policy_training import (
+from playseg_core.domains.babyai.imitation import (
     PolicyTrainConfig,
     RandomPolicy,
     bot_demonstrations,
     evaluate_policy,
     train_policy,
 )
+from playseg_core.domains.babyai.policy import PolicyConfig
 
 DEMONSTRATION_SEED = 1_000_000
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from bench_bag_io import IMAGE, camera_frames
 
-from playseg_ros.bag_io import BagReader, BagWriter, topic_info
+from playseg_ros.bag import BagReader, BagWriter, topic_info
 
 TOPIC = "/camera/image"
 DISTINCT_FRAMES = 24  # cycled; each published frame carries its index in header.stamp.sec

@@ -13,7 +13,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_bag_info(args: argparse.Namespace) -> int:
-    from playseg_ros.bag_io import BagError, bag_info_text
+    from playseg_ros.bag import BagError, bag_info_text
 
     try:
         print(bag_info_text(args.path))
@@ -24,7 +24,7 @@ def _cmd_bag_info(args: argparse.Namespace) -> int:
 
 
 def _cmd_bag_recover(args: argparse.Namespace) -> int:
-    from playseg_ros.bag_io import BagError, recover_bag
+    from playseg_ros.bag import BagError, recover_bag
 
     try:
         report = recover_bag(args.path)
@@ -38,7 +38,7 @@ def _cmd_bag_recover(args: argparse.Namespace) -> int:
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
-    from playseg_core.generate import generate_dataset, get_preset
+    from playseg_core.domains.babyai.generate import generate_dataset, get_preset
 
     preset = get_preset(args.preset, annotated_share=args.annotated_share)
     try:
@@ -63,7 +63,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         f"with {summary.workers} workers"
     )
     if args.bag:
-        from playseg_ros.bag_io import BagError
+        from playseg_ros.bag import BagError
         from playseg_ros.play_bags import write_dataset_bags
 
         bag_dir = summary.path / "bags"
@@ -184,7 +184,7 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     train = sub.add_parser("train", help="train the Play Segmentation model on a dataset's annotated splits")
     train.add_argument("--data", required=True, help="dataset directory (train + val splits are used)")
     train.add_argument("--out", required=True, help="checkpoint file to write (e.g. models/ps.pt)")
-    # Unset options take playseg_core.training.TrainConfig's defaults (the measured best setting).
+    # Unset options take playseg_core.ps.training.TrainConfig's defaults (the measured best setting).
     train.add_argument(
         "--epochs", type=int, help="exactly this many epochs (default: TrainConfig's, more on small data)"
     )

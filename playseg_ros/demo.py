@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from playseg_core.babyai import INSTRUCTIONS
+from playseg_core.domains.babyai.play import INSTRUCTIONS
 
 DEMO_DIR = Path("build/demo")
 PLAY_TIMEOUT_S = 240.0
@@ -33,27 +33,21 @@ def _log(message: str) -> None:
 
 
 def _cache_key(bag: Path) -> str:
-    """The bag's content and the model/training code: a cached model is reused only if both are the same."""
-    import playseg_core.calibration
-    import playseg_core.models
-    import playseg_core.training
+    """The bag's content and playseg_core's code: a cached model is reused only if both are the same."""
+    import playseg_core
 
     digest = hashlib.sha256()
-    for file in [
-        *sorted(bag.glob("*.mcap")),
-        Path(playseg_core.models.__file__),
-        Path(playseg_core.training.__file__),
-        Path(playseg_core.calibration.__file__),
-    ]:
+    code = sorted(Path(playseg_core.__file__).parent.rglob("*.py"))
+    for file in [*sorted(bag.glob("*.mcap")), *code]:
         digest.update(file.read_bytes())
     return digest.hexdigest()[:16]
 
 
 def ensure_ps_model(annotated_bag: Path, cache_dir: Path) -> Path:
     """Train the PS model on the annotated bag unless a model for this exact bag is cached."""
-    from playseg_core.babyai import NUM_ACTIONS
-    from playseg_core.calibration import calibrate_ps_model
-    from playseg_core.training import TrainConfig, default_model_config, save_checkpoint, train_ps
+    from playseg_core.domains.babyai.play import NUM_ACTIONS
+    from playseg_core.ps.calibration import calibrate_ps_model
+    from playseg_core.ps.training import TrainConfig, default_model_config, save_checkpoint, train_ps
     from playseg_ros.play_bags import read_play_bag
 
     model_path = cache_dir / f"ps-{_cache_key(annotated_bag)}.pt"
@@ -142,7 +136,7 @@ class _DemoClient:
 
 
 def run_demo(bags_dir: Path = Path("bags"), out_dir: Path = DEMO_DIR) -> int:
-    from playseg_core.metrics import evaluate, format_metrics_table
+    from playseg_core.ps.metrics import evaluate, format_metrics_table
     from playseg_ros.launch import Graph, GraphSpec, NodeSpec
     from playseg_ros.play_bags import read_play_bag, read_segment_bag
 
@@ -258,7 +252,7 @@ def run_demo(bags_dir: Path = Path("bags"), out_dir: Path = DEMO_DIR) -> int:
         "seconds": time.monotonic() - began,
     }
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    from playseg_core.timeline import plot_timeline
+    from playseg_core.ps.timeline import plot_timeline
 
     timeline = run_dir / "timeline.png"
     plot_timeline(timeline, truth_episodes[:6], predicted)

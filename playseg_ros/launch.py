@@ -27,7 +27,14 @@ from pathlib import Path
 
 import yaml
 
-NODE_KINDS = ("recorder", "segmenter", "trainer", "play_source", "bag_player")
+NODE_KINDS: dict[str, str] = {
+    "recorder": "playseg_ros.nodes.recorder",
+    "segmenter": "playseg_ros.nodes.segmenter",
+    "trainer": "playseg_ros.nodes.trainer",
+    "bag_player": "playseg_ros.nodes.bag_player",
+    "play_source": "playseg_ros.babyai.play_source",  # a domain's node: BabyAI bot play
+}
+"""Node kind in a graph config -> the module whose ``main`` runs it."""
 
 
 @dataclass
@@ -85,7 +92,7 @@ def node_command(spec: NodeSpec, params_dir: Path) -> list[str]:
     return [
         sys.executable,
         "-m",
-        f"playseg_ros.nodes.{spec.node}",
+        NODE_KINDS[spec.node],
         "--ros-args",
         "-r",
         f"__node:={spec.name}",

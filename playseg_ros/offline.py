@@ -1,6 +1,6 @@
 """Offline Play Segmentation commands: `playseg train`, `playseg segment`, `playseg evaluate`.
 
-No ROS graph is needed: datasets are read with playseg_core.dataset, bags with playseg_ros.play_bags.
+No ROS graph is needed: datasets are read with playseg_core.data.dataset, bags with playseg_ros.play_bags.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from collections.abc import Iterator
 from dataclasses import asdict, replace
 from pathlib import Path
 
-from playseg_core.data_model import Episode, Segment, SegmentClip
+from playseg_core.data.episode import Episode, Segment, SegmentClip
 
 
 def _is_bag(path: Path) -> bool:
@@ -26,8 +26,8 @@ def _peak_rss_mb() -> float:
 
 def _num_actions(choice: str, episodes: list[Episode]) -> int:
     """`playseg train --actions`: a count, "none", or "auto" (BabyAI's action space if the data fits it)."""
-    from playseg_core.babyai import NUM_ACTIONS
-    from playseg_core.models import previous_actions
+    from playseg_core.domains.babyai.play import NUM_ACTIONS
+    from playseg_core.ps.model import previous_actions
 
     if choice == "none":
         return 0
@@ -62,10 +62,10 @@ def _print_calibration(calibrated: dict[str, dict]) -> None:
 
 def calibrate(model_path: str, data: str, out: str | None) -> int:
     """Re-calibrate a PS checkpoint's end bias and label threshold on a dataset's annotated val split."""
-    from playseg_core.calibration import calibrate_ps_model
-    from playseg_core.dataset import PlayDataset
-    from playseg_core.models import PSModel
-    from playseg_core.training import load_checkpoint, save_checkpoint
+    from playseg_core.data.dataset import PlayDataset
+    from playseg_core.ps.calibration import calibrate_ps_model
+    from playseg_core.ps.model import PSModel
+    from playseg_core.ps.training import load_checkpoint, save_checkpoint
 
     model, extra = load_checkpoint(model_path)
     if not isinstance(model, PSModel):
@@ -93,9 +93,9 @@ def train(
     actions: str = "auto",
 ) -> int:
     """Train the PS model (and optionally the stand-alone labeller) on a dataset's train/val splits."""
-    from playseg_core.calibration import calibrate_ps_model
-    from playseg_core.dataset import PlayDataset
-    from playseg_core.training import (
+    from playseg_core.data.dataset import PlayDataset
+    from playseg_core.ps.calibration import calibrate_ps_model
+    from playseg_core.ps.training import (
         TrainConfig,
         default_model_config,
         save_checkpoint,
@@ -146,7 +146,7 @@ def _input_episodes(path: Path, splits: list[str]) -> tuple[Iterator[Episode], l
         from playseg_ros.play_bags import read_play_bag
 
         return iter(read_play_bag(path)), None, "bag"
-    from playseg_core.dataset import PlayDataset
+    from playseg_core.data.dataset import PlayDataset
 
     dataset = PlayDataset.open(path)
 
@@ -161,10 +161,10 @@ def segment(
     model_path: str, input_path: str, out: str, splits: list[str], min_len: int, overwrite: bool
 ) -> int:
     """Segment every episode of the input; write a dataset of labelled segments (and a bag for bags)."""
-    from playseg_core.dataset import DatasetWriter
-    from playseg_core.models import PSModel
-    from playseg_core.segmentation import segment_episode
-    from playseg_core.training import load_checkpoint
+    from playseg_core.data.dataset import DatasetWriter
+    from playseg_core.ps.model import PSModel
+    from playseg_core.ps.segmentation import segment_episode
+    from playseg_core.ps.training import load_checkpoint
 
     model, extra = load_checkpoint(model_path)
     if not isinstance(model, PSModel):
@@ -205,9 +205,9 @@ def segment(
 
 def evaluate(pred: str, truth: str, out_json: str | None, plot: str | None, num_plot: int) -> int:
     """Compare a segmented dataset with the ground truth of the dataset it came from."""
-    from playseg_core.dataset import PlayDataset
-    from playseg_core.metrics import evaluate as evaluate_metrics
-    from playseg_core.metrics import format_metrics_table
+    from playseg_core.data.dataset import PlayDataset
+    from playseg_core.ps.metrics import evaluate as evaluate_metrics
+    from playseg_core.ps.metrics import format_metrics_table
 
     predicted = PlayDataset.open(pred)
     reference = PlayDataset.open(truth)
@@ -231,7 +231,7 @@ def evaluate(pred: str, truth: str, out_json: str | None, plot: str | None, num_
     json_path.write_text(json.dumps(results, indent=2, sort_keys=True))
     print(f"metrics: {json_path}")
     if num_plot > 0:
-        from playseg_core.timeline import plot_timeline
+        from playseg_core.ps.timeline import plot_timeline
 
         png = Path(plot) if plot else Path(pred) / "timeline.png"
         plot_timeline(png, plotted, pred_by_id)

@@ -17,10 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from playseg_core.data_model import Episode, Segment, SegmentClip
-from playseg_core.dataset import PlayDataset
-from playseg_ros.bag_io import BagError, BagReader, BagSummary, BagWriter, topic_info
-from playseg_ros.convert import (
+from playseg_core.data.dataset import PlayDataset
+from playseg_core.data.episode import Episode, Segment, SegmentClip
+from playseg_ros.bag import BagError, BagReader, BagSummary, BagWriter, topic_info
+from playseg_ros.messages import (
     ANNOTATION,
     LABELLED_SEGMENT,
     PLAY_STEP,

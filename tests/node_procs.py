@@ -15,6 +15,8 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
+from playseg_ros.launch import NODE_KINDS
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -42,8 +44,8 @@ class Processes:
     def node(
         self, kind: str, log_name: str, *ros_args: str, **params: object
     ) -> tuple[subprocess.Popen, Path]:
-        """Run playseg_ros.nodes.<kind> with `-p key:=value` for each parameter."""
-        args = [sys.executable, "-m", f"playseg_ros.nodes.{kind}", "--ros-args", *ros_args]
+        """Run the node module of <kind> (launch.NODE_KINDS) with `-p key:=value` for each parameter."""
+        args = [sys.executable, "-m", NODE_KINDS[kind], "--ros-args", *ros_args]
         for key, value in params.items():
             args += ["-p", f"{key}:={_param_text(value)}"]
         return self.start(args, log_name)

@@ -3,17 +3,17 @@
 import numpy as np
 import pytest
 
-from playseg_core.augmentation import (
+from playseg_core.augment.retraining import (
     AugmentationTrainer,
     TrainerConfig,
     demonstrations_from_episodes,
     export_buffer_dataset,
 )
-from playseg_core.babyai import PlayConfig, generate_episode
-from playseg_core.data_model import SegmentClip
-from playseg_core.dataset import PlayDataset
-from playseg_core.policy import PolicyConfig
-from playseg_core.policy_training import PolicyTrainConfig
+from playseg_core.data.dataset import PlayDataset
+from playseg_core.data.episode import SegmentClip
+from playseg_core.domains.babyai.imitation import PolicyTrainConfig
+from playseg_core.domains.babyai.play import PlayConfig, generate_episode
+from playseg_core.domains.babyai.policy import PolicyConfig
 
 
 @pytest.fixture(scope="module")

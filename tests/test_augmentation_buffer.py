@@ -7,8 +7,8 @@ import textwrap
 import numpy as np
 import pytest
 
-from playseg_core.augmentation_buffer import AugmentationBuffer
-from playseg_core.data_model import Segment, SegmentClip
+from playseg_core.augment.buffer import AugmentationBuffer
+from playseg_core.data.episode import Segment, SegmentClip
 
 
 def _segment(i: int) -> SegmentClip:
@@ -94,8 +94,8 @@ def test_sigkill_after_acknowledgement_loses_nothing(tmp_path):
         textwrap.dedent(
             """
             import numpy as np
-            from playseg_core.augmentation_buffer import AugmentationBuffer
-            from playseg_core.data_model import Segment, SegmentClip
+            from playseg_core.augment.buffer import AugmentationBuffer
+            from playseg_core.data.episode import Segment, SegmentClip
             def run(path):
                 buf = AugmentationBuffer(path)
                 for i in range(100000):

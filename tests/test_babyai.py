@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from playseg_core.babyai import (
+from playseg_core.domains.babyai.play import (
     INSTRUCTIONS,
     PlayConfig,
     encode_state,
@@ -133,7 +133,7 @@ def test_generation_prints_nothing_to_stdout() -> None:
     )
     assert b"Sampling rejected" in raw.stdout
     ours = _run_python(
-        "from playseg_core.babyai import PlayConfig, generate_episode\n"
+        "from playseg_core.domains.babyai.play import PlayConfig, generate_episode\n"
         f"episode = generate_episode(PlayConfig(max_tasks=2), seed={REJECTING_SEED})\n"
         "assert episode.num_steps > 0\n"
     )

@@ -21,10 +21,10 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as RosbagsWriter
 from rosbags.typesys import get_types_from_msg
 
-from playseg_core.data_model import Episode, Segment, SegmentClip
-from playseg_ros.bag_io import BagError, BagReader, BagWriter, recover_bag, ros2msg_definition, topic_info
+from playseg_core.data.episode import Episode, Segment, SegmentClip
+from playseg_ros.bag import BagError, BagReader, BagWriter, recover_bag, ros2msg_definition, topic_info
 from playseg_ros.cli import main as cli_main
-from playseg_ros.convert import (
+from playseg_ros.messages import (
     ANNOTATION,
     PLAY_STEP,
     annotation_message,
@@ -265,7 +265,7 @@ def test_split_by_duration(tmp_path: Path) -> None:
 RECORDER_CHILD = textwrap.dedent(
     """
     import sys, time
-    from playseg_ros.bag_io import BagWriter, topic_info
+    from playseg_ros.bag import BagWriter, topic_info
     from playseg_ros.typestore import playseg_typestore
     store = playseg_typestore()
     String = store.types["std_msgs/msg/String"]

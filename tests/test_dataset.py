@@ -11,17 +11,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from playseg_core.babyai import INSTRUCTIONS, PlayConfig, generate_episode
-from playseg_core.data_model import Episode, Segment
-from playseg_core.dataset import (
+from playseg_core.data.dataset import (
     FORMAT_VERSION,
     DatasetError,
     DatasetWriter,
     PlayDataset,
-    SplitTargets,
-    assign_splits,
 )
-from playseg_core.generate import PRESETS, Preset, generate_dataset, get_preset
+from playseg_core.data.episode import Episode, Segment
+from playseg_core.data.splits import SplitTargets, assign_splits
+from playseg_core.domains.babyai.generate import PRESETS, Preset, generate_dataset, get_preset
+from playseg_core.domains.babyai.play import INSTRUCTIONS, PlayConfig, generate_episode
 from playseg_ros.cli import main as cli_main
 
 CONFIG = PlayConfig(max_tasks=3)

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from reference_style import reference_style_decode
 
-from playseg_core.decoding import (
+from playseg_core.ps.decoding import (
     OnlineDecoder,
     decode_segments,
     end_columns,
-    reference_style_decode,
     segment_log_scores,
 )
 

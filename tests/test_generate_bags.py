@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from playseg_core.data_model import Episode
-from playseg_core.dataset import PlayDataset
-from playseg_ros.bag_io import BagReader
+from playseg_core.data.dataset import PlayDataset
+from playseg_core.data.episode import Episode
+from playseg_ros.bag import BagReader
 from playseg_ros.cli import main as cli_main
 from playseg_ros.play_bags import (
     ANNOTATIONS_TOPIC,

@@ -12,13 +12,13 @@ import rclpy
 import torch
 from playseg_msgs.msg import LabelledSegment, PlayStep
 
-from playseg_core.babyai import INSTRUCTIONS, NUM_ACTIONS, PlayConfig, generate_episode
-from playseg_core.models import PSModel
-from playseg_core.segmentation import segment_episode
-from playseg_core.training import default_model_config, load_checkpoint, save_checkpoint
+from playseg_core.domains.babyai.play import INSTRUCTIONS, NUM_ACTIONS, PlayConfig, generate_episode
+from playseg_core.ps.model import PSModel
+from playseg_core.ps.segmentation import segment_episode
+from playseg_core.ps.training import default_model_config, load_checkpoint, save_checkpoint
 from playseg_ros import qos
-from playseg_ros.convert import RCLPY, episode_step_message
 from playseg_ros.launch import Graph, GraphSpec, NodeSpec
+from playseg_ros.messages import RCLPY, episode_step_message
 from playseg_ros.play_bags import read_play_bag, write_play_bag
 
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from playseg_core.data_model import Segment
-from playseg_core.metrics import (
+from playseg_core.data.episode import Segment
+from playseg_core.ps.metrics import (
     BoundaryCounts,
     boundary_key,
     boundary_scores,

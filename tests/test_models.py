@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from playseg_core.data_model import Episode, Segment
-from playseg_core.models import (
+from playseg_core.data.episode import Episode, Segment
+from playseg_core.ps.model import (
     EncoderConfig,
     LabelModel,
     ModelConfig,
@@ -17,7 +17,7 @@ from playseg_core.models import (
     TrunkConfig,
     previous_actions,
 )
-from playseg_core.training import load_checkpoint, save_checkpoint
+from playseg_core.ps.training import load_checkpoint, save_checkpoint
 
 torch.set_num_threads(1)
 

@@ -22,12 +22,12 @@ from rclpy.serialization import serialize_message
 from rosbags.highlevel import AnyReader
 from sensor_msgs.msg import Image
 
-from playseg_core.augmentation_buffer import AugmentationBuffer
-from playseg_core.babyai import PlayConfig, generate_episode
-from playseg_core.data_model import Episode
+from playseg_core.augment.buffer import AugmentationBuffer
+from playseg_core.data.episode import Episode
+from playseg_core.domains.babyai.play import PlayConfig, generate_episode
 from playseg_ros import qos
-from playseg_ros.bag_io import BagReader, BagWriter, topic_info
-from playseg_ros.convert import RCLPY, episode_step_message, labelled_segment_of_steps
+from playseg_ros.bag import BagReader, BagWriter, topic_info
+from playseg_ros.messages import RCLPY, episode_step_message, labelled_segment_of_steps
 from playseg_ros.play_bags import read_play_bag, write_play_bag
 from playseg_ros.typestore import playseg_typestore
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from playseg_core.dataset import PlayDataset
+from playseg_core.data.dataset import PlayDataset
 from playseg_ros.cli import main as cli_main
 from playseg_ros.offline import _num_actions
 

@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 import torch
 
-from playseg_core.policy import (
+from playseg_core.domains.babyai.imitation import (
+    PolicyTrainConfig,
+    RandomPolicy,
+    bot_demonstrations,
+    evaluate_policy,
+    mirror_samples,
+    train_policy,
+)
+from playseg_core.domains.babyai.policy import (
     WORD_TO_ID,
     PolicyCheckpointError,
     PolicyConfig,
@@ -19,14 +27,6 @@ from playseg_core.policy import (
     save_policy,
     to_egocentric,
     tokenize,
-)
-from playseg_core.policy_training import (
-    PolicyTrainConfig,
-    RandomPolicy,
-    bot_demonstrations,
-    evaluate_policy,
-    mirror_samples,
-    train_policy,
 )
 
 SMALL = PolicyConfig(channels=16, cell_embedding=16, word_embedding=16, instruction_dim=32, head_hidden=32)

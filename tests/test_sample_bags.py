@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from playseg_core.babyai import episode_id_for_seed, generate_episode
-from playseg_core.data_model import Episode
-from playseg_core.dataset import assign_splits
-from playseg_core.generate import PRESETS, episode_seed
-from playseg_ros.bag_io import BagReader
+from playseg_core.data.episode import Episode
+from playseg_core.data.splits import assign_splits
+from playseg_core.domains.babyai.generate import PRESETS, episode_seed
+from playseg_core.domains.babyai.play import episode_id_for_seed, generate_episode
+from playseg_ros.bag import BagReader
 from playseg_ros.play_bags import ANNOTATIONS_TOPIC, GROUND_TRUTH_TOPIC, STEPS_TOPIC, read_play_bag
 
 BAGS = Path(__file__).resolve().parent.parent / "bags"

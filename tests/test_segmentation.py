@@ -7,19 +7,20 @@ import math
 import numpy as np
 import pytest
 import torch
+from reference_style import reference_style_segment
 from test_models import INSTRUCTIONS, synthetic_episode, tiny_ps_model
 
-from playseg_core.calibration import (
+from playseg_core.data.episode import Episode
+from playseg_core.ps.calibration import (
     calibrate_end_bias,
     calibrate_on_annotated,
     calibrate_ps_model,
     calibrate_threshold,
 )
-from playseg_core.data_model import Episode
-from playseg_core.decoding import OnlineDecoder
-from playseg_core.labelling import keep_confident, label_segments
-from playseg_core.metrics import evaluate
-from playseg_core.segmentation import encode_episode, reference_style_segment, segment_episode
+from playseg_core.ps.decoding import OnlineDecoder
+from playseg_core.ps.labelling import keep_confident, label_segments
+from playseg_core.ps.metrics import evaluate
+from playseg_core.ps.segmentation import encode_episode, segment_episode
 
 torch.set_num_threads(1)
 

@@ -3,11 +3,11 @@
 import pytest
 import torch
 
-from playseg_core.babyai import INSTRUCTIONS, NUM_ACTIONS, PlayConfig, generate_episode
-from playseg_core.models import PSModel
-from playseg_core.segmentation import segment_episode
-from playseg_core.streaming import StreamingSegmenter
-from playseg_core.training import default_model_config
+from playseg_core.domains.babyai.play import INSTRUCTIONS, NUM_ACTIONS, PlayConfig, generate_episode
+from playseg_core.ps.model import PSModel
+from playseg_core.ps.segmentation import segment_episode
+from playseg_core.ps.streaming import StreamingSegmenter
+from playseg_core.ps.training import default_model_config
 
 
 @pytest.mark.parametrize(("seed", "num_actions"), [(0, 0), (1, 0), (2, NUM_ACTIONS)])

@@ -6,9 +6,9 @@ import numpy as np
 import torch
 from test_models import INSTRUCTIONS, synthetic_episode
 
-from playseg_core.models import EncoderConfig, ModelConfig, TrunkConfig
-from playseg_core.segmentation import segment_episode
-from playseg_core.training import (
+from playseg_core.ps.model import EncoderConfig, ModelConfig, TrunkConfig
+from playseg_core.ps.segmentation import segment_episode
+from playseg_core.ps.training import (
     NEGATIVE_KINDS,
     TrainConfig,
     epochs_to_train,

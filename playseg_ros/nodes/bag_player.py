@@ -18,7 +18,7 @@ from rclpy.duration import Duration
 from rclpy.node import Node
 
 from playseg_ros import qos
-from playseg_ros.bag_io import BagReader
+from playseg_ros.bag import BagReader
 from playseg_ros.nodes.common import declare, require, run_node
 from playseg_ros.ros_types import message_class
 

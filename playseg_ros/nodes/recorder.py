@@ -19,7 +19,7 @@ from rclpy.qos import DurabilityPolicy
 from rclpy.subscription import Subscription
 
 from playseg_ros import qos
-from playseg_ros.bag_io import BagWriter, QosProfile, topic_info
+from playseg_ros.bag import BagWriter, QosProfile, topic_info
 from playseg_ros.nodes.common import declare, require, run_node
 from playseg_ros.ros_types import message_class
 

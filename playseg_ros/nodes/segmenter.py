@@ -1,6 +1,6 @@
 """segmenter: PlayStep in -> LabelledSegment out, Play Segmentation running online per episode.
 
-Each episode gets its own `StreamingSegmenter` (playseg_core.streaming); a segment is published the moment
+Each episode gets its own `StreamingSegmenter` (playseg_core.ps.streaming); a segment is published the moment
 the online decoder decides it, carrying its PlaySteps so consumers need no other stream. Malformed steps
 (wrong image size or encoding, NaN action, a gap or repeat in step numbers) are logged with their reason
 and end that episode's segmentation (a gap cannot be segmented across); the node keeps running. An
@@ -19,10 +19,10 @@ import torch
 from playseg_msgs.msg import LabelledSegment, PlayStep
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
-from playseg_core.streaming import StreamingSegmenter
-from playseg_core.training import load_checkpoint
+from playseg_core.ps.streaming import StreamingSegmenter
+from playseg_core.ps.training import load_checkpoint
 from playseg_ros import qos
-from playseg_ros.convert import (
+from playseg_ros.messages import (
     RCLPY,
     StepError,
     check_step_number,

@@ -17,16 +17,16 @@ from playseg_msgs.srv import EvaluatePolicy, Retrain, SaveBuffer
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
-from playseg_core.augmentation import (
+from playseg_core.augment.retraining import (
     AugmentationTrainer,
     TrainerConfig,
     demonstrations_from_episodes,
     export_buffer_dataset,
 )
-from playseg_core.policy import PolicyConfig
-from playseg_core.policy_training import PolicyTrainConfig
+from playseg_core.domains.babyai.imitation import PolicyTrainConfig
+from playseg_core.domains.babyai.policy import PolicyConfig
 from playseg_ros import qos
-from playseg_ros.convert import clip_from_labelled
+from playseg_ros.messages import clip_from_labelled
 from playseg_ros.nodes.common import declare, require, run_node
 from playseg_ros.play_bags import load_annotated_episodes
 

@@ -1,10 +1,8 @@
 """End-to-end Play Segmentation of an episode: encode frames once, score all windows, decode, label.
 
-`segment_episode` is the production path: T frame encodings, one batched trunk pass over the T windows,
-the exact O(T * L_max) decoder of decoding.py, then the label head at each chosen end.
-`reference_style_segment` reproduces the reference's cost model for benchmarking: the whole model
-(encoder included) re-run on every prefix o_i..o_j, one pass each, then the paper's DP with Python loops.
-Both return the same segmentation for the same model and episode.
+`segment_episode`: T step encodings, one batched trunk pass over the T windows, the exact O(T * L_max)
+decoder of decoding.py, then the label head at each chosen end. (The reference's cost model, for
+comparison, is in benchmarks/reference_style.py.)
 """
 
 from __future__ import annotations
@@ -12,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from playseg_core.data_model import Episode, Segment
-from playseg_core.decoding import decode_segments, log_sigmoid, reference_style_decode
-from playseg_core.models import PSModel, StepModel, previous_actions
+from playseg_core.data.episode import Episode, Segment
+from playseg_core.ps.decoding import decode_segments
+from playseg_core.ps.model import PSModel, StepModel, previous_actions
 
 ENCODE_CHUNK = 2048  # frames per encoder call: bounds memory on long episodes
 
@@ -75,46 +73,4 @@ def segment_episode(model: PSModel, episode: Episode, min_len: int = 1) -> list[
     for (start, end), log_prob in zip(decoded.segments, decoded.segment_log_scores, strict=True):
         label_logits = model.label_head(hidden[start, end - start])
         segments.append(labelled_segment(model, start, end, label_logits, log_prob))
-    return segments
-
-
-@torch.no_grad()
-def reference_style_segment(model: PSModel, episode: Episode, min_len: int = 1) -> list[Segment]:
-    """Same result as `segment_episode`, computed the reference's way (benchmarking only).
-
-    Every prefix o_i .. o_j (j - i <= L_max) goes through the full model separately, steps encoded anew
-    each time; then the DP over (number of segments, end) of `reference_style_decode`.
-    """
-    model.eval()
-    num_steps = episode.num_steps
-    if num_steps == 0:
-        return []
-    frames = episode_frames(episode)
-    actions = episode_prev_actions(model, episode)
-
-    def encode(start: int, end: int) -> torch.Tensor:  # the prefix o_start .. o_end, encoded anew
-        return model.encode_steps(
-            frames[start : end + 1], None if actions is None else actions[start : end + 1]
-        )
-
-    max_len = min(model.max_len, num_steps)
-    end_logit: dict[tuple[int, int], float] = {}
-    starts = [torch.tensor([start == 0]) for start in range(num_steps)]
-    for start in range(num_steps):
-        for end in range(start + 1, min(start + max_len, num_steps) + 1):
-            hidden = model.trunk(encode(start, end)[None], starts[start])
-            end_logit[(start, end)] = float(model.end_logit(hidden[0, -1]))
-
-    def score_segment(start: int, end: int) -> float:
-        # log s(i, j): not ending at every t in (i, j), then ending at j; summed in order like cumsum.
-        total = 0.0
-        for t in range(start + 1, end):
-            total += float(log_sigmoid(-end_logit[(start, t)]))
-        return total + float(log_sigmoid(end_logit[(start, end)]))
-
-    decoded = reference_style_decode(score_segment, num_steps, min_len, max_len)
-    segments = []
-    for (start, end), log_prob in zip(decoded.segments, decoded.segment_log_scores, strict=True):
-        hidden = model.trunk(encode(start, end)[None], starts[start])
-        segments.append(labelled_segment(model, start, end, model.label_head(hidden[0, -1]), log_prob))
     return segments

@@ -1,6 +1,6 @@
 """play_source: a BabyAI bot "teleoperator" publishing play as PlayStep at a set rate.
 
-Episodes come from `playseg_core.babyai.generate_episode` (seeds seed, seed+1, ...). For a chosen share of
+Episodes come from `playseg_core.domains.babyai.play.generate_episode` (seeds seed, seed+1, ...). For a chosen share of
 its segments it also publishes an Annotation (the human label a teleoperator would add) and, for
 evaluation, every ground-truth segment on `ground_truth_topic`. Annotations are published when their
 segment's last step has been published.
@@ -12,9 +12,9 @@ import numpy as np
 from playseg_msgs.msg import Annotation, PlayStep
 from rclpy.node import Node
 
-from playseg_core.babyai import PlayConfig, generate_episode
+from playseg_core.domains.babyai.play import PlayConfig, generate_episode
 from playseg_ros import qos
-from playseg_ros.convert import RCLPY, annotation_message, episode_step_message
+from playseg_ros.messages import RCLPY, annotation_message, episode_step_message
 from playseg_ros.nodes.common import declare, require, run_node
 
 

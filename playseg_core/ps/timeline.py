@@ -10,7 +10,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from playseg_core.data_model import Episode, Segment  # noqa: E402
+from playseg_core.data.episode import Episode, Segment  # noqa: E402
 
 
 def plot_timeline(

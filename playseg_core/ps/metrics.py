@@ -18,7 +18,7 @@ import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-from playseg_core.data_model import Segment, check_segments
+from playseg_core.data.episode import Segment, check_segments
 
 __all__ = [
     "TOLERANCES",

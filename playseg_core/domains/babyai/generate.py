@@ -19,9 +19,10 @@ from typing import Any
 
 from tqdm import tqdm
 
-from playseg_core.babyai import INSTRUCTIONS, PlayConfig, generate_episode
-from playseg_core.data_model import Episode
-from playseg_core.dataset import SPLITS, DatasetWriter, SplitAssigner, SplitTargets
+from playseg_core.data.dataset import DatasetWriter
+from playseg_core.data.episode import Episode
+from playseg_core.data.splits import SPLITS, SplitAssigner, SplitTargets
+from playseg_core.domains.babyai.play import INSTRUCTIONS, PlayConfig, generate_episode
 
 SEED_STRIDE = 10**9
 """Episode seeds of one run are ``base_seed * SEED_STRIDE + index``."""
@@ -150,7 +151,7 @@ def generate_dataset(
     out = Path(out)
     targets = preset.targets
     meta = {
-        "generator": "playseg_core.generate",
+        "generator": "playseg_core.domains.babyai.generate",
         "env": "BabyAI GoToLocal",
         "preset": preset.name,
         "seed": seed,

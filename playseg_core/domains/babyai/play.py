@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from playseg_core.data_model import Episode, Segment
+from playseg_core.data.episode import Episode, Segment
 
 # pygame (imported by minigrid) prints a banner to stdout on import unless told not to.
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")

@@ -17,7 +17,6 @@ segments ending at j, the one with the smallest start wins.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,7 +28,6 @@ __all__ = [
     "decode_segments",
     "end_columns",
     "log_sigmoid",
-    "reference_style_decode",
     "segment_log_scores",
 ]
 
@@ -88,7 +86,7 @@ def _valid_mask(num_steps: int, max_len: int) -> np.ndarray:
     return starts + lengths <= num_steps
 
 
-def _check_lengths(min_len: int, max_len: int, available: int) -> None:
+def check_lengths(min_len: int, max_len: int, available: int) -> None:
     if not isinstance(min_len, int | np.integer) or min_len < 1:
         raise ValueError(f"min_len must be an integer >= 1, got {min_len!r}")
     if not isinstance(max_len, int | np.integer) or max_len < min_len:
@@ -97,7 +95,7 @@ def _check_lengths(min_len: int, max_len: int, available: int) -> None:
         raise ValueError(f"max_len ({max_len}) exceeds the number of score columns L_max ({available})")
 
 
-def _check_feasible(num_steps: int, min_len: int, max_len: int) -> None:
+def check_feasible(num_steps: int, min_len: int, max_len: int) -> None:
     """Some number of segments K with K*min_len <= T <= K*max_len must exist."""
     smallest_count = -(-num_steps // max_len)
     if smallest_count * min_len > num_steps:
@@ -147,8 +145,8 @@ def decode_segments(end_logits: np.ndarray, min_len: int = 1, max_len: int | Non
     logits = _check_end_logits(end_logits)
     num_steps, available = logits.shape
     max_len = available if max_len is None else max_len
-    _check_lengths(min_len, max_len, available)
-    _check_feasible(num_steps, min_len, max_len)
+    check_lengths(min_len, max_len, available)
+    check_feasible(num_steps, min_len, max_len)
 
     by_end = _by_end(segment_log_scores(logits[:, :max_len]))
     width = max_len - min_len + 1  # candidates m = 0..width-1, starts j-max_len .. j-min_len
@@ -219,7 +217,7 @@ class OnlineDecoder:
     """
 
     def __init__(self, max_len: int, min_len: int = 1) -> None:
-        _check_lengths(min_len, max_len, max_len)
+        check_lengths(min_len, max_len, max_len)
         self.max_len = int(max_len)
         self.min_len = int(min_len)
         self.reset()
@@ -320,7 +318,7 @@ class OnlineDecoder:
             raise RuntimeError("OnlineDecoder.finish called twice; call reset() to start a new episode")
         if self.t == 0:
             raise ValueError("OnlineDecoder.finish: no step was pushed (an episode needs at least one step)")
-        _check_feasible(self.t, self.min_len, self.max_len)
+        check_feasible(self.t, self.min_len, self.max_len)
         if self._recent[-1] == -np.inf:
             raise ValueError("end_column stream: every feasible segmentation has log-score -inf")
         self.finished = True
@@ -334,50 +332,3 @@ class OnlineDecoder:
     def log_score(self) -> float:
         """V[t]: the best total log-score of a segmentation of the steps pushed so far."""
         return float(self._recent[-1])
-
-
-def reference_style_decode(
-    score_segment: Callable[[int, int], float], num_steps: int, min_len: int, max_len: int
-) -> Decoded:
-    """The paper's DP over (number of segments, end), with Python loops, for benchmarking only.
-
-    ``score_segment(i, j)`` returns log s(i, j) and is called once per candidate segment (as the
-    reference scores every prefix once). ``S[n][j]`` is the best score of ``[0, j)`` split into n
-    segments: ``S[n][j] = max_l S[n-1][l] + log s(l, j)``; the answer is ``max_n S[n][T]``. Ties prefer
-    the smallest start, then the fewest segments. The best score equals ``decode_segments``'s; the
-    segmentation too unless several segmentations tie (after rounding), where the two tie rules differ.
-    """
-    if not isinstance(num_steps, int | np.integer) or num_steps < 1:
-        raise ValueError(f"num_steps must be an integer >= 1, got {num_steps!r}")
-    _check_lengths(min_len, max_len, max_len)
-    _check_feasible(num_steps, min_len, max_len)
-    score: dict[tuple[int, int], float] = {}
-    for i in range(num_steps):
-        for j in range(i + min_len, min(i + max_len, num_steps) + 1):
-            score[(i, j)] = float(score_segment(i, j))
-
-    neg_inf = float("-inf")
-    max_count = num_steps // min_len
-    best = [[neg_inf] * (num_steps + 1) for _ in range(max_count + 1)]
-    back = [[-1] * (num_steps + 1) for _ in range(max_count + 1)]
-    best[0][0] = 0.0
-    for n in range(1, max_count + 1):
-        for j in range(n * min_len, num_steps + 1):
-            for start in range(max(0, j - max_len), j - min_len + 1):
-                candidate = best[n - 1][start] + score[(start, j)]
-                if candidate > best[n][j]:
-                    best[n][j] = candidate
-                    back[n][j] = start
-
-    count = max(range(1, max_count + 1), key=lambda n: (best[n][num_steps], -n))
-    total = best[count][num_steps]
-    if total == neg_inf:
-        raise ValueError("score_segment: every feasible segmentation has log-score -inf")
-    segments: list[tuple[int, int]] = []
-    end = num_steps
-    for n in range(count, 0, -1):
-        start = back[n][end]
-        segments.append((start, end))
-        end = start
-    segments.reverse()
-    return Decoded(segments, total, [score[s] for s in segments])

@@ -23,8 +23,14 @@ from minigrid.utils.baby_ai_bot import BabyAIBot
 from torch.nn import functional as F
 from tqdm import tqdm
 
-from playseg_core.babyai import PlayConfig, encode_state, make_env, quiet_level_generation
-from playseg_core.policy import AGENT_TYPE, NUM_ACTIONS, PolicyConfig, PolicyNet, encode_instructions
+from playseg_core.domains.babyai.play import PlayConfig, encode_state, make_env, quiet_level_generation
+from playseg_core.domains.babyai.policy import (
+    AGENT_TYPE,
+    NUM_ACTIONS,
+    PolicyConfig,
+    PolicyNet,
+    encode_instructions,
+)
 
 # (instruction, states (L+1, 8, 8, 3) uint8, actions (L,) or (L, 1) discrete action indices)
 Demonstration = tuple[str, np.ndarray, np.ndarray]

@@ -11,9 +11,9 @@ from collections.abc import Iterable
 
 import torch
 
-from playseg_core.data_model import Episode, Segment
-from playseg_core.models import LabelModel, PSModel
-from playseg_core.segmentation import encode_episode
+from playseg_core.data.episode import Episode, Segment
+from playseg_core.ps.model import LabelModel, PSModel
+from playseg_core.ps.segmentation import encode_episode
 
 
 @torch.no_grad()

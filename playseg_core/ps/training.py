@@ -24,8 +24,8 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from playseg_core.data_model import Episode, Segment
-from playseg_core.models import (
+from playseg_core.data.episode import Episode, Segment
+from playseg_core.ps.model import (
     EncoderConfig,
     LabelModel,
     ModelConfig,

@@ -13,10 +13,10 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from playseg_core.data_model import Segment
-from playseg_core.decoding import OnlineDecoder
-from playseg_core.models import PSModel, previous_actions
-from playseg_core.segmentation import labelled_segment
+from playseg_core.data.episode import Segment
+from playseg_core.ps.decoding import OnlineDecoder
+from playseg_core.ps.model import PSModel, previous_actions
+from playseg_core.ps.segmentation import labelled_segment
 
 
 class StreamingSegmenter:

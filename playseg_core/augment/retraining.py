@@ -15,16 +15,16 @@ from pathlib import Path
 
 import numpy as np
 
-from playseg_core.augmentation_buffer import AugmentationBuffer
-from playseg_core.data_model import Episode, Segment, SegmentClip
-from playseg_core.policy import PolicyNet, load_policy, save_policy
-from playseg_core.policy_training import (
+from playseg_core.augment.buffer import AugmentationBuffer
+from playseg_core.data.episode import Episode, Segment, SegmentClip
+from playseg_core.domains.babyai.imitation import (
     Demonstration,
     EvalResult,
     PolicyTrainConfig,
     evaluate_policy,
     train_policy,
 )
+from playseg_core.domains.babyai.policy import PolicyNet, load_policy, save_policy
 
 
 def demonstrations_from_episodes(episodes: Iterable[Episode]) -> list[Demonstration]:
@@ -169,8 +169,8 @@ def export_buffer_dataset(buffer: AugmentationBuffer, path: str | Path) -> int:
     Episode ids are ``<source episode>:<start>-<end>``; segment confidence and log-score are kept.
     Returns the number of segments written. The dataset appears at ``path`` only when complete.
     """
-    from playseg_core.babyai import INSTRUCTIONS
-    from playseg_core.dataset import DatasetWriter
+    from playseg_core.data.dataset import DatasetWriter
+    from playseg_core.domains.babyai.play import INSTRUCTIONS
 
     clips = list(buffer)
     used = {clip.segment.instruction for clip in clips}

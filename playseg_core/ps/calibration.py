@@ -18,12 +18,12 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from playseg_core.data_model import Episode
-from playseg_core.decoding import decode_segments
-from playseg_core.labelling import label_segments
-from playseg_core.metrics import BoundaryCounts, match_boundaries
-from playseg_core.models import LabelModel, PSModel
-from playseg_core.segmentation import encode_episode
+from playseg_core.data.episode import Episode
+from playseg_core.ps.decoding import decode_segments
+from playseg_core.ps.labelling import label_segments
+from playseg_core.ps.metrics import BoundaryCounts, match_boundaries
+from playseg_core.ps.model import LabelModel, PSModel
+from playseg_core.ps.segmentation import encode_episode
 
 END_BIAS_CANDIDATES: tuple[float, ...] = tuple(float(b) for b in np.arange(-3.0, 1.01, 0.25))
 """End biases `calibrate_end_bias` tries by default."""

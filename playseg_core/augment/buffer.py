@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from playseg_core.data_model import Segment, SegmentClip
+from playseg_core.data.episode import Segment, SegmentClip
 
 MAGIC = b"PSB1"
 _PREFIX = struct.Struct("<4sIQI")  # magic, header length, payload length, crc32 of header + payload

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from playseg_core.data_model import Episode, Segment, SegmentClip, check_segments
+from playseg_core.data.episode import Episode, Segment, SegmentClip, check_segments
 from playseg_ros.typestore import playseg_typestore
 
 PLAY_STEP = "playseg_msgs/msg/PlayStep"

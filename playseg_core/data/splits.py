@@ -1,0 +1,89 @@
+"""Splits of a play corpus by episode: annotated ``train``/``val``, unannotated ``play``, held-out ``test``.
+
+Episodes fill the splits in order (test, then annotated, then play) until each holds its segment target,
+so no episode is in two splits.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+SPLITS: tuple[str, ...] = ("train", "val", "play", "test")
+ANNOTATED_SPLITS: tuple[str, ...] = ("train", "val")
+"""Splits whose episodes come with their segments; ``play`` and ``test`` hide them unless truth=True."""
+
+
+@dataclass(frozen=True)
+class SplitTargets:
+    """How many segments each split should hold; episodes fill test, then annotated, then play.
+
+    A split takes whole episodes until it holds at least its target, so it may exceed the target by
+    less than one episode. Annotated episodes go to ``val`` in a share of ``val_fraction`` (by episode,
+    spread evenly) and to ``train`` otherwise.
+    """
+
+    test_segments: int
+    annotated_segments: int
+    play_segments: int
+    val_fraction: float = 0.2
+
+    def __post_init__(self) -> None:
+        if min(self.test_segments, self.annotated_segments, self.play_segments) < 0:
+            raise ValueError("SplitTargets: segment targets must be >= 0")
+        if not 0.0 <= self.val_fraction < 1.0:
+            raise ValueError(f"SplitTargets.val_fraction must be in [0, 1), got {self.val_fraction}")
+
+    @classmethod
+    def from_share(
+        cls, total_segments: int, annotated_share: float, test_segments: int, val_fraction: float = 0.2
+    ) -> SplitTargets:
+        """``annotated_share`` of ``total_segments`` annotated (train+val), the rest play."""
+        if not 0.0 < annotated_share <= 1.0:
+            raise ValueError(f"annotated_share must be in (0, 1], got {annotated_share}")
+        annotated = round(total_segments * annotated_share)
+        return cls(test_segments, annotated, total_segments - annotated, val_fraction)
+
+    @property
+    def total_segments(self) -> int:
+        return self.test_segments + self.annotated_segments + self.play_segments
+
+
+class SplitAssigner:
+    """Assigns a stream of episodes (by their segment counts) to splits, in order, without leakage."""
+
+    def __init__(self, targets: SplitTargets) -> None:
+        self.targets = targets
+        self.segments = {name: 0 for name in SPLITS}
+        self._annotated_episodes = 0
+
+    @property
+    def done(self) -> bool:
+        return self._next_group() is None
+
+    def _next_group(self) -> str | None:
+        if self.segments["test"] < self.targets.test_segments:
+            return "test"
+        if self.segments["train"] + self.segments["val"] < self.targets.annotated_segments:
+            return "annotated"
+        if self.segments["play"] < self.targets.play_segments:
+            return "play"
+        return None
+
+    def assign(self, num_segments: int) -> str | None:
+        """The split of the next episode, or None once every target is met."""
+        group = self._next_group()
+        if group == "annotated":
+            k = self._annotated_episodes
+            fraction = self.targets.val_fraction
+            group = "val" if int((k + 1) * fraction) > int(k * fraction) else "train"
+            self._annotated_episodes += 1
+        if group is not None:
+            self.segments[group] += num_segments
+        return group
+
+
+def assign_splits(segment_counts: Sequence[int], targets: SplitTargets) -> list[str | None]:
+    """Split of each episode given its segment count (None: not needed to meet the targets)."""
+    assigner = SplitAssigner(targets)
+    return [assigner.assign(count) for count in segment_counts]
