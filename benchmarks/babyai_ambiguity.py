@@ -76,14 +76,14 @@ def main() -> None:
     parser.add_argument("--pred", help="`playseg segment` output for that split: count valid segments")
     args = parser.parse_args()
     dataset = PlayDataset.open(args.data)
-    if dataset.states is None:
+    if dataset.features.state is None:
         raise SystemExit(f"{args.data}: the dataset has no states; this analysis needs them")
 
     ends = decoys = decoys_on_shortest_path = 0
     cells: Counter[tuple[tuple[int, int, int], bool]] = Counter()
     for index in dataset.episode_indices(args.split):
         episode = dataset.episode(index, truth=True)
-        states = np.asarray(episode.states)
+        states = np.asarray(episode.state)
         actions = np.asarray(episode.actions)[:, 0].astype(int)
         for segment in episode.segments:
             start_object = faced_object(states[segment.start])
@@ -135,7 +135,7 @@ def count_completed_instructions(truth: PlayDataset, split: str, pred: PlayDatas
     states = {}
     for index in truth.episode_indices(split):
         episode = truth.episode(index, truth=True)
-        states[episode.episode_id] = np.asarray(episode.states)
+        states[episode.episode_id] = np.asarray(episode.state)
     valid = shortest = total = 0
     for split_name in pred.splits:
         for episode in pred.episodes(split_name, truth=True):

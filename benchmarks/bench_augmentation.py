@@ -20,17 +20,24 @@ import time
 import numpy as np
 import torch
 
-from playseg_core.augment.retraining import demonstrations_from_episodes
+from playseg_core.augment.retraining import annotated_clips
 from playseg_core.data.dataset import PlayDataset
 from playseg_core.data.episode import Episode
-from playseg_core.domains.babyai.imitation import PolicyTrainConfig, evaluate_policy, train_policy
+from playseg_core.domains.babyai.evaluation import evaluate_policy
+from playseg_core.domains.babyai.imitation import Demonstration, PolicyTrainConfig, train_policy
+from playseg_core.domains.babyai.learner import demonstration
 from playseg_core.domains.babyai.play import PlayConfig, generate_episode
 from playseg_core.domains.babyai.policy import PolicyConfig
 from playseg_core.ps.labelling import keep_confident
+from playseg_core.ps.model import load_model
 from playseg_core.ps.segmentation import segment_episode
-from playseg_core.ps.training import load_checkpoint
 
 PLAY_SEED = 200_000
+
+
+def demonstrations(episodes: list[Episode]) -> list[Demonstration]:
+    """(instruction, states, actions) of every labelled segment of ``episodes``."""
+    return [demonstration(clip) for clip in annotated_clips(episodes)]
 
 
 def main() -> None:
@@ -46,7 +53,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
-    annotated = demonstrations_from_episodes(PlayDataset.open(args.data).episodes("train"))
+    annotated = demonstrations(list(PlayDataset.open(args.data).episodes("train")))
     started = time.perf_counter()
     play: list[Episode] = []
     seed = PLAY_SEED
@@ -59,15 +66,13 @@ def main() -> None:
         f"{len(play)} play episodes ({sum(e.num_steps for e in play)} steps) in {time.perf_counter() - started:.0f} s"
     )
 
-    model, extra = load_checkpoint(args.model)
+    model, extra = load_model(args.model, kinds=("ps",))
     threshold = float(extra.get("calibration", {}).get("threshold", 0.0))
     started = time.perf_counter()
     extracted = []
     for episode in play:
         segments = keep_confident(segment_episode(model, episode), threshold)
-        extracted.append(
-            Episode(episode.episode_id, episode.frames, episode.actions, episode.states, segments)
-        )
+        extracted.append(episode.with_segments(segments))
     truth_count = sum(len(e.segments) for e in play)
     print(
         f"PS extracted {sum(len(e.segments) for e in extracted)} segments (label threshold {threshold:.3f}; "
@@ -75,8 +80,8 @@ def main() -> None:
     )
     settings = {
         "annotated only": annotated,
-        "+ PS-extracted play": annotated + demonstrations_from_episodes(extracted),
-        "+ ground-truth play": annotated + demonstrations_from_episodes(play),
+        "+ PS-extracted play": annotated + demonstrations(extracted),
+        "+ ground-truth play": annotated + demonstrations(play),
     }
     print(
         f"policy: {args.channels} channels, {args.steps} steps, batch {args.batch_size}, {args.threads} threads"

@@ -20,6 +20,7 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from playseg_core.data.episode import Episode, Segment
+from playseg_core.data.features import DEFAULT_CAMERA
 from playseg_ros.bag import BagReader, BagWriter, topic_info
 from playseg_ros.messages import header, image_message
 from playseg_ros.play_bags import read_play_bag, write_play_bag
@@ -39,9 +40,9 @@ def blocky_episode(index: int, num_steps: int, rng: np.random.Generator) -> Epis
     cut = num_steps // 2
     return Episode(
         episode_id=f"bench-{index:05d}",
-        frames=frames,
         actions=rng.integers(0, 7, (num_steps, 1)).astype(np.float32),
-        states=rng.integers(0, 11, (num_steps + 1, 8, 8, 3)).astype(np.uint8),
+        images={DEFAULT_CAMERA: frames},  # the camera a bag that declares no features is read back under
+        state=rng.integers(0, 11, (num_steps + 1, 8, 8, 3)).astype(np.uint8),
         segments=[Segment(0, cut, "go to the red ball"), Segment(cut, num_steps, "go to a blue key")],
     )
 

@@ -20,8 +20,7 @@ import torch
 from playseg_core.data.dataset import PlayDataset
 from playseg_core.ps.labelling import label_segments
 from playseg_core.ps.metrics import evaluate
-from playseg_core.ps.model import LabelModel
-from playseg_core.ps.training import load_checkpoint
+from playseg_core.ps.model import LabelModel, load_model
 
 
 def random_windows(
@@ -44,7 +43,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(2)
-    model, _ = load_checkpoint(args.labeller)
+    model, _ = load_model(args.labeller)
     if not isinstance(model, LabelModel):
         raise SystemExit(f"{args.labeller}: not a labelling-model checkpoint")
     episodes = list(PlayDataset.open(args.data).episodes(args.split, truth=True))

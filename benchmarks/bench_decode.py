@@ -29,21 +29,23 @@ import torch
 from reference_style import reference_style_segment
 
 from playseg_core.data.episode import Episode
-from playseg_core.domains.babyai.play import NUM_ACTIONS
-from playseg_core.ps.model import PSModel
+from playseg_core.ps.model import ModelConfig, PSModel, load_model
 from playseg_core.ps.segmentation import segment_episode
-from playseg_core.ps.training import TrainConfig, default_model_config, load_checkpoint, train_ps
+from playseg_core.ps.training import TrainConfig, model_config_for, train_ps
 
 
-def _episodes(data: str | None, count: int) -> tuple[list[Episode], list[str]]:
+def _episodes(data: str | None, count: int) -> tuple[list[Episode], list[str], ModelConfig]:
+    """Episodes to segment, their instructions and the default model configuration for their features."""
     if data:
         from playseg_core.data.dataset import PlayDataset
 
         dataset = PlayDataset.open(data)
         split = "test" if dataset.episode_indices("test") else dataset.splits[0]
         episodes = [dataset.episode(i) for i in dataset.episode_indices(split)[:count]]
-        return episodes, list(dataset.instructions)
-    from playseg_core.domains.babyai.play import INSTRUCTIONS, PlayConfig, generate_episode
+        model_cfg = model_config_for(dataset.features, dataset.domain, len(dataset.instructions))
+        return episodes, list(dataset.instructions), model_cfg
+    from playseg_core.domains.babyai.play import PlayConfig, generate_episode
+    from playseg_core.domains.babyai.spec import DOMAIN, INSTRUCTIONS
 
     episodes = []
     seed = 10_000
@@ -52,15 +54,17 @@ def _episodes(data: str | None, count: int) -> tuple[list[Episode], list[str]]:
         seed += 1
         if episode.num_steps > 0:
             episodes.append(episode)
-    return episodes, list(INSTRUCTIONS)
+    return episodes, list(INSTRUCTIONS), model_config_for(PlayConfig().features, DOMAIN, len(INSTRUCTIONS))
 
 
 def make_dataset(path: str, split_episodes: list[int], first_seed: int = 100_000) -> None:
     from playseg_core.data.dataset import DatasetWriter
-    from playseg_core.domains.babyai.play import INSTRUCTIONS, PlayConfig, generate_episode
+    from playseg_core.domains.babyai.play import PlayConfig, generate_episode
+    from playseg_core.domains.babyai.spec import DOMAIN, INSTRUCTIONS
 
     seed = first_seed
-    with DatasetWriter(path, INSTRUCTIONS, {"source": "bench_decode.py --make-data"}) as writer:
+    meta = {"source": "bench_decode.py --make-data"}
+    with DatasetWriter(path, INSTRUCTIONS, meta, features=PlayConfig().features, domain=DOMAIN) as writer:
         for split, count in zip(("train", "val", "test"), split_episodes, strict=True):
             added = 0
             while added < count:
@@ -93,12 +97,12 @@ def main() -> None:
         return
     torch.set_num_threads(1)
 
-    episodes, instructions = _episodes(args.data, max(args.episodes, args.reference_episodes))
+    episodes, instructions, model_cfg = _episodes(args.data, max(args.episodes, args.reference_episodes))
     if args.model:
-        model, _ = load_checkpoint(args.model)
+        model, _ = load_model(args.model, kinds=("ps",))
     else:
         torch.manual_seed(0)
-        model = PSModel(default_model_config(len(instructions), num_actions=NUM_ACTIONS), instructions).eval()
+        model = PSModel(model_cfg, instructions).eval()
     params = sum(p.numel() for p in model.parameters())
     print(f"model: {params / 1e3:.0f}k parameters, L_max {model.max_len}; 1 CPU thread")
 
@@ -127,7 +131,6 @@ def main() -> None:
         cfg = TrainConfig(
             epochs=args.train_epochs, min_steps=0, progress=False, log_epochs=False, num_threads=2
         )
-        model_cfg = default_model_config(len(dataset.instructions), num_actions=NUM_ACTIONS)
         result = train_ps(train_eps, val_eps, dataset.instructions, cfg, model_cfg)
         segments = sum(len(e.segments) for e in train_eps)
         peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -34,15 +34,17 @@ import torch
 from playseg_msgs.msg import LabelledSegment, PlayStep
 from rclpy.subscription import MessageInfo
 
+from playseg_core.checkpoint import CheckpointError
 from playseg_core.data.episode import Episode
-from playseg_core.domains.babyai.play import INSTRUCTIONS
-from playseg_core.ps.model import PSModel
+from playseg_core.data.features import STATE
+from playseg_core.domains.babyai.spec import INSTRUCTIONS
+from playseg_core.ps.model import PSModel, load_model, save_model
 from playseg_core.ps.segmentation import segment_episode
 from playseg_core.ps.streaming import StreamingSegmenter
-from playseg_core.ps.training import default_model_config, load_checkpoint, save_checkpoint
+from playseg_core.ps.training import model_config_for
 from playseg_ros import qos
 from playseg_ros.launch import Graph, GraphSpec, NodeSpec
-from playseg_ros.play_bags import STEPS_TOPIC, read_play_bag
+from playseg_ros.play_bags import STEPS_TOPIC, read_play_bag, read_play_bag_info
 
 SEGMENTS_TOPIC = "/segments"
 DEMO_CACHE = Path("build/demo/cache")
@@ -59,24 +61,41 @@ class Offline:
     decided_at: dict[SegmentKey, int] = field(default_factory=dict)  # StreamingSegmenter commits
 
 
-def choose_model(requested: str | None, work: Path) -> tuple[PSModel, str, str]:
+def choose_model(requested: str | None, bag: str, work: Path) -> tuple[PSModel, str, str]:
     """-> (model, checkpoint path, how it was chosen)."""
     if requested:
-        model, _ = load_checkpoint(requested)
+        model, _ = load_model(requested, kinds=("ps",))
         return model, requested, "--model"
     cached = sorted(DEMO_CACHE.glob("ps-*.pt"), key=lambda p: p.stat().st_mtime)
     why = "no build/demo/cache/ps-*.pt"
     if cached:
         try:
-            model, _ = load_checkpoint(cached[-1])
+            model, _ = load_model(cached[-1], kinds=("ps",))
             return model, str(cached[-1]), "newest demo cache checkpoint"
-        except ValueError as error:  # a cache written by an older model version
+        except CheckpointError as error:  # a cache written by an older model version
             why = f"{cached[-1]} does not load with the current model code ({type(error).__name__})"
+    info = read_play_bag_info(bag)
+    if info.features is None:
+        raise SystemExit(f"{bag}: the bag declares no features; pass --model")
+    instructions = list(info.instructions or INSTRUCTIONS)
     torch.manual_seed(0)
     path = work / "ps-random.pt"
-    save_checkpoint(path, PSModel(default_model_config(len(INSTRUCTIONS)), list(INSTRUCTIONS)))
-    model, _ = load_checkpoint(path)
+    save_model(
+        path,
+        PSModel(
+            model_config_for(info.features, info.domain, len(instructions), read_actions=False), instructions
+        ),
+    )
+    model, _ = load_model(path, kinds=("ps",))
     return model, str(path), f"randomly initialised; {why}"
+
+
+def observations(episode: Episode) -> list[dict[str, np.ndarray]]:
+    """o_0 .. o_T of ``episode`` by feature, as a PlayStep carries them (cameras and the state)."""
+    rows = dict(episode.images)
+    if episode.state is not None:
+        rows[STATE] = episode.state
+    return [{name: array[t] for name, array in rows.items()} for t in range(episode.num_steps + 1)]
 
 
 def offline_run(model: PSModel, episodes: list[Episode]) -> Offline:
@@ -85,8 +104,8 @@ def offline_run(model: PSModel, episodes: list[Episode]) -> Offline:
         offline.last_step[episode.episode_id] = episode.num_steps
         offline.segments += [(episode.episode_id, s.start, s.end) for s in segment_episode(model, episode)]
         streaming = StreamingSegmenter(model)
-        for frame in episode.frames:
-            streaming.push(frame)
+        for t, observation in enumerate(observations(episode)):
+            streaming.push(observation, episode.actions[t] if t < episode.num_steps else None)
         streaming.finish()
         for commit in streaming.decoder.commits:
             offline.decided_at[(episode.episode_id, commit.start, commit.end)] = commit.decided_at
@@ -252,7 +271,7 @@ def main() -> None:
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
     with tempfile.TemporaryDirectory() as tmp:
-        model, model_path, how = choose_model(args.model, Path(tmp))
+        model, model_path, how = choose_model(args.model, args.bag, Path(tmp))
         torch.set_num_threads(1)  # as the segmenter node (torch_threads 1)
         started = time.perf_counter()
         offline = offline_run(model, read_play_bag(args.bag))

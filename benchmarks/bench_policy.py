@@ -14,13 +14,8 @@ import time
 
 import numpy as np
 
-from playseg_core.domains.babyai.imitation import (
-    PolicyTrainConfig,
-    RandomPolicy,
-    bot_demonstrations,
-    evaluate_policy,
-    train_policy,
-)
+from playseg_core.domains.babyai.evaluation import RandomPolicy, bot_demonstrations, evaluate_policy
+from playseg_core.domains.babyai.imitation import PolicyTrainConfig, train_policy
 from playseg_core.domains.babyai.policy import PolicyConfig
 
 DEMONSTRATION_SEED = 1_000_000

@@ -15,8 +15,9 @@ import torch
 
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.ps.decoding import Decoded, check_feasible, check_lengths, log_sigmoid
+from playseg_core.ps.encoders import as_tensors
 from playseg_core.ps.model import PSModel
-from playseg_core.ps.segmentation import episode_frames, episode_prev_actions, labelled_segment
+from playseg_core.ps.segmentation import labelled_segment
 
 
 def reference_style_decode(
@@ -77,13 +78,10 @@ def reference_style_segment(model: PSModel, episode: Episode, min_len: int = 1) 
     num_steps = episode.num_steps
     if num_steps == 0:
         return []
-    frames = episode_frames(episode)
-    actions = episode_prev_actions(model, episode)
+    inputs = model.encoders.episode_inputs(episode)
 
     def encode(start: int, end: int) -> torch.Tensor:  # the prefix o_start .. o_end, encoded anew
-        return model.encode_steps(
-            frames[start : end + 1], None if actions is None else actions[start : end + 1]
-        )
+        return model.encode_steps(as_tensors(inputs, slice(start, end + 1)))
 
     max_len = min(model.max_len, num_steps)
     end_logit: dict[tuple[int, int], float] = {}

@@ -5,6 +5,9 @@ from __future__ import annotations
 import argparse
 import sys
 
+DEFAULT_DOMAIN = "babyai"
+"""The domain `playseg generate` plays in unless told otherwise (the sample bags' domain)."""
+
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from playseg_ros.demo import run_demo
@@ -38,19 +41,23 @@ def _cmd_bag_recover(args: argparse.Namespace) -> int:
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
-    from playseg_core.domains.babyai.generate import generate_dataset, get_preset
+    from playseg_core.domains import load_domain
 
-    preset = get_preset(args.preset, annotated_share=args.annotated_share)
     try:
-        summary = generate_dataset(
+        domain = load_domain(args.domain)
+        presets = getattr(domain, "PRESET_NAMES", ())
+        if args.preset not in presets:
+            raise ValueError(f"domain {args.domain!r} has presets {list(presets)}, not {args.preset!r}")
+        summary = domain.generate_dataset(
             args.out,
-            preset,
+            args.preset,
             seed=args.seed,
             workers=args.workers,
             progress=not args.quiet,
             overwrite=args.overwrite,
+            annotated_share=args.annotated_share,
         )
-    except FileExistsError as error:
+    except (FileExistsError, ValueError) as error:
         print(f"playseg generate: {error}", file=sys.stderr)
         return 1
     splits = ", ".join(
@@ -80,10 +87,13 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 
 def _add_generate_command(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """`playseg generate`: returns its parser so other sources (e.g. a bag option) can add arguments."""
-    generate = sub.add_parser("generate", help="generate a BabyAI play dataset (train/val/play/test splits)")
-    generate.add_argument(
-        "--preset", choices=("tiny", "sample", "small", "paper"), default="small", help="dataset size"
+    generate = sub.add_parser(
+        "generate", help="generate a play dataset (train/val/play/test splits) with a domain's generator"
     )
+    generate.add_argument(
+        "--domain", default=DEFAULT_DOMAIN, help=f"the world to play in (default {DEFAULT_DOMAIN})"
+    )
+    generate.add_argument("--preset", default="small", help="dataset size, one of the domain's presets")
     generate.add_argument("--out", required=True, help="dataset directory to create")
     generate.add_argument("--seed", type=int, default=0, help="base seed; same seed, same bytes")
     generate.add_argument("--workers", type=int, default=1, help="generator processes")
@@ -197,8 +207,8 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     train.add_argument(
         "--actions",
         default="auto",
-        help="discrete actions the model reads: a count N, 'none' (frames only), or 'auto' (default: "
-        "BabyAI's 7 when every action is one integer in 0..6, else none)",
+        help="how the model reads the previous action: 'auto' (default: the action the data declares, "
+        "if discrete), 'none' (observations only), or a count N (discrete indices 0..N-1)",
     )
     train.set_defaults(func=_cmd_train)
     calibrate = sub.add_parser(

@@ -21,8 +21,6 @@ import sys
 import time
 from pathlib import Path
 
-from playseg_core.domains.babyai.play import INSTRUCTIONS
-
 DEMO_DIR = Path("build/demo")
 PLAY_TIMEOUT_S = 240.0
 SEGMENT_TIMEOUT_S = 300.0
@@ -45,27 +43,30 @@ def _cache_key(bag: Path) -> str:
 
 def ensure_ps_model(annotated_bag: Path, cache_dir: Path) -> Path:
     """Train the PS model on the annotated bag unless a model for this exact bag is cached."""
-    from playseg_core.domains.babyai.play import NUM_ACTIONS
     from playseg_core.ps.calibration import calibrate_ps_model
-    from playseg_core.ps.training import TrainConfig, default_model_config, save_checkpoint, train_ps
-    from playseg_ros.play_bags import read_play_bag
+    from playseg_core.ps.model import save_model
+    from playseg_core.ps.training import TrainConfig, model_config_for, train_ps
+    from playseg_ros.play_bags import load_annotated
 
     model_path = cache_dir / f"ps-{_cache_key(annotated_bag)}.pt"
     if model_path.exists():
         _log(f"reusing cached PS model {model_path}")
         return model_path
-    episodes = [e for e in read_play_bag(annotated_bag) if e.segments]
+    annotated = load_annotated(annotated_bag)
+    info, episodes = annotated.info, annotated.episodes
+    if info.features is None or not info.instructions:
+        raise ValueError(f"{annotated_bag}: the bag declares no features or instructions (make bags)")
     split = max(1, len(episodes) // 5)
     train, val = episodes[split:], episodes[:split]
     _log(
         f"training the PS model on {len(train)} annotated episodes ({sum(len(e.segments) for e in train)} segments), "
         f"validating on {len(val)} ..."
     )
-    model_cfg = default_model_config(len(INSTRUCTIONS), num_actions=NUM_ACTIONS)
-    result = train_ps(train, val, INSTRUCTIONS, TrainConfig(progress=sys.stderr.isatty()), model_cfg)
+    model_cfg = model_config_for(info.features, info.domain, len(info.instructions))
+    result = train_ps(train, val, info.instructions, TrainConfig(progress=sys.stderr.isatty()), model_cfg)
     calibrated = calibrate_ps_model(result.model, val)
     cache_dir.mkdir(parents=True, exist_ok=True)
-    save_checkpoint(model_path, result.model, {"trained_on": str(annotated_bag), **calibrated})
+    save_model(model_path, result.model, {"trained_on": str(annotated_bag), **calibrated})
     bias = calibrated["end_bias"]
     _log(
         f"PS model trained in {result.seconds:.0f} s -> {model_path}; end bias {bias['bias']:+.2f} "
@@ -263,7 +264,7 @@ def run_demo(bags_dir: Path = Path("bags"), out_dir: Path = DEMO_DIR) -> int:
     )
     _log(
         f"policy success before augmentation {before.eval_success_rate:.3f} -> after {after.eval_success_rate:.3f} "
-        f"(256 fixed seeded BabyAI episodes, success within 25 steps)"
+        f"({policy_params['eval_episodes']} fixed seeded episodes of the policy's simulator)"
     )
     _log(
         f"outputs: recorded bag {output_bag} (play steps + /segments), policies {run_dir / 'policies'}, "

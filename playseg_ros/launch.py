@@ -32,7 +32,7 @@ NODE_KINDS: dict[str, str] = {
     "segmenter": "playseg_ros.nodes.segmenter",
     "trainer": "playseg_ros.nodes.trainer",
     "bag_player": "playseg_ros.nodes.bag_player",
-    "play_source": "playseg_ros.babyai.play_source",  # a domain's node: BabyAI bot play
+    "play_source": "playseg_ros.babyai.play_source",  # a domain's node: its bot's play
 }
 """Node kind in a graph config -> the module whose ``main`` runs it."""
 

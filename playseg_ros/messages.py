@@ -5,8 +5,10 @@ Bags use rosbags' typestore dataclasses (`ROSBAGS`, no rclpy); the live nodes us
 only, so they accept either kind, and every field check lives here once.
 
 An episode ``(o_0, a_0, ..., o_T)`` is T+1 PlayStep messages with ``step = 0..T``; step t carries the
-frame o_t as a ``sensor_msgs/Image`` (rgb8), the state flattened with its shape, and the action a_t
-(empty on the last step, which has ``episode_end = true``). A LabelledSegment carries the steps
+camera frame of o_t as a ``sensor_msgs/Image`` (rgb8; 0x0 when the episode has no camera: a PlayStep
+carries at most one), the state flattened with its shape, and the action a_t (empty on the last step,
+which has ``episode_end = true``). Which camera feature the image is (``observation.images.<camera>``)
+is not in the message: readers take it from the stream's declared features, else `DEFAULT_CAMERA`. A LabelledSegment carries the steps
 start..end of its segment; the last one's action, if any, is the first action after the segment and is
 not part of it. Reading raises `StepError` naming the episode, step and field, so callers can add where
 the message came from.
@@ -24,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from playseg_core.data.episode import Episode, Segment, SegmentClip, check_segments
+from playseg_core.data.features import DEFAULT_CAMERA, STATE
 from playseg_ros.typestore import playseg_typestore
 
 PLAY_STEP = "playseg_msgs/msg/PlayStep"
@@ -82,8 +85,9 @@ def stamp_ns(msg_header: Any) -> int:
     return int(msg_header.stamp.sec) * 1_000_000_000 + int(msg_header.stamp.nanosec)
 
 
-def image_message(frame: np.ndarray, msg_header: Any, kind: MessageKind = ROSBAGS) -> Any:
-    """An rgb8 sensor_msgs/Image of an (H, W, 3) uint8 frame."""
+def image_message(frame: np.ndarray | None, msg_header: Any, kind: MessageKind = ROSBAGS) -> Any:
+    """An rgb8 sensor_msgs/Image of an (H, W, 3) uint8 frame (None: an empty 0x0 image, no camera)."""
+    frame = np.zeros((0, 0, 3), np.uint8) if frame is None else frame
     height, width, _ = frame.shape
     return kind.make(
         "sensor_msgs/msg/Image",
@@ -100,7 +104,7 @@ def image_message(frame: np.ndarray, msg_header: Any, kind: MessageKind = ROSBAG
 def play_step_message(
     episode_id: str,
     step: int,
-    frame: np.ndarray,
+    frame: np.ndarray | None,
     state: np.ndarray | None,
     action: np.ndarray | None,
     stamp: int,
@@ -123,27 +127,39 @@ def play_step_message(
     )
 
 
+def single_camera(images: dict[str, np.ndarray], where: str) -> np.ndarray | None:
+    """The frames of the one camera a PlayStep can carry (None without a camera)."""
+    if len(images) > 1:
+        raise ValueError(f"{where}: a PlayStep carries one camera, this data has {sorted(images)}")
+    return next(iter(images.values()), None)
+
+
 def play_step_messages(
     episode_id: str,
-    frames: np.ndarray,
+    images: dict[str, np.ndarray],
     actions: np.ndarray,
-    states: np.ndarray | None,
+    state: np.ndarray | None,
     stamps: Sequence[int],
     first_step: int = 0,
     frame_id: str = "play",
     kind: MessageKind = ROSBAGS,
 ) -> Iterator[Any]:
-    """PlayStep messages of ``len(frames)`` observations numbered from ``first_step``.
+    """PlayStep messages of ``len(actions) + 1`` observations numbered from ``first_step``.
 
-    ``actions`` holds one action fewer than ``frames``; the last message has no action and
-    ``episode_end = true``. ``stamps[i]`` is the stamp of observation i.
+    The last message has no action and ``episode_end = true``. ``stamps[i]`` is the stamp of observation i.
     """
-    last = len(frames) - 1
+    frames = single_camera(images, f"episode {episode_id!r}")
+    last = len(actions)
     for i in range(last + 1):
-        state = None if states is None else states[i]
-        action = None if i == last else actions[i]
         yield play_step_message(
-            episode_id, first_step + i, frames[i], state, action, stamps[i], frame_id, kind
+            episode_id,
+            first_step + i,
+            None if frames is None else frames[i],
+            None if state is None else state[i],
+            None if i == last else actions[i],
+            stamps[i],
+            frame_id,
+            kind,
         )
 
 
@@ -152,7 +168,7 @@ def episode_messages(
 ) -> Iterator[Any]:
     """The T+1 PlayStep messages of an episode."""
     return play_step_messages(
-        episode.episode_id, episode.frames, episode.actions, episode.states, stamps, 0, frame_id, kind
+        episode.episode_id, episode.images, episode.actions, episode.state, stamps, 0, frame_id, kind
     )
 
 
@@ -160,9 +176,11 @@ def episode_step_message(
     episode: Episode, t: int, stamp: int = 0, frame_id: str = "play", kind: MessageKind = ROSBAGS
 ) -> Any:
     """Step t of an episode as a PlayStep (the last step, t = T, carries episode_end and no action)."""
-    state = None if episode.states is None else episode.states[t]
+    frames = single_camera(episode.images, f"episode {episode.episode_id!r}")
+    state = None if episode.state is None else episode.state[t]
     action = None if t == episode.num_steps else episode.actions[t]
-    return play_step_message(episode.episode_id, t, episode.frames[t], state, action, stamp, frame_id, kind)
+    frame = None if frames is None else frames[t]
+    return play_step_message(episode.episode_id, t, frame, state, action, stamp, frame_id, kind)
 
 
 def annotation_message(
@@ -185,17 +203,12 @@ def labelled_segment_message(
     frame_id: str = "play",
     kind: MessageKind = ROSBAGS,
 ) -> Any:
-    """A self-contained LabelledSegment of a clip with frames: its end - start + 1 PlaySteps, the last
-    one without action and with episode_end (the clip ends there)."""
+    """A self-contained LabelledSegment of a clip: its end - start + 1 PlaySteps, the last one without
+    action and with episode_end (the clip ends there)."""
     segment = clip.segment
-    if clip.frames is None:
-        raise ValueError(
-            f"episode {clip.episode_id!r} segment [{segment.start}, {segment.end}): a LabelledSegment "
-            "needs the clip's frames"
-        )
     stamps = list(step_stamps) if step_stamps is not None else [stamp] * (segment.length + 1)
     steps = play_step_messages(
-        clip.episode_id, clip.frames, clip.actions, clip.states, stamps, segment.start, frame_id, kind
+        clip.episode_id, clip.images, clip.actions, clip.state, stamps, segment.start, frame_id, kind
     )
     return labelled_segment_of_steps(
         clip.episode_id, segment, list(steps), clip.source, stamp, frame_id, kind
@@ -248,10 +261,17 @@ class StepData:
 
     episode_id: str
     step: int
-    frame: np.ndarray  # (H, W, 3) uint8
+    frame: np.ndarray | None  # (H, W, 3) uint8; None for an empty (0x0) image: no camera
     state: np.ndarray | None  # float32, shaped by state_shape
     action: np.ndarray | None  # float32 (action_dim,); None on the final step (episode_end)
     episode_end: bool
+
+    def observation(self, camera: str = DEFAULT_CAMERA) -> dict[str, np.ndarray]:
+        """The observation by feature name, the image as feature ``camera``."""
+        observation = {} if self.frame is None else {camera: self.frame}
+        if self.state is not None:
+            observation[STATE] = self.state
+        return observation
 
 
 def _values(field: Any, dtype: type) -> np.ndarray:
@@ -261,11 +281,16 @@ def _values(field: Any, dtype: type) -> np.ndarray:
     return np.asarray(field, dtype).reshape(-1)
 
 
-def frame_from_image(image: Any, frame_shape: tuple[int, ...] | None = None) -> np.ndarray:
-    """The (H, W, 3) uint8 frame of an rgb8 Image; ValueError naming the field for anything else.
+def frame_from_image(image: Any, frame_shape: tuple[int, ...] | None = None) -> np.ndarray | None:
+    """The (H, W, 3) uint8 frame of an rgb8 Image, None for an empty one; ValueError naming the field
+    for anything else.
 
     ``frame_shape`` (H, W, 3), when given, is enforced (earlier frames, or what a model takes).
     """
+    if int(image.height) == 0 and int(image.width) == 0 and not len(image.data):
+        if frame_shape is not None:
+            raise ValueError(f"observation is empty, expected {frame_shape[0]}x{frame_shape[1]}")
+        return None
     if image.encoding != RGB8:
         raise ValueError(f"observation.encoding is {image.encoding!r}, expected {RGB8!r}")
     height, width, row = int(image.height), int(image.width), int(image.step)
@@ -336,8 +361,9 @@ def segment_from_annotation(msg: Any) -> Segment:
     return Segment(int(msg.start_step), int(msg.end_step), msg.instruction)
 
 
-def clip_from_labelled(msg: Any) -> SegmentClip:
-    """The SegmentClip of a LabelledSegment (every step validated); StepError naming episode and step."""
+def clip_from_labelled(msg: Any, camera: str = DEFAULT_CAMERA) -> SegmentClip:
+    """The SegmentClip of a LabelledSegment (every step validated, its image as feature ``camera``);
+    StepError naming episode and step."""
     episode_id, start, end = msg.episode_id, int(msg.start_step), int(msg.end_step)
     if not start < end:
         raise StepError(episode_id, start, f"segment [{start}, {end}) is empty")
@@ -348,15 +374,15 @@ def clip_from_labelled(msg: Any) -> SegmentClip:
             f"segment [{start}, {end}) needs steps {start}..{end}, got {len(msg.steps)} steps",
         )
     segment = Segment(start, end, msg.instruction, float(msg.label_confidence), float(msg.segment_log_prob))
-    builder = EpisodeBuilder(episode_id, first_step=start)
+    builder = EpisodeBuilder(episode_id, first_step=start, camera=camera)
     for step in msg.steps:
         builder.add(step)
     return SegmentClip(
         episode_id=episode_id,
         segment=segment,
         actions=np.stack(builder.actions[: segment.length]),
-        frames=np.stack(builder.frames),
-        states=np.stack(builder.states) if builder.states else None,
+        images=builder.images(),
+        state=np.stack(builder.states) if builder.states else None,
         source=msg.model_id,
     )
 
@@ -365,12 +391,15 @@ class EpisodeBuilder:
     """Collects the PlayStep messages of one episode in order and checks each against the first.
 
     ``first_step`` is the step number the stream must start at (0 for a play stream, ``start_step``
-    for the steps inside a LabelledSegment).
+    for the steps inside a LabelledSegment); the image becomes feature ``camera``.
     """
 
-    def __init__(self, episode_id: str, first_step: int = 0) -> None:
+    def __init__(self, episode_id: str, first_step: int = 0, camera: str = DEFAULT_CAMERA) -> None:
         self.episode_id = episode_id
         self.first_step = first_step
+        self.camera = camera
+        self.num_observations = 0
+        self.frame_shape: tuple[int, ...] | None = None
         self.frames: list[np.ndarray] = []
         self.states: list[np.ndarray] = []
         self.actions: list[np.ndarray] = []
@@ -379,7 +408,10 @@ class EpisodeBuilder:
 
     @property
     def next_step(self) -> int:
-        return self.first_step + len(self.frames)
+        return self.first_step + self.num_observations
+
+    def images(self) -> dict[str, np.ndarray]:
+        return {self.camera: np.stack(self.frames)} if self.frames else {}
 
     def add(self, msg: Any) -> StepData:
         """Append one PlayStep; StepError on a gap, repeat, bad field, change of shape or step after the end."""
@@ -391,9 +423,12 @@ class EpisodeBuilder:
                 self.episode_id, step, f"step after the episode ended at step {self.next_step - 1}"
             )
         check_step_number(self.episode_id, step, self.next_step)
-        data = step_from_message(msg, self.frames[0].shape if self.frames else None)
+        data = step_from_message(msg, self.frame_shape)
+        frame_shape = None if data.frame is None else data.frame.shape
+        if self.num_observations and frame_shape != self.frame_shape:
+            raise StepError(self.episode_id, step, f"image {frame_shape}, earlier steps {self.frame_shape}")
         state_shape = None if data.state is None else data.state.shape
-        if self.frames and state_shape != self.state_shape:
+        if self.num_observations and state_shape != self.state_shape:
             raise StepError(
                 self.episode_id, step, f"state_shape {state_shape}, earlier steps {self.state_shape}"
             )
@@ -403,8 +438,10 @@ class EpisodeBuilder:
                 step,
                 f"action has {data.action.size} values, earlier steps {self.actions[0].size}",
             )
-        self.state_shape = state_shape
-        self.frames.append(data.frame)
+        self.state_shape, self.frame_shape = state_shape, frame_shape
+        self.num_observations += 1
+        if data.frame is not None:
+            self.frames.append(data.frame)
         if data.state is not None:
             self.states.append(data.state)
         if data.action is not None:
@@ -424,8 +461,8 @@ class EpisodeBuilder:
         action_dim = self.actions[0].size if self.actions else 0
         return Episode(
             episode_id=self.episode_id,
-            frames=np.stack(self.frames),
             actions=np.stack(self.actions) if self.actions else np.zeros((0, action_dim), np.float32),
-            states=np.stack(self.states) if self.states else None,
+            images=self.images(),
+            state=np.stack(self.states) if self.states else None,
             segments=list(segments),
         )

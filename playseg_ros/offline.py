@@ -14,6 +14,8 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 from playseg_core.data.episode import Episode, Segment, SegmentClip
+from playseg_core.data.features import ACTION, Feature, Features
+from playseg_ros.play_bags import PlayBagInfo
 
 
 def _is_bag(path: Path) -> bool:
@@ -24,27 +26,23 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
 
 
-def _num_actions(choice: str, episodes: list[Episode]) -> int:
-    """`playseg train --actions`: a count, "none", or "auto" (BabyAI's action space if the data fits it)."""
-    from playseg_core.domains.babyai.play import NUM_ACTIONS
-    from playseg_core.ps.model import previous_actions
+def _action_features(choice: str, features: Features) -> tuple[Features, bool]:
+    """`playseg train --actions`: "auto" (read the action the data declares, if it is discrete), "none"
+    (observations only), or a count N (the actions are discrete indices 0..N-1, checked on every step).
 
+    Returns the features to build the model for and whether it reads the action.
+    """
     if choice == "none":
-        return 0
-    if choice != "auto":
-        try:
-            count = int(choice)
-        except ValueError:
-            raise ValueError(f"--actions must be a count, 'none' or 'auto', got {choice!r}") from None
-        if count < 0:
-            raise ValueError(f"--actions must be >= 0, got {count}")
-        return count
-    try:  # the model's own check of discrete actions: one integer in 0..NUM_ACTIONS-1 per step
-        for episode in episodes:
-            previous_actions(episode.actions, NUM_ACTIONS)
+        return features, False
+    if choice == "auto":
+        return features, features.action.is_discrete
+    try:
+        count = int(choice)
     except ValueError:
-        return 0
-    return NUM_ACTIONS
+        raise ValueError(f"--actions must be a count, 'none' or 'auto', got {choice!r}") from None
+    if count < 1:
+        raise ValueError(f"--actions must be >= 1, got {count}")
+    return features.with_action(Feature(ACTION, "action", "float32", (1,), num_values=count)), True
 
 
 def _print_calibration(calibrated: dict[str, dict]) -> None:
@@ -64,19 +62,16 @@ def calibrate(model_path: str, data: str, out: str | None) -> int:
     """Re-calibrate a PS checkpoint's end bias and label threshold on a dataset's annotated val split."""
     from playseg_core.data.dataset import PlayDataset
     from playseg_core.ps.calibration import calibrate_ps_model
-    from playseg_core.ps.model import PSModel
-    from playseg_core.ps.training import load_checkpoint, save_checkpoint
+    from playseg_core.ps.model import load_model, save_model
 
-    model, extra = load_checkpoint(model_path)
-    if not isinstance(model, PSModel):
-        raise ValueError(f"{model_path}: a labelling-model checkpoint; calibrate needs a PS model")
-    val_eps = list(PlayDataset.open(data).episodes("val"))
+    model, extra = load_model(model_path, kinds=("ps",))
+    dataset = PlayDataset.open(data)
+    model.cfg.check_features(dataset.features, f"model {model_path}")
+    val_eps = list(dataset.episodes("val"))
     if not any(episode.segments for episode in val_eps):
         raise ValueError(f"{data}: the val split has no annotated segments to calibrate on")
     calibrated = calibrate_ps_model(model, val_eps, 0.95)
-    save_checkpoint(
-        out or model_path, model, {**extra, **calibrated, "calibrated_on": str(Path(data).resolve())}
-    )
+    save_model(out or model_path, model, {**extra, **calibrated, "calibrated_on": str(Path(data).resolve())})
     print(f"{out or model_path}: calibrated on {len(val_eps)} val episodes of {data}")
     _print_calibration(calibrated)
     return 0
@@ -95,13 +90,8 @@ def train(
     """Train the PS model (and optionally the stand-alone labeller) on a dataset's train/val splits."""
     from playseg_core.data.dataset import PlayDataset
     from playseg_core.ps.calibration import calibrate_ps_model
-    from playseg_core.ps.training import (
-        TrainConfig,
-        default_model_config,
-        save_checkpoint,
-        train_labeller,
-        train_ps,
-    )
+    from playseg_core.ps.model import save_model
+    from playseg_core.ps.training import TrainConfig, model_config_for, train_labeller, train_ps
 
     dataset = PlayDataset.open(data)
     train_eps = list(dataset.episodes("train"))
@@ -110,9 +100,13 @@ def train(
     cfg = TrainConfig(seed=seed, **{key: value for key, value in given.items() if value is not None})
     if epochs is not None:  # asked for exactly this many epochs
         cfg = replace(cfg, min_steps=0)
-    num_actions = _num_actions(actions, train_eps)
-    model_cfg = default_model_config(len(dataset.instructions), num_actions=num_actions)
-    print(f"model reads {f'{num_actions} discrete actions' if num_actions else 'frames only'}", flush=True)
+    features, read_actions = _action_features(actions, dataset.features)
+    model_cfg = model_config_for(
+        features, dataset.domain, len(dataset.instructions), read_actions=read_actions
+    )
+    read = ", ".join(f"{spec.feature} ({spec.kind})" for spec in model_cfg.encoders)
+    unread = "" if read_actions else f"; not the action ({features.action.describe()})"
+    print(f"model reads {read}{unread}", flush=True)
     result = train_ps(train_eps, val_eps, dataset.instructions, cfg, model_cfg)
     calibrated = calibrate_ps_model(result.model, val_eps, 0.95) if val_eps else {}
     extra = {
@@ -123,7 +117,7 @@ def train(
         "calibration": {},
         **calibrated,
     }
-    save_checkpoint(out, result.model, extra)
+    save_model(out, result.model, extra)
     last = result.history[-1]
     print(
         f"{out}: PS model trained in {result.seconds:.0f} s on {len(train_eps)} episodes; "
@@ -134,18 +128,19 @@ def train(
         _print_calibration(calibrated)
     if labeller:
         lab = train_labeller(train_eps, val_eps, dataset.instructions, cfg, model_cfg)
-        save_checkpoint(labeller, lab.model, {"train": asdict(cfg), "history": lab.history})
+        save_model(labeller, lab.model, {"train": asdict(cfg), "history": lab.history})
         final = lab.history[-1].get("val", lab.history[-1]["train"])
         print(f"{labeller}: labeller, val accuracy {final['label_accuracy']:.3f}, {lab.seconds:.0f} s")
     return 0
 
 
-def _input_episodes(path: Path, splits: list[str]) -> tuple[Iterator[Episode], list[str] | None, str]:
+def _input_episodes(path: Path, splits: list[str]) -> tuple[Iterator[Episode], PlayBagInfo, str]:
     """Episodes to segment: a dataset's `splits` (annotations hidden), or every episode of a play bag."""
-    if _is_bag(path):
-        from playseg_ros.play_bags import read_play_bag
 
-        return iter(read_play_bag(path)), None, "bag"
+    if _is_bag(path):
+        from playseg_ros.play_bags import iter_play_bag, read_play_bag_info
+
+        return iter_play_bag(path), read_play_bag_info(path), "bag"
     from playseg_core.data.dataset import PlayDataset
 
     dataset = PlayDataset.open(path)
@@ -154,7 +149,7 @@ def _input_episodes(path: Path, splits: list[str]) -> tuple[Iterator[Episode], l
         for split in splits:
             yield from dataset.episodes(split)
 
-    return episodes(), list(dataset.instructions), "dataset"
+    return episodes(), PlayBagInfo(dataset.features, dataset.domain, dataset.instructions), "dataset"
 
 
 def segment(
@@ -162,22 +157,24 @@ def segment(
 ) -> int:
     """Segment every episode of the input; write a dataset of labelled segments (and a bag for bags)."""
     from playseg_core.data.dataset import DatasetWriter
-    from playseg_core.ps.model import PSModel
+    from playseg_core.ps.model import load_model
     from playseg_core.ps.segmentation import segment_episode
-    from playseg_core.ps.training import load_checkpoint
 
-    model, extra = load_checkpoint(model_path)
-    if not isinstance(model, PSModel):
-        raise ValueError(f"{model_path}: a labeller checkpoint; `playseg segment` needs a PS model")
+    model, extra = load_model(model_path, kinds=("ps",))
     source = Path(input_path)
-    episodes, instructions, kind = _input_episodes(source, splits)
+    episodes, info, kind = _input_episodes(source, splits)
+    if info.features is not None:
+        model.cfg.check_features(info.features, f"model {model_path}")
     threshold = float(extra.get("calibration", {}).get("threshold", 0.0))
     meta = {"segmented_by": str(model_path), "source": str(source), "label_threshold": threshold}
+    instructions = info.instructions or tuple(model.instructions)
     started, steps, count, results = time.perf_counter(), 0, 0, []
-    with DatasetWriter(out, instructions or model.instructions, meta, overwrite=overwrite) as writer:
+    with DatasetWriter(
+        out, instructions, meta, overwrite=overwrite, features=info.features, domain=info.domain
+    ) as writer:
         for episode in episodes:
             segments = segment_episode(model, episode, min_len=min_len)
-            labelled = Episode(episode.episode_id, episode.frames, episode.actions, episode.states, segments)
+            labelled = episode.with_segments(segments)
             writer.add(labelled, "play", extra={"source": kind})
             steps += episode.num_steps
             count += len(segments)
@@ -198,7 +195,7 @@ def segment(
             for seg in segs
             if seg.confidence >= threshold
         )
-        bag = write_segment_bag(Path(out) / "segments_bag", clips)
+        bag = write_segment_bag(Path(out) / "segments_bag", clips, info=info)
         print(f"{Path(out) / 'segments_bag'}: {bag.message_count} LabelledSegment messages")
     return 0
 

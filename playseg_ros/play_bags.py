@@ -6,12 +6,17 @@ Topics of a play bag:
   /play/ground_truth  playseg_msgs/msg/Annotation  the true segments, for evaluation only
 A segment bag has /segments (playseg_msgs/msg/LabelledSegment), one self-contained message per segment.
 
-Readers validate as they go and raise `BagError` naming the bag, topic, episode and step.
+What the data is travels in metadata.yaml's ``custom_data`` (`PlayBagInfo`): the feature schema
+(data/features.py: which camera the PlaySteps' image is, the state's dtype, the action's kind), the domain
+and the instruction list. A bag without it reads with `DEFAULT_CAMERA`, float32 states and a continuous
+action. Readers validate as they go and raise `BagError` naming the bag, topic, episode and step.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Collection, Iterable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +24,7 @@ import numpy as np
 
 from playseg_core.data.dataset import PlayDataset
 from playseg_core.data.episode import Episode, Segment, SegmentClip
+from playseg_core.data.features import DEFAULT_CAMERA, FeatureError, Features
 from playseg_ros.bag import BagError, BagReader, BagSummary, BagWriter, topic_info
 from playseg_ros.messages import (
     ANNOTATION,
@@ -53,6 +59,70 @@ def _serialize(msg: Any, type_name: str) -> bytes:
     return playseg_typestore().serialize_cdr(msg, type_name)
 
 
+@dataclass(frozen=True)
+class PlayBagInfo:
+    """What a play or segment bag declares about its data in metadata.yaml's ``custom_data``."""
+
+    features: Features | None = None
+    domain: str | None = None
+    instructions: tuple[str, ...] = ()
+
+    CUSTOM_DATA_KEYS = ("playseg.features", "playseg.domain", "playseg.instructions")
+
+    def custom_data(self) -> dict[str, str]:
+        data = {}
+        if self.features is not None:
+            data["playseg.features"] = json.dumps(self.features.to_json(), sort_keys=True)
+        if self.domain:
+            data["playseg.domain"] = self.domain
+        if self.instructions:
+            data["playseg.instructions"] = json.dumps(list(self.instructions))
+        return data
+
+    @classmethod
+    def of_bag(cls, reader: BagReader) -> PlayBagInfo:
+        data = reader.custom_data
+        try:
+            features = (
+                Features.from_json(json.loads(data["playseg.features"]))
+                if "playseg.features" in data
+                else None
+            )
+            instructions = tuple(json.loads(data.get("playseg.instructions", "[]")))
+        except (json.JSONDecodeError, FeatureError, TypeError) as error:
+            raise BagError(reader.path, f"metadata.yaml custom_data: {error}") from None
+        if features is not None and len(features.cameras) > 1:
+            raise BagError(
+                reader.path, f"custom_data declares {features.cameras}; a PlayStep carries one camera"
+            )
+        return cls(features, data.get("playseg.domain") or None, instructions)
+
+    @property
+    def camera(self) -> str:
+        """The feature name of the PlaySteps' image."""
+        return self.features.cameras[0] if self.features and self.features.cameras else DEFAULT_CAMERA
+
+    def conform(self, episode: Episode, reader: BagReader) -> Episode:
+        """``episode`` with its state in the declared dtype, checked against the declared features."""
+        if self.features is None:
+            return episode
+        state = episode.state
+        if state is not None and self.features.state is not None:
+            state = state.astype(self.features.state.dtype)
+        episode = Episode(episode.episode_id, episode.actions, episode.images, state, episode.segments)
+        try:
+            self.features.check_episode(episode)
+        except FeatureError as error:
+            raise BagError(reader.path, str(error), STEPS_TOPIC, episode.episode_id) from None
+        return episode
+
+
+def read_play_bag_info(path: Path | str) -> PlayBagInfo:
+    """The data a bag declares (features, domain, instructions), without reading its messages."""
+    with BagReader(path) as reader:
+        return PlayBagInfo.of_bag(reader)
+
+
 def write_play_bag(
     path: Path | str,
     episodes: Iterable[Episode],
@@ -62,6 +132,7 @@ def write_play_bag(
     start_ns: int = DEFAULT_START_NS,
     step_period_ns: int = DEFAULT_STEP_PERIOD_NS,
     frame_id: str = "play",
+    info: PlayBagInfo | None = None,
     **writer_options: Any,
 ) -> BagSummary:
     """Write episodes as a play bag at ``path`` (a new directory).
@@ -70,10 +141,12 @@ def write_play_bag(
     segments go to /play/annotations. With ``ground_truth`` every episode's segments also go to
     /play/ground_truth. Step t of the k-th episode is stamped ``step_period_ns`` after the previous
     step; an episode's annotations are stamped with its last step. ``writer_options`` go to
-    `BagWriter` (max_file_bytes, max_file_duration_ns, chunk_bytes, compression). If writing fails,
-    nothing is left at ``path``.
+    `BagWriter` (max_file_bytes, max_file_duration_ns, chunk_bytes, compression). ``info`` (features,
+    domain, instructions) goes to metadata.yaml's custom_data. If writing fails, nothing is left at
+    ``path``.
     """
-    with BagWriter(path, **writer_options) as writer:
+    custom_data = info.custom_data() if info else {}
+    with BagWriter(path, custom_data=custom_data, **writer_options) as writer:
         writer.add_topic(topic_info(STEPS_TOPIC, PLAY_STEP))
         if annotated:
             writer.add_topic(topic_info(ANNOTATIONS_TOPIC, ANNOTATION))
@@ -177,6 +250,7 @@ def iter_play_bag(path: Path | str, truth: bool = False, drop_incomplete: bool =
     """
     segment_topic = GROUND_TRUTH_TOPIC if truth else ANNOTATIONS_TOPIC
     with BagReader(path) as reader:
+        info = PlayBagInfo.of_bag(reader)
         _check_topics(reader, [STEPS_TOPIC, GROUND_TRUTH_TOPIC] if truth else [STEPS_TOPIC])
         segments = _read_annotations(reader, segment_topic) if segment_topic in reader.topics else {}
         open_episodes: dict[str, EpisodeBuilder] = {}
@@ -192,7 +266,7 @@ def iter_play_bag(path: Path | str, truth: bool = False, drop_incomplete: bool =
                     episode_id,
                     int(msg.step),
                 )
-            builder = open_episodes.setdefault(episode_id, EpisodeBuilder(episode_id))
+            builder = open_episodes.setdefault(episode_id, EpisodeBuilder(episode_id, camera=info.camera))
             try:
                 builder.add(msg)
             except StepError as error:
@@ -204,7 +278,11 @@ def iter_play_bag(path: Path | str, truth: bool = False, drop_incomplete: bool =
                 episode_segments = _fit_segments(
                     reader, segment_topic, episode_id, segments.pop(episode_id, []), num_steps
                 )
-                yield builder.build(episode_segments)
+                try:
+                    episode = builder.build(episode_segments)
+                except StepError as error:
+                    raise _located(reader, STEPS_TOPIC, error) from None
+                yield info.conform(episode, reader)
         if open_episodes and not drop_incomplete:
             episode_id, builder = next(iter(open_episodes.items()))
             raise BagError(
@@ -237,10 +315,11 @@ def write_segment_bag(
     start_ns: int = DEFAULT_START_NS,
     period_ns: int = DEFAULT_STEP_PERIOD_NS,
     frame_id: str = "play",
+    info: PlayBagInfo | None = None,
     **writer_options: Any,
 ) -> BagSummary:
     """Write labelled segments to /segments, one LabelledSegment each, ``period_ns`` apart."""
-    with BagWriter(path, **writer_options) as writer:
+    with BagWriter(path, custom_data=info.custom_data() if info else {}, **writer_options) as writer:
         writer.add_topic(topic_info(SEGMENTS_TOPIC, LABELLED_SEGMENT))
         for i, clip in enumerate(clips):
             stamp = start_ns + i * period_ns
@@ -252,11 +331,12 @@ def write_segment_bag(
 def iter_segment_bag(path: Path | str) -> Iterator[SegmentClip]:
     """The labelled segments of a segment bag, in order."""
     with BagReader(path) as reader:
+        info = PlayBagInfo.of_bag(reader)
         _check_topics(reader, [SEGMENTS_TOPIC])
         for raw in reader.messages([SEGMENTS_TOPIC]):
             msg = _deserialize(reader, raw.data, SEGMENTS_TOPIC)
             try:
-                clip = clip_from_labelled(msg)
+                clip = clip_from_labelled(msg, info.camera)
             except StepError as error:
                 raise _located(reader, SEGMENTS_TOPIC, error) from None
             yield clip
@@ -299,17 +379,29 @@ def write_dataset_bags(
     for name in DATASET_BAGS:  # refuse before writing anything, so no half set of bags is left
         if (out / name).exists():
             raise FileExistsError(f"bag {str(out / name)!r}: already exists (remove it to write new bags)")
+    info = PlayBagInfo(dataset.features, dataset.domain, dataset.instructions)
     summaries: dict[str, BagSummary] = {}
     for name, (_, annotated) in DATASET_BAGS.items():
         summaries[name] = write_play_bag(
-            out / name, dataset_bag_episodes(dataset, name), annotated, **writer_options
+            out / name, dataset_bag_episodes(dataset, name), annotated, info=info, **writer_options
         )
     return summaries
 
 
-def load_annotated_episodes(path: Path | str) -> list[Episode]:
+@dataclass
+class AnnotatedData:
+    """Annotated episodes with what their source declares about them."""
+
+    episodes: list[Episode]
+    info: PlayBagInfo
+
+
+def load_annotated(path: Path | str) -> AnnotatedData:
     """Annotated episodes from a play bag (its /play/annotations) or a playseg dataset (its 'train' split)."""
     path = Path(path)
     if (path / "metadata.yaml").is_file():
-        return [episode for episode in iter_play_bag(path) if episode.segments]
-    return list(PlayDataset.open(path).episodes("train"))
+        info = read_play_bag_info(path)
+        return AnnotatedData([episode for episode in iter_play_bag(path) if episode.segments], info)
+    dataset = PlayDataset.open(path)
+    info = PlayBagInfo(dataset.features, dataset.domain, dataset.instructions)
+    return AnnotatedData(list(dataset.episodes("train")), info)

@@ -6,14 +6,16 @@ import pytest
 from playseg_core.augment.retraining import (
     AugmentationTrainer,
     TrainerConfig,
-    demonstrations_from_episodes,
+    annotated_clips,
     export_buffer_dataset,
 )
 from playseg_core.data.dataset import PlayDataset
 from playseg_core.data.episode import SegmentClip
 from playseg_core.domains.babyai.imitation import PolicyTrainConfig
+from playseg_core.domains.babyai.learner import FilmPolicyLearner, demonstration
 from playseg_core.domains.babyai.play import PlayConfig, generate_episode
 from playseg_core.domains.babyai.policy import PolicyConfig
+from playseg_core.domains.babyai.spec import CAMERA
 
 
 @pytest.fixture(scope="module")
@@ -22,22 +24,26 @@ def episodes():
 
 
 def _config(tmp_path) -> TrainerConfig:
+    return TrainerConfig(str(tmp_path / "buf"), str(tmp_path / "ckpt"), eval_episodes=4)
+
+
+def _learner() -> FilmPolicyLearner:
     train = PolicyTrainConfig(steps=15, batch_size=32, log_every=5, policy=PolicyConfig(channels=16))
-    return TrainerConfig(str(tmp_path / "buf"), str(tmp_path / "ckpt"), eval_episodes=4, train=train)
+    return FilmPolicyLearner(train)
 
 
 def test_demonstrations_are_the_segments_states_and_actions(episodes):
-    demos = demonstrations_from_episodes(episodes)
-    assert len(demos) == sum(len(e.segments) for e in episodes)
-    instruction, states, actions = demos[1]
+    clips = annotated_clips(episodes)
+    assert len(clips) == sum(len(e.segments) for e in episodes)
+    instruction, states, actions = demonstration(clips[1])
     seg = episodes[0].segments[1]
     assert instruction == seg.instruction
-    np.testing.assert_array_equal(states, episodes[0].states[seg.start : seg.end + 1])
+    np.testing.assert_array_equal(states, episodes[0].state[seg.start : seg.end + 1])
     np.testing.assert_array_equal(actions, episodes[0].actions[seg.start : seg.end])
 
 
 def test_retraining_writes_versions_that_survive_a_restart(tmp_path, episodes):
-    trainer = AugmentationTrainer(_config(tmp_path), demonstrations_from_episodes(episodes[:1]))
+    trainer = AugmentationTrainer(_config(tmp_path), _learner(), annotated_clips(episodes[:1]))
     assert trainer.policy_version == 0
     for seg in episodes[1].segments:
         trainer.add(SegmentClip.from_episode(episodes[1], seg, "test-model"))
@@ -48,7 +54,7 @@ def test_retraining_writes_versions_that_survive_a_restart(tmp_path, episodes):
     assert first.num_buffer_segments == len(episodes[1].segments)
     assert 0.0 <= second.success_rate <= 1.0 and second.eval_episodes == 4
     trainer.close()
-    reopened = AugmentationTrainer(_config(tmp_path))
+    reopened = AugmentationTrainer(_config(tmp_path), _learner())
     assert reopened.policy_version == 2 and len(reopened.buffer) == len(episodes[1].segments)
     # the same policy scores the same on the fixed evaluation episodes
     assert reopened.evaluate().success_rate == second.success_rate
@@ -58,18 +64,18 @@ def test_retraining_writes_versions_that_survive_a_restart(tmp_path, episodes):
 def test_low_confidence_segments_are_stored_but_not_trained_on(tmp_path, episodes):
     config = _config(tmp_path)
     config.min_confidence = 0.5
-    trainer = AugmentationTrainer(config)
+    trainer = AugmentationTrainer(config, _learner())
     for i, seg in enumerate(episodes[0].segments):
         clip = SegmentClip.from_episode(episodes[0], seg, "m")
         clip.segment = type(seg)(seg.start, seg.end, seg.instruction, confidence=0.9 if i % 2 else 0.1)
         trainer.add(clip)
     assert len(trainer.buffer) == len(episodes[0].segments)
-    assert len(trainer.training_demos()) == len(episodes[0].segments) // 2
+    assert len(trainer.training_clips()) == len(episodes[0].segments) // 2
     trainer.close()
 
 
 def test_buffer_exports_as_a_dataset(tmp_path, episodes):
-    trainer = AugmentationTrainer(_config(tmp_path))
+    trainer = AugmentationTrainer(_config(tmp_path), _learner())
     clips = [SegmentClip.from_episode(episodes[0], seg, "m") for seg in episodes[0].segments[:3]]
     for clip in clips:
         trainer.add(clip)
@@ -80,7 +86,7 @@ def test_buffer_exports_as_a_dataset(tmp_path, episodes):
         f"{c.episode_id}:{c.segment.start}-{c.segment.end}" for c in clips
     ]
     for episode, clip in zip(exported, clips, strict=True):
-        np.testing.assert_array_equal(episode.frames, clip.frames)
+        np.testing.assert_array_equal(episode.images[CAMERA], clip.images[CAMERA])
         np.testing.assert_array_equal(episode.actions, clip.actions)
         assert [s.instruction for s in episode.segments] == [clip.segment.instruction]
         assert episode.segments[0].length == clip.segment.length

@@ -10,6 +10,8 @@ import pytest
 from playseg_core.augment.buffer import AugmentationBuffer
 from playseg_core.data.episode import Segment, SegmentClip
 
+CAMERA = "observation.images.top"
+
 
 def _segment(i: int) -> SegmentClip:
     rng = np.random.default_rng(i)
@@ -19,8 +21,8 @@ def _segment(i: int) -> SegmentClip:
         episode_id=f"ep{i // 3}",
         segment=Segment(i, i + length, instruction, confidence=0.5 + i / 100, log_prob=-i / 10),
         actions=rng.integers(0, 7, (length, 1)).astype(np.float32),
-        states=rng.integers(0, 11, (length + 1, 8, 8, 3)).astype(np.uint8),
-        frames=rng.integers(0, 256, (length + 1, 4, 4, 3)).astype(np.uint8) if i % 2 else None,
+        state=rng.integers(0, 11, (length + 1, 8, 8, 3)).astype(np.uint8),
+        images={CAMERA: rng.integers(0, 256, (length + 1, 4, 4, 3)).astype(np.uint8)} if i % 2 else {},
         source="test",
     )
 
@@ -29,10 +31,10 @@ def _assert_same(a: SegmentClip, b: SegmentClip) -> None:
     assert (a.episode_id, a.source) == (b.episode_id, b.source)
     assert a.segment == b.segment  # confidence and log_prob are stored as float64: exact
     np.testing.assert_array_equal(a.actions, b.actions)
-    np.testing.assert_array_equal(a.states, b.states)
-    assert (a.frames is None) == (b.frames is None)
-    if a.frames is not None:
-        np.testing.assert_array_equal(a.frames, b.frames)
+    np.testing.assert_array_equal(a.state, b.state)
+    assert a.images.keys() == b.images.keys()
+    for camera in a.images:
+        np.testing.assert_array_equal(a.images[camera], b.images[camera])
 
 
 def test_roundtrip_and_reopen(tmp_path):
@@ -101,7 +103,7 @@ def test_sigkill_after_acknowledgement_loses_nothing(tmp_path):
                 for i in range(100000):
                     a = np.full((3, 1), i % 7, np.float32)
                     buf.append(SegmentClip(f"ep{i}", Segment(0, 3, "go to the red ball"), a,
-                                           states=np.zeros((4, 8, 8, 3), np.uint8)))
+                                           state=np.zeros((4, 8, 8, 3), np.uint8)))
                     print(i, flush=True)
             """
         )

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 
 from playseg_core.domains.babyai.play import (
-    INSTRUCTIONS,
     PlayConfig,
     encode_state,
     generate_episode,
     make_env,
     render_frame,
 )
+from playseg_core.domains.babyai.spec import CAMERA, INSTRUCTIONS
 
 CONFIG = PlayConfig(max_tasks=4)
 REJECTING_SEED = 48  # minigrid rejects a sampled level for this seed and prints about it
@@ -40,8 +40,10 @@ def test_instructions_are_the_36_goto_strings_in_fixed_order() -> None:
 def test_episode_shapes_and_dtypes(episode) -> None:
     steps = episode.num_steps
     assert steps > 0
-    assert episode.frames.shape == (steps + 1, 64, 64, 3) and episode.frames.dtype == np.uint8
-    assert episode.states.shape == (steps + 1, 8, 8, 3) and episode.states.dtype == np.uint8
+    assert list(episode.images) == [CAMERA]  # the one camera: the room seen from above
+    frames = episode.images[CAMERA]
+    assert frames.shape == (steps + 1, 64, 64, 3) and frames.dtype == np.uint8
+    assert episode.state.shape == (steps + 1, 8, 8, 3) and episode.state.dtype == np.uint8
     assert episode.actions.shape == (steps, 1) and episode.actions.dtype == np.float32
     assert set(np.unique(episode.actions)) <= set(range(7))
 
@@ -59,13 +61,14 @@ def test_segments_tile_the_episode_and_goals_change(episode) -> None:
 def test_replaying_actions_reproduces_observations_and_reaches_each_goal(episode) -> None:
     env = make_env(CONFIG, seed=3)
     assert np.array_equal(render_frame(env, 8), env.get_frame(highlight=False, tile_size=8))
-    assert np.array_equal(episode.frames[0], render_frame(env, 8))
-    assert np.array_equal(episode.states[0], encode_state(env))
+    frames = episode.images[CAMERA]
+    assert np.array_equal(frames[0], render_frame(env, 8))
+    assert np.array_equal(episode.state[0], encode_state(env))
     ends = {seg.end: seg for seg in episode.segments}
     for t, action in enumerate(episode.actions[:, 0].astype(int), start=1):
         env.step(action)
-        assert np.array_equal(episode.frames[t], env.get_frame(highlight=False, tile_size=8)), f"frame {t}"
-        assert np.array_equal(episode.states[t], encode_state(env)), f"state {t}"
+        assert np.array_equal(frames[t], env.get_frame(highlight=False, tile_size=8)), f"frame {t}"
+        assert np.array_equal(episode.state[t], encode_state(env)), f"state {t}"
         if t in ends:
             _, article, colour, obj_type = ends[t].instruction.split()[1:]
             facing = env.grid.get(*env.front_pos)
@@ -76,18 +79,18 @@ def test_replaying_actions_reproduces_observations_and_reaches_each_goal(episode
 
 def test_state_places_the_agent_with_its_direction(episode) -> None:
     env = make_env(CONFIG, seed=3)
-    agent_cells = np.argwhere(episode.states[0][:, :, 0] == 10)
+    agent_cells = np.argwhere(episode.state[0][:, :, 0] == 10)
     assert agent_cells.tolist() == [list(env.agent_pos)]
     x, y = env.agent_pos
-    assert episode.states[0][x, y, 2] == env.agent_dir
-    for state in episode.states:
+    assert episode.state[0][x, y, 2] == env.agent_dir
+    for state in episode.state:
         assert (state[:, :, 0] == 10).sum() == 1
 
 
 def test_same_seed_gives_identical_bytes_and_other_seed_differs(episode) -> None:
     again = generate_episode(CONFIG, seed=3)
-    assert again.frames.tobytes() == episode.frames.tobytes()
-    assert again.states.tobytes() == episode.states.tobytes()
+    assert again.images[CAMERA].tobytes() == episode.images[CAMERA].tobytes()
+    assert again.state.tobytes() == episode.state.tobytes()
     assert again.actions.tobytes() == episode.actions.tobytes()
     assert again.segments == episode.segments
     other = generate_episode(CONFIG, seed=4)

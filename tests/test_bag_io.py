@@ -22,6 +22,7 @@ from rosbags.rosbag2 import Writer as RosbagsWriter
 from rosbags.typesys import get_types_from_msg
 
 from playseg_core.data.episode import Episode, Segment, SegmentClip
+from playseg_core.data.features import ACTION, DEFAULT_CAMERA, STATE, Feature, Features
 from playseg_ros.bag import BagError, BagReader, BagWriter, recover_bag, ros2msg_definition, topic_info
 from playseg_ros.cli import main as cli_main
 from playseg_ros.messages import (
@@ -35,7 +36,9 @@ from playseg_ros.play_bags import (
     ANNOTATIONS_TOPIC,
     GROUND_TRUTH_TOPIC,
     STEPS_TOPIC,
+    PlayBagInfo,
     read_play_bag,
+    read_play_bag_info,
     read_segment_bag,
     write_play_bag,
     write_segment_bag,
@@ -56,21 +59,24 @@ def make_episode(index: int, num_steps: int, size: int = 8, with_state: bool = T
     ]
     return Episode(
         episode_id=f"ep-{index:03d}",
-        frames=rng.integers(0, 256, (num_steps + 1, size, size, 3), dtype=np.uint8),
+        images={DEFAULT_CAMERA: rng.integers(0, 256, (num_steps + 1, size, size, 3), dtype=np.uint8)},
         actions=rng.integers(0, 7, (num_steps, 1)).astype(np.float32),
-        states=rng.integers(0, 11, (num_steps + 1, 4, 4, 3)).astype(np.uint8) if with_state else None,
+        state=rng.integers(0, 11, (num_steps + 1, 4, 4, 3)).astype(np.uint8) if with_state else None,
         segments=segments,
     )
 
 
 def assert_same_episode(got: Episode, want: Episode, segments: list[Segment]) -> None:
     assert got.episode_id == want.episode_id
-    assert np.array_equal(got.frames, want.frames)
+    assert sorted(got.images) == sorted(want.images)
+    for name, frames in want.images.items():
+        assert np.array_equal(got.images[name], frames)
     assert np.array_equal(got.actions, want.actions) and got.actions.dtype == np.float32
-    if want.states is None:
-        assert got.states is None
+    if want.state is None:
+        assert got.state is None
     else:
-        assert np.array_equal(got.states, want.states.astype(np.float32))
+        # without a declared schema a bag's state reads back as float32 (PlayStep.state)
+        assert np.array_equal(got.state, want.state.astype(np.float32))
     assert got.segments == segments
 
 
@@ -88,6 +94,61 @@ def test_play_bag_round_trip(tmp_path: Path, episodes: list[Episode]) -> None:
     for got, want in zip(read_play_bag(tmp_path / "play", truth=True), episodes, strict=True):
         assert_same_episode(got, want, want.segments)
     assert sorted(os.listdir(tmp_path)) == ["play"]  # the .partial directory was renamed
+
+
+def test_a_bag_declaring_its_features_reads_back_under_them(tmp_path: Path) -> None:
+    wrist = "observation.images.wrist"
+    episodes = [make_episode(i, 6) for i in range(2)]
+    for episode in episodes:
+        episode.images = {wrist: episode.images.pop(DEFAULT_CAMERA)}
+    features = Features.of(
+        [
+            Feature(wrist, "image", "uint8", (8, 8, 3)),
+            Feature(STATE, "state", "uint8", (4, 4, 3)),
+            Feature(ACTION, "action", "float32", (1,), num_values=7),
+        ],
+        fps=10.0,
+    )
+    info = PlayBagInfo(features, domain="babyai", instructions=INSTRUCTIONS)
+    write_play_bag(tmp_path / "play", episodes, annotated=True, info=info)
+    assert read_play_bag_info(tmp_path / "play") == info
+    for got, want in zip(read_play_bag(tmp_path / "play"), episodes, strict=True):
+        assert list(got.images) == [wrist] and got.state.dtype == np.uint8  # the declared camera and dtype
+        np.testing.assert_array_equal(got.images[wrist], want.images[wrist])
+        np.testing.assert_array_equal(got.state, want.state)
+    # Data that contradicts its declaration is refused, naming the episode and feature.
+    bad = tmp_path / "bad"
+    wrong = Features.of(
+        [features[wrist], features.action], fps=10.0
+    )  # declares no state, the steps carry one
+    write_play_bag(bad, episodes, annotated=True, info=PlayBagInfo(wrong))
+    with pytest.raises(BagError, match="episode 'ep-000'.*has \\['observation.state'\\] features"):
+        read_play_bag(bad)
+
+
+def test_a_state_only_episode_round_trips_through_a_play_bag(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    episode = Episode(
+        "arm-0",
+        actions=rng.normal(size=(5, 7)).astype(np.float32),
+        state=rng.normal(size=(6, 7)).astype(np.float32),
+        segments=[Segment(0, 5, "go to a blue key")],
+    )
+    write_play_bag(tmp_path / "play", [episode], annotated=True)
+    (got,) = read_play_bag(tmp_path / "play")
+    assert got.images == {}  # an empty (0x0) image: no camera
+    assert_same_episode(got, episode, episode.segments)
+    two_cameras = Episode(
+        "two",
+        episode.actions,
+        {
+            "observation.images.a": np.zeros((6, 2, 2, 3), np.uint8),
+            "observation.images.b": np.zeros((6, 2, 2, 3), np.uint8),
+        },
+    )
+    with pytest.raises(ValueError, match="episode 'two': a PlayStep carries one camera"):
+        write_play_bag(tmp_path / "two", [two_cameras], annotated=False)
+    assert not (tmp_path / "two").exists()
 
 
 def test_unannotated_bag_without_ground_truth_has_no_segments(
@@ -113,10 +174,10 @@ def test_segment_bag_round_trip(tmp_path: Path, episodes: list[Episode]) -> None
         ("ep-000", labelled, "ps-test"),
         ("ep-001", episodes[1].segments[0], "ps-test"),
     ]
-    assert np.array_equal(got[0].frames, episodes[0].frames[3:8])
+    assert np.array_equal(got[0].images[DEFAULT_CAMERA], episodes[0].images[DEFAULT_CAMERA][3:8])
     assert np.array_equal(got[0].actions, episodes[0].actions[3:7])
-    assert np.array_equal(got[0].states, episodes[0].states[3:8].astype(np.float32))
-    assert got[1].states is None
+    assert np.array_equal(got[0].state, episodes[0].state[3:8].astype(np.float32))
+    assert got[1].state is None
 
 
 def test_schema_text_is_rosbag2_ros2msg_and_hashes_like_the_installed_package() -> None:
@@ -158,9 +219,9 @@ def test_our_bag_is_read_by_rosbags_anyreader(tmp_path: Path, episodes: list[Epi
     assert [m.step for m in first] == list(range(10))
     for t, msg in enumerate(first):
         assert (msg.observation.height, msg.observation.width, msg.observation.encoding) == (64, 64, "rgb8")
-        assert bytes(msg.observation.data) == episodes[0].frames[t].tobytes()
+        assert bytes(msg.observation.data) == episodes[0].images[DEFAULT_CAMERA][t].tobytes()
         assert list(msg.state_shape) == [4, 4, 3]
-        assert np.array_equal(msg.state, episodes[0].states[t].reshape(-1))
+        assert np.array_equal(msg.state, episodes[0].state[t].reshape(-1))
         assert msg.episode_end == (t == 9)
         assert list(msg.action) == ([] if t == 9 else episodes[0].actions[t].tolist())
     labels = [
@@ -197,7 +258,7 @@ def test_our_bag_is_read_by_mcap_ros2(tmp_path: Path, episodes: list[Episode]) -
     for episode in episodes:
         for t in range(episode.num_steps + 1):
             data, action, end = frames[(episode.episode_id, t)]
-            assert data == episode.frames[t].tobytes()
+            assert data == episode.images[DEFAULT_CAMERA][t].tobytes()
             assert action == ([] if t == episode.num_steps else episode.actions[t].tolist())
             assert end == (t == episode.num_steps)
 

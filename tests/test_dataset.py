@@ -18,9 +18,11 @@ from playseg_core.data.dataset import (
     PlayDataset,
 )
 from playseg_core.data.episode import Episode, Segment
+from playseg_core.data.features import ACTION, DEFAULT_CAMERA, STATE, Feature, Features
 from playseg_core.data.splits import SplitTargets, assign_splits
 from playseg_core.domains.babyai.generate import PRESETS, Preset, generate_dataset, get_preset
-from playseg_core.domains.babyai.play import INSTRUCTIONS, PlayConfig, generate_episode
+from playseg_core.domains.babyai.play import PlayConfig, generate_episode
+from playseg_core.domains.babyai.spec import CAMERA, INSTRUCTIONS
 from playseg_ros.cli import main as cli_main
 
 CONFIG = PlayConfig(max_tasks=3)
@@ -35,7 +37,8 @@ def episodes() -> dict[int, Episode]:
 @pytest.fixture
 def written(tmp_path: Path, episodes: dict[int, Episode]) -> Path:
     path = tmp_path / "ds"
-    with DatasetWriter(path, INSTRUCTIONS, {"preset": "unit", "seed": 7}) as writer:
+    meta = {"preset": "unit", "seed": 7}
+    with DatasetWriter(path, INSTRUCTIONS, meta, features=CONFIG.features, domain="babyai") as writer:
         for seed, split in SPLIT_OF_SEED.items():
             writer.add(episodes[seed], split, extra={"seed": seed})
     return path
@@ -46,13 +49,14 @@ def test_round_trip_returns_equal_memory_mapped_episodes(written: Path, episodes
     assert len(ds) == 5 and ds.instructions == INSTRUCTIONS
     assert ds.splits == ("train", "val", "play", "test")
     assert ds.episode_indices("train") == [0, 1] and ds.episode_indices("test") == [4]
-    assert isinstance(ds.frames, np.memmap) and isinstance(ds.actions, np.memmap)
+    assert isinstance(ds.array(CAMERA), np.memmap) and isinstance(ds.array(ACTION), np.memmap)
+    assert ds.features == CONFIG.features and ds.domain == "babyai"
     for index, seed in enumerate(SPLIT_OF_SEED):
         original, loaded = episodes[seed], ds.episode(index, truth=True)
         assert loaded.episode_id == original.episode_id
-        assert isinstance(loaded.frames, np.memmap)
-        assert np.array_equal(loaded.frames, original.frames)
-        assert np.array_equal(loaded.states, original.states)
+        assert isinstance(loaded.images[CAMERA], np.memmap)
+        assert np.array_equal(loaded.images[CAMERA], original.images[CAMERA])
+        assert np.array_equal(loaded.state, original.state)
         assert np.array_equal(loaded.actions, original.actions)
         assert loaded.segments == original.segments
 
@@ -73,11 +77,21 @@ def test_boundary_frames_are_stored_once_and_metadata_counts_match(
     info = json.loads((written / "meta/info.json").read_text())
     steps = sum(e.num_steps for e in episodes.values())
     assert info["format_version"] == FORMAT_VERSION
-    assert info["counts"]["frames"] == steps + len(episodes)
+    assert info["counts"]["observations"] == steps + len(episodes)
     assert info["counts"]["segments"] == sum(len(e.segments) for e in episodes.values())
     assert info["meta"] == {"preset": "unit", "seed": 7}
-    assert (written / "data/frames.bin").stat().st_size == (steps + len(episodes)) * 64 * 64 * 3
-    assert (written / "data/actions.bin").stat().st_size == steps * 4
+    assert info["fps"] == 10.0 and info["domain"] == "babyai"
+    assert info["features"][ACTION] == {
+        "kind": "action",
+        "dtype": "float32",
+        "shape": [1],
+        "action_type": "discrete",
+        "num_values": 7,
+    }
+    assert info["features"][CAMERA] == {"kind": "image", "dtype": "uint8", "shape": [64, 64, 3]}
+    camera_file = written / f"data/{CAMERA}.bin"
+    assert camera_file.stat().st_size == (steps + len(episodes)) * 64 * 64 * 3
+    assert (written / "data/action.bin").stat().st_size == steps * 4
     lines = (written / "meta/episodes.jsonl").read_text().splitlines()
     assert [json.loads(line)["extra"]["seed"] for line in lines] == list(SPLIT_OF_SEED)
 
@@ -87,7 +101,7 @@ def test_pickling_reopens_files_instead_of_copying_arrays(written: Path) -> None
     blob = pickle.dumps(ds)
     assert len(blob) < 1000
     again = pickle.loads(blob)
-    assert np.array_equal(again.episode(3).frames, ds.episode(3).frames)
+    assert np.array_equal(again.episode(3).images[CAMERA], ds.episode(3).images[CAMERA])
 
 
 def test_failed_writing_leaves_nothing_behind(tmp_path: Path, episodes: dict[int, Episode]) -> None:
@@ -110,40 +124,122 @@ def test_existing_dataset_is_kept_unless_overwrite(written: Path, episodes: dict
 def test_writer_rejects_bad_episodes_naming_episode_and_field(
     tmp_path: Path, episodes: dict[int, Episode]
 ) -> None:
-    with DatasetWriter(tmp_path / "ds", INSTRUCTIONS) as writer:
+    with DatasetWriter(tmp_path / "ds", INSTRUCTIONS, features=CONFIG.features) as writer:
         writer.add(episodes[0], "train")
         with pytest.raises(ValueError, match="'babyai-0': episode_id already written"):
             writer.add(episodes[0], "train")
         with pytest.raises(ValueError, match="unknown split 'dev'"):
             writer.add(episodes[1], "dev")
-        wrong = Episode("odd", np.zeros((2, 32, 32, 3), np.uint8), np.zeros((1, 1), np.float32), None)
-        with pytest.raises(ValueError, match="'odd': field 'states' present=False"):
+        wrong = Episode("odd", np.zeros((1, 1), np.float32), {CAMERA: np.zeros((2, 32, 32, 3), np.uint8)})
+        with pytest.raises(ValueError, match="'odd': has no extra features, lacks \\['observation.state'\\]"):
             writer.add(wrong, "train")
-        wrong.states = np.zeros((2, 8, 8, 3), np.uint8)
-        with pytest.raises(ValueError, match="'odd': field 'frames' is \\(32, 32, 3\\)"):
+        wrong.state = np.zeros((2, 8, 8, 3), np.uint8)
+        with pytest.raises(ValueError, match=f"'odd': feature '{CAMERA}' must be \\(2, 64, 64, 3\\) uint8"):
             writer.add(wrong, "train")
-        unknown = Episode(
-            "unknown",
-            episodes[1].frames,
-            episodes[1].actions,
-            episodes[1].states,
-            [Segment(0, 1, "dance")],
-        )
+        wrong.images[CAMERA] = np.zeros((2, 64, 64, 3), np.uint8)
+        wrong.actions[:] = 9
+        with pytest.raises(
+            ValueError, match="'odd' action\\[0\\] = 9.0: not a discrete action index in 0..6"
+        ):
+            writer.add(wrong, "train")
+        one = episodes[1]
+        unknown = Episode("unknown", one.actions, one.images, one.state, [Segment(0, 1, "dance")])
         with pytest.raises(ValueError, match="'unknown': segment \\[0, 1\\) field 'instruction' 'dance'"):
             writer.add(unknown, "train")
 
 
 def test_missing_file_is_named(written: Path) -> None:
-    (written / "data/states.bin").unlink()
-    with pytest.raises(FileNotFoundError, match="states.bin: missing .*arrays.states"):
+    (written / "data/observation.state.bin").unlink()
+    with pytest.raises(
+        FileNotFoundError, match="observation.state.bin: missing .*features.observation.state"
+    ):
         PlayDataset.open(written)
 
 
 def test_truncated_array_is_named_with_its_field(written: Path) -> None:
-    frames = written / "data/frames.bin"
+    frames = written / f"data/{CAMERA}.bin"
     frames.write_bytes(frames.read_bytes()[:-100])
-    with pytest.raises(DatasetError, match="frames.bin: size .* arrays.frames"):
+    with pytest.raises(DatasetError, match=f"{CAMERA}.bin: size .* features.{CAMERA}"):
         PlayDataset.open(written)
+
+
+def test_malformed_feature_schema_is_named(written: Path) -> None:
+    info_file = written / "meta/info.json"
+    info = json.loads(info_file.read_text())
+    info["features"]["observation.depth"] = {"kind": "image", "dtype": "uint8", "shape": [4, 4, 1]}
+    info_file.write_text(json.dumps(info))
+    with pytest.raises(DatasetError, match="info.json: feature 'observation.depth': unknown name"):
+        PlayDataset.open(written)
+
+
+def test_a_version_1_dataset_opens() -> None:
+    """tests/data/dataset_v1 was written by playseg before format version 2 (see tests/data/README.md)."""
+    ds = PlayDataset.open(Path(__file__).parent / "data" / "dataset_v1")
+    assert ds.format_version == 1 and ds.domain is None and ds.instructions == ("go left", "go right")
+    assert ds.features.cameras == [DEFAULT_CAMERA]
+    assert ds.features.state.shape == (4, 4, 3) and ds.features.state.dtype == "uint8"
+    assert ds.features.action.num_values == 3  # whole numbers 0..2: read as discrete
+    assert ds.splits == ("train", "val", "play", "test")
+    episode = ds.episode(3, truth=True)
+    assert episode.num_steps == 8 and episode.images[DEFAULT_CAMERA].shape == (9, 16, 16, 3)
+    assert episode.state.shape == (9, 4, 4, 3)
+    assert [(s.start, s.end, s.instruction) for s in episode.segments] == [
+        (0, 2, "go left"),
+        (2, 8, "go right"),
+    ]
+    ds.features.check_episode(episode)
+
+
+@pytest.mark.parametrize("layout", ["two cameras, no state", "no camera, a state"])
+def test_any_number_of_cameras_and_an_optional_state_round_trip(tmp_path: Path, layout: str) -> None:
+    rng = np.random.default_rng(1)
+    front, wrist = "observation.images.front", "observation.images.wrist"
+    joints = [f"joint_{i}" for i in range(7)]
+    if layout == "two cameras, no state":
+        features = [
+            Feature(front, "image", "uint8", (12, 16, 3)),
+            Feature(wrist, "image", "uint8", (8, 8, 3)),
+            Feature(ACTION, "action", "float32", (2,), names=("v", "w"), low=(-1.0, -2.0), high=(1.0, 2.0)),
+        ]
+    else:
+        features = [
+            Feature(STATE, "state", "float32", (7,), names=tuple(joints)),
+            Feature(ACTION, "action", "float32", (7,)),
+        ]
+    schema = Features.of(features, fps=30.0)
+    episodes = []
+    for i, num_steps in enumerate([4, 7]):
+        images = {
+            name: rng.integers(0, 256, size=(num_steps + 1, *schema[name].shape), dtype=np.uint8)
+            for name in schema.cameras
+        }
+        state = None if schema.state is None else rng.normal(size=(num_steps + 1, 7)).astype(np.float32)
+        actions = rng.uniform(-1, 1, size=(num_steps, schema.action.size)).astype(np.float32)
+        episodes.append(Episode(f"robot-{i}", actions, images, state, [Segment(0, num_steps, "wave")]))
+    with DatasetWriter(tmp_path / "ds", ["wave"], features=schema) as writer:
+        for episode in episodes:
+            writer.add(episode, "train")
+    ds = PlayDataset.open(tmp_path / "ds")
+    assert ds.features == schema
+    for index, original in enumerate(episodes):
+        loaded = ds.episode(index)
+        assert sorted(loaded.images) == sorted(original.images)
+        for name, frames in original.images.items():
+            np.testing.assert_array_equal(loaded.images[name], frames)
+        if original.state is None:
+            assert loaded.state is None
+        else:
+            np.testing.assert_array_equal(loaded.state, original.state)
+        np.testing.assert_array_equal(loaded.actions, original.actions)
+        assert loaded.segments == original.segments
+    info = json.loads((tmp_path / "ds/meta/info.json").read_text())
+    if schema.state is not None:
+        assert info["features"][STATE]["names"] == joints
+    else:
+        assert (
+            info["features"][ACTION]["low"] == [-1.0, -2.0]
+            and not (tmp_path / "ds/data/observation.state.bin").exists()
+        )
 
 
 def test_wrong_version_is_named(written: Path) -> None:
@@ -159,7 +255,7 @@ def test_inconsistent_episode_table_is_named(written: Path) -> None:
     table = written / "meta/episodes.jsonl"
     lines = table.read_text().splitlines()
     record = json.loads(lines[2])
-    record["frame_start"] += 1
+    record["observation_start"] += 1
     lines[2] = json.dumps(record)
     table.write_text("\n".join(lines) + "\n")
     with pytest.raises(DatasetError, match="episodes.jsonl: line 3 \\(episode 'babyai-2'\\)"):
@@ -231,7 +327,7 @@ def test_generation_is_byte_identical_for_any_worker_count(tmp_path: Path) -> No
     for name in files:
         assert (one.path / name).read_bytes() == (two.path / name).read_bytes(), name
     other = generate_dataset(tmp_path / "other", MINI, seed=3, progress=False)
-    assert (other.path / "data/actions.bin").read_bytes() != (one.path / "data/actions.bin").read_bytes()
+    assert (other.path / "data/action.bin").read_bytes() != (one.path / "data/action.bin").read_bytes()
 
 
 def test_presets_and_annotated_share() -> None:

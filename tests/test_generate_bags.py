@@ -9,6 +9,7 @@ import pytest
 
 from playseg_core.data.dataset import PlayDataset
 from playseg_core.data.episode import Episode
+from playseg_core.domains.babyai.spec import CAMERA
 from playseg_ros.bag import BagReader
 from playseg_ros.cli import main as cli_main
 from playseg_ros.play_bags import (
@@ -16,6 +17,7 @@ from playseg_ros.play_bags import (
     GROUND_TRUTH_TOPIC,
     STEPS_TOPIC,
     read_play_bag,
+    read_play_bag_info,
     write_dataset_bags,
 )
 
@@ -37,9 +39,10 @@ def split_episodes(dataset: PlayDataset, splits: tuple[str, ...]) -> list[Episod
 def assert_same_episodes(got: list[Episode], want: list[Episode]) -> None:
     assert [e.episode_id for e in got] == [e.episode_id for e in want]
     for g, w in zip(got, want, strict=True):
-        assert np.array_equal(g.frames, w.frames), g.episode_id
-        assert g.states is not None and w.states is not None
-        assert np.array_equal(g.states, w.states.astype(np.float32)), g.episode_id
+        assert np.array_equal(g.images[CAMERA], w.images[CAMERA]), g.episode_id
+        assert g.state is not None and w.state is not None
+        # the bag declares the dataset's features: the state reads back in its declared dtype
+        assert g.state.dtype == w.state.dtype and np.array_equal(g.state, w.state), g.episode_id
         assert np.array_equal(g.actions, w.actions), g.episode_id
         assert g.segments == w.segments, g.episode_id
 
@@ -51,6 +54,9 @@ def test_each_bag_holds_the_episodes_of_its_splits(generated: Path, name: str) -
     assert want, f"the tiny preset has no episodes for the {name} bag"
     got = read_play_bag(generated / "bags" / name, truth=True)
     assert_same_episodes(got, want)
+    info = read_play_bag_info(generated / "bags" / name)
+    assert info.features == dataset.features and info.domain == "babyai"
+    assert info.instructions == dataset.instructions
 
 
 def test_only_the_annotated_bag_has_annotations(generated: Path) -> None:

@@ -12,14 +12,15 @@ import rclpy
 import torch
 from playseg_msgs.msg import LabelledSegment, PlayStep
 
-from playseg_core.domains.babyai.play import INSTRUCTIONS, NUM_ACTIONS, PlayConfig, generate_episode
-from playseg_core.ps.model import PSModel
+from playseg_core.domains.babyai.play import PlayConfig, generate_episode
+from playseg_core.domains.babyai.spec import CAMERA, DOMAIN, INSTRUCTIONS
+from playseg_core.ps.model import PSModel, load_model, save_model
 from playseg_core.ps.segmentation import segment_episode
-from playseg_core.ps.training import default_model_config, load_checkpoint, save_checkpoint
+from playseg_core.ps.training import model_config_for
 from playseg_ros import qos
 from playseg_ros.launch import Graph, GraphSpec, NodeSpec
 from playseg_ros.messages import RCLPY, episode_step_message
-from playseg_ros.play_bags import read_play_bag, write_play_bag
+from playseg_ros.play_bags import PlayBagInfo, read_play_bag, write_play_bag
 
 
 @pytest.fixture(scope="module")
@@ -28,9 +29,10 @@ def model_path(tmp_path_factory) -> Path:
     # It reads actions, as the trained default does: the node must hand each step's action over.
     torch.manual_seed(3)
     path = tmp_path_factory.mktemp("model") / "ps.pt"
-    model = PSModel(default_model_config(len(INSTRUCTIONS), num_actions=NUM_ACTIONS), list(INSTRUCTIONS))
+    config = model_config_for(PlayConfig().features, DOMAIN, len(INSTRUCTIONS))
+    model = PSModel(config, list(INSTRUCTIONS))
     model.end_bias.fill_(-0.5)  # a calibrated checkpoint's bias must apply live as offline
-    save_checkpoint(path, model)
+    save_model(path, model)
     return path
 
 
@@ -63,7 +65,9 @@ class _Collector:
 def test_live_segments_equal_offline_segmentation(tmp_path, model_path):
     episodes = [generate_episode(PlayConfig(), seed) for seed in (11, 12, 13)]
     bag = tmp_path / "play"
-    write_play_bag(bag, episodes, annotated=False)
+    # The bag declares BabyAI's features, so offline its image reads as the model's camera.
+    info = PlayBagInfo(PlayConfig().features, DOMAIN, INSTRUCTIONS)
+    write_play_bag(bag, episodes, annotated=False, info=info)
     segmenter = _start(tmp_path, "segmenter", model=str(model_path))
     collector = _Collector()
     try:
@@ -78,7 +82,7 @@ def test_live_segments_equal_offline_segmentation(tmp_path, model_path):
         collector.close()
         segmenter.stop()
 
-    model, _ = load_checkpoint(model_path)
+    model, _ = load_model(model_path)
     for episode in read_play_bag(bag):
         offline = segment_episode(model, episode)
         live = [s for s in collector.segments if s.episode_id == episode.episode_id]
@@ -94,7 +98,7 @@ def test_live_segments_equal_offline_segmentation(tmp_path, model_path):
         for msg in live:  # self-contained: the segment's own steps, frames equal to the episode's
             assert [p.step for p in msg.steps] == list(range(msg.start_step, msg.end_step + 1))
             frame = np.frombuffer(bytes(msg.steps[-1].observation.data), np.uint8).reshape(64, 64, 3)
-            np.testing.assert_array_equal(frame, episode.frames[msg.end_step])
+            np.testing.assert_array_equal(frame, episode.images[CAMERA][msg.end_step])
 
 
 def test_malformed_steps_are_logged_and_the_node_keeps_running(tmp_path, model_path):

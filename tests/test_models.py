@@ -2,39 +2,55 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict
-
 import numpy as np
 import pytest
 import torch
 
+from playseg_core.checkpoint import CheckpointError
 from playseg_core.data.episode import Episode, Segment
-from playseg_core.ps.model import (
-    EncoderConfig,
-    LabelModel,
-    ModelConfig,
-    PSModel,
-    TrunkConfig,
-    previous_actions,
-)
-from playseg_core.ps.training import load_checkpoint, save_checkpoint
+from playseg_core.data.features import ACTION, Feature, FeatureError, Features, check_discrete_actions
+from playseg_core.domains.babyai.encoder import GridTileConfig, grid_tile_spec
+from playseg_core.domains.babyai.spec import CAMERA
+from playseg_core.ps.encoders import EncoderSpec, as_tensors
+from playseg_core.ps.model import LabelModel, ModelConfig, PSModel, TrunkConfig, load_model, save_model
 
 torch.set_num_threads(1)
 
 NUM_CLASSES = 4
+NUM_ACTIONS = 3  # the synthetic episodes' actions: 0, 1, 2
 INSTRUCTIONS = [f"go to thing {c}" for c in range(NUM_CLASSES)]
+FEATURES = Features.of(
+    [
+        Feature(CAMERA, "image", "uint8", (64, 64, 3)),
+        Feature(ACTION, "action", "float32", (1,), num_values=NUM_ACTIONS),
+    ]
+)
+
+
+def tiny_model_config(
+    max_len: int = 6, num_actions: int = 0, num_layers: int = 2, size: int = 64
+) -> ModelConfig:
+    """A small grid-tile model for ``size``-pixel frames; with ``num_actions`` it also reads the previous
+    action (4-d embedding)."""
+    features = FEATURES.with_camera(Feature(CAMERA, "image", "uint8", (size, size, 3)))
+    encoders = [
+        grid_tile_spec(features[CAMERA], GridTileConfig(tile_channels=8, object_dim=8, feature_dim=16))
+    ]
+    if num_actions:
+        features = features.with_action(Feature(ACTION, "action", "float32", (1,), num_values=num_actions))
+        encoders.append(EncoderSpec("discrete_action", ACTION, {"dim": 4}))
+    trunk = TrunkConfig(hidden_dim=16, num_layers=num_layers, kernel_size=3, max_len=max_len)
+    return ModelConfig(encoders, features, trunk, NUM_CLASSES)
 
 
 def tiny_ps_model(max_len: int = 6, seed: int = 0, num_actions: int = 0) -> PSModel:
     torch.manual_seed(seed)
-    cfg = ModelConfig(
-        EncoderConfig(tile_channels=8, object_dim=8, feature_dim=16),
-        TrunkConfig(hidden_dim=16, num_layers=2, kernel_size=3, max_len=max_len),
-        NUM_CLASSES,
-        num_actions=num_actions,
-        action_dim=4,
-    )
-    return PSModel(cfg, INSTRUCTIONS).eval()
+    return PSModel(tiny_model_config(max_len, num_actions), INSTRUCTIONS).eval()
+
+
+def encode_frames(model: PSModel, frames: np.ndarray) -> torch.Tensor:
+    """The camera encoder alone (no action columns)."""
+    return model.encoders.encoders[0](torch.from_numpy(np.ascontiguousarray(frames)))
 
 
 PALETTE = np.array([[230, 40, 40], [40, 230, 40], [40, 40, 230], [230, 230, 40]], np.uint8)
@@ -70,7 +86,7 @@ def synthetic_episode(
         frames[0, :8, :8] = PALETTE[classes[0]]
         actions = rng.integers(0, 2, size=(num_steps, 1)).astype(np.float32)
         actions[[seg.end - 1 for seg in segments]] = 2
-    return Episode(f"synthetic-{seed}", frames, actions, segments=segments)
+    return Episode(f"synthetic-{seed}", actions, {CAMERA: frames}, segments=segments)
 
 
 class UnsafePayload:
@@ -84,13 +100,13 @@ def random_features(num_frames: int, dim: int = 16, seed: int = 1) -> torch.Tens
 @pytest.mark.parametrize(("num_steps", "num_actions"), [(3, 0), (6, 0), (14, 0), (14, 3)])
 def test_end_column_equals_diagonal_of_end_logits(num_steps: int, num_actions: int) -> None:
     model = tiny_ps_model(max_len=6, num_actions=num_actions)
-    features = random_features(num_steps + 1, dim=model.cfg.step_dim)
+    features = random_features(num_steps + 1, dim=model.encoders.step_dim)
     with torch.no_grad():
         matrix = model.end_logits(features)
         assert matrix.shape == (num_steps, 6)
         for t in range(1, num_steps + 1):
             window = features[max(0, t - model.max_len) : t + 1]
-            column = model.end_column(window, first_is_episode_start=t <= model.max_len)
+            column = model.end_column(window, starts_episode=t <= model.max_len)
             for k in range(model.max_len):
                 if t - k - 1 >= 0:
                     torch.testing.assert_close(column[k], matrix[t - k - 1, k], rtol=1e-5, atol=1e-5)
@@ -100,9 +116,9 @@ def test_end_column_equals_diagonal_of_end_logits(num_steps: int, num_actions: i
 
 def test_output_k_ignores_frames_after_position_k() -> None:
     model = tiny_ps_model(max_len=6)
-    frames = synthetic_episode(3).frames
+    frames = synthetic_episode(3).images[CAMERA]
     with torch.no_grad():
-        features = model.encode_frames(torch.from_numpy(frames))
+        features = encode_frames(model, frames)
         base = model.end_logits(features)
         start, k = 2, 2  # the output for segment [2, 5) sees o_2 .. o_5
         changed = features.clone()
@@ -129,10 +145,10 @@ def test_frames_before_the_start_change_nothing() -> None:
 
 def test_encoder_has_no_temporal_mixing() -> None:
     model = tiny_ps_model()
-    frames = torch.from_numpy(synthetic_episode(4).frames)
+    frames = synthetic_episode(4).images[CAMERA]
     with torch.no_grad():
-        together = model.encode_frames(frames)
-        one_by_one = torch.cat([model.encode_frames(frames[t : t + 1]) for t in range(len(frames))])
+        together = encode_frames(model, frames)
+        one_by_one = torch.cat([encode_frames(model, frames[t : t + 1]) for t in range(len(frames))])
     torch.testing.assert_close(together, one_by_one, rtol=1e-5, atol=1e-5)
 
 
@@ -145,99 +161,141 @@ def test_label_logits_validate_segment_length() -> None:
 
 
 def test_previous_actions_shift_by_one_and_name_the_bad_entry() -> None:
-    np.testing.assert_array_equal(previous_actions(np.array([[2.0], [0.0], [1.0]]), 3), [3, 2, 0, 1])
-    assert previous_actions(np.zeros((0, 1)), 3).tolist() == [3]  # a lone observation: "no action"
+    encoder = tiny_ps_model(num_actions=3).encoders.encoders[1]
+    rows = encoder.previous_action_rows(np.array([[2.0], [0.0], [1.0]]), "ep7 actions")
+    np.testing.assert_array_equal(rows, [3, 2, 0, 1])
+    assert encoder.previous_action_rows(np.zeros((0, 1)), "x").tolist() == [3]  # a lone observation
     with pytest.raises(ValueError, match=r"ep7 actions\[1\] = 1.5: not a discrete action index in 0..2"):
-        previous_actions(np.array([[0.0], [1.5]]), 3, "ep7 actions")
+        check_discrete_actions(np.array([[0.0], [1.5]]), 3, "ep7 actions")
     with pytest.raises(ValueError, match=r"ep7 actions\[0\] = 3.0"):
-        previous_actions(np.array([[3.0]]), 3, "ep7 actions")
-    with pytest.raises(ValueError, match=r"needs shape \(T, 1\)"):
-        previous_actions(np.zeros((4, 2)), 3, "ep7 actions")
+        encoder.previous_action_rows(np.array([[3.0]]), "ep7 actions")
+    with pytest.raises(ValueError, match=r"need shape \(T, 1\)"):
+        check_discrete_actions(np.zeros((4, 2)), 3, "ep7 actions")
+
+
+def _inputs(frames: np.ndarray, previous: list[int]) -> dict[str, torch.Tensor]:
+    return {CAMERA: torch.from_numpy(frames), ACTION: torch.tensor(previous)}
 
 
 def test_an_action_model_reads_the_action_that_led_to_each_frame() -> None:
     model = tiny_ps_model(num_actions=3)
-    frames = torch.from_numpy(synthetic_episode(2).frames[:8])
-    actions = torch.tensor([3, 0, 1, 2, 0, 1, 2, 0])
+    frames = synthetic_episode(2).images[CAMERA][:8]
+    actions = [3, 0, 1, 2, 0, 1, 2, 0]
     with torch.no_grad():
-        base = model.end_logits(model.encode_steps(frames, actions))
-        changed_actions = actions.clone()
+        base = model.end_logits(model.encode_steps(_inputs(frames, actions)))
+        changed_actions = list(actions)
         changed_actions[4] = 2  # a_3, the action that led to o_4: windows holding o_4 change
-        other = model.end_logits(model.encode_steps(frames, changed_actions))
-        assert model.encode_steps(frames, actions).shape == (8, 16 + 4)
+        other = model.end_logits(model.encode_steps(_inputs(frames, changed_actions)))
+        assert model.encode_steps(_inputs(frames, actions)).shape == (8, 16 + 4)
     torch.testing.assert_close(other[1, :2], base[1, :2])  # [1, 2) and [1, 3) end before o_4
     assert not torch.allclose(other[1, 2], base[1, 2])  # [1, 4) ends at o_4
-    with pytest.raises(ValueError, match="encode_steps needs prev_actions"):
-        model.encode_steps(frames)
+    with pytest.raises(KeyError):
+        model.encode_steps({CAMERA: torch.from_numpy(frames)})
 
 
-def test_checkpoint_of_an_action_model_round_trips_and_old_configs_read_frames_only(tmp_path) -> None:
+def test_episode_inputs_follow_the_features_the_model_reads() -> None:
+    model = tiny_ps_model(num_actions=3)
+    episode = synthetic_episode(2)
+    inputs = model.encoders.episode_inputs(episode)
+    assert set(inputs) == {CAMERA, ACTION}
+    np.testing.assert_array_equal(inputs[ACTION][1:], episode.actions[:, 0])
+    assert inputs[ACTION][0] == 3  # o_0: no action led to it
+    with torch.no_grad():
+        torch.testing.assert_close(model.encode_episode(episode), model.encode_steps(as_tensors(inputs)))
+    no_camera = Episode("blind", episode.actions, {}, segments=[])
+    with pytest.raises(FeatureError, match=f"episode 'blind'.*{CAMERA}"):
+        model.encode_episode(no_camera)
+
+
+def test_checkpoint_of_an_action_model_round_trips(tmp_path) -> None:
     model = tiny_ps_model(seed=2, num_actions=3)
-    save_checkpoint(tmp_path / "ps.pt", model)
-    loaded, _ = load_checkpoint(tmp_path / "ps.pt")
-    assert loaded.cfg.num_actions == 3 and loaded.reads_actions
-    frames, actions = torch.from_numpy(synthetic_episode(1).frames[:6]), torch.tensor([3, 0, 1, 2, 0, 1])
+    save_model(tmp_path / "ps.pt", model)
+    loaded, _ = load_model(tmp_path / "ps.pt")
+    assert loaded.reads_actions and loaded.cfg.features.action.num_values == 3
+    assert [spec.kind for spec in loaded.cfg.encoders] == ["babyai.grid_tiles", "discrete_action"]
+    frames, actions = synthetic_episode(1).images[CAMERA][:6], [3, 0, 1, 2, 0, 1]
     with torch.no_grad():
         torch.testing.assert_close(
-            loaded.end_logits(loaded.encode_steps(frames, actions)),
-            model.end_logits(model.encode_steps(frames, actions)),
+            loaded.end_logits(loaded.encode_steps(_inputs(frames, actions))),
+            model.end_logits(model.encode_steps(_inputs(frames, actions))),
         )
-    old = asdict(tiny_ps_model().cfg)
-    del old["num_actions"], old["action_dim"]  # written before models read actions
-    assert ModelConfig.from_dict(old).num_actions == 0
 
 
 def test_checkpoint_round_trip_gives_identical_outputs(tmp_path) -> None:
     model = tiny_ps_model(seed=5)
     path = tmp_path / "ps.pt"
-    save_checkpoint(path, model, extra={"note": "test"})
+    save_model(path, model, meta={"note": "test"})
     raw = torch.load(path, weights_only=True)
-    assert raw["instructions"] == INSTRUCTIONS and raw["config"]["trunk"]["max_len"] == 6
-    loaded, extra = load_checkpoint(path)
+    assert raw["format"] == "playseg-checkpoint" and raw["kind"] == "ps"
+    assert raw["config"]["instructions"] == INSTRUCTIONS and raw["config"]["trunk"]["max_len"] == 6
+    assert sorted(raw["features"]["features"]) == [ACTION, CAMERA]
+    loaded, meta = load_model(path)
     assert isinstance(loaded, PSModel) and loaded.instructions == INSTRUCTIONS
-    assert extra == {"note": "test"}
-    frames = torch.from_numpy(synthetic_episode(1).frames)
+    assert meta == {"note": "test"}
+    episode = synthetic_episode(1)
     with torch.no_grad():
         torch.testing.assert_close(
-            loaded.end_logits(loaded.encode_frames(frames)), model.end_logits(model.encode_frames(frames))
+            loaded.end_logits(loaded.encode_episode(episode)), model.end_logits(model.encode_episode(episode))
         )
 
 
 def test_labeller_checkpoint_round_trip(tmp_path) -> None:
     torch.manual_seed(0)
-    cfg = ModelConfig(
-        EncoderConfig(tile_channels=8, object_dim=8, feature_dim=16), TrunkConfig(16, 1, 3, 6), NUM_CLASSES
-    )
-    model = LabelModel(cfg, INSTRUCTIONS).eval()
-    save_checkpoint(tmp_path / "lab.pt", model)
-    loaded, _ = load_checkpoint(tmp_path / "lab.pt")
+    model = LabelModel(tiny_model_config(num_layers=1), INSTRUCTIONS).eval()
+    save_model(tmp_path / "lab.pt", model)
+    loaded, _ = load_model(tmp_path / "lab.pt")
     features = random_features(8)
     assert isinstance(loaded, LabelModel)
     torch.testing.assert_close(loaded.label_logits(features, 1, 5), model.label_logits(features, 1, 5))
+    with pytest.raises(CheckpointError, match="lab.pt.*a 'labeller' checkpoint, expected ps"):
+        load_model(tmp_path / "lab.pt", kinds=("ps",))
+
+
+def test_a_checkpoint_refuses_data_with_other_features(tmp_path) -> None:
+    model = tiny_ps_model(num_actions=3)
+    save_model(tmp_path / "ps.pt", model)
+    loaded, _ = load_model(tmp_path / "ps.pt")
+    loaded.cfg.check_features(FEATURES, "model ps.pt")  # the same features: accepted
+    other_camera = Features.of(
+        [Feature("observation.images.wrist", "image", "uint8", (64, 64, 3)), FEATURES.action]
+    )
+    with pytest.raises(FeatureError, match=f"model ps.pt reads feature '{CAMERA}', which the data lacks"):
+        loaded.cfg.check_features(other_camera, "model ps.pt")
+    bigger = Features.of([Feature(CAMERA, "image", "uint8", (96, 96, 3)), FEATURES.action])
+    with pytest.raises(FeatureError, match=CAMERA):
+        loaded.cfg.check_features(bigger, "model ps.pt")
+    continuous = FEATURES.with_action(Feature(ACTION, "action", "float32", (1,)))
+    with pytest.raises(FeatureError, match="action.*discrete, 3 values.*continuous"):
+        loaded.cfg.check_features(continuous, "model ps.pt")
 
 
 def test_corrupt_checkpoints_fail_clearly(tmp_path) -> None:
     garbage = tmp_path / "garbage.pt"
     garbage.write_bytes(b"this is not a checkpoint")
     with pytest.raises(ValueError, match="garbage.pt"):
-        load_checkpoint(garbage)
+        load_model(garbage)
 
     unsafe = tmp_path / "unsafe.pt"
     torch.save({"kind": "ps", "object": UnsafePayload()}, unsafe)
     with pytest.raises(ValueError, match="unsafe.pt.*cannot be read safely"):
-        load_checkpoint(unsafe)
+        load_model(unsafe)
+
+    untagged = tmp_path / "untagged.pt"
+    torch.save({"kind": "ps", "config": {}, "state_dict": {}}, untagged)  # the format before this one
+    with pytest.raises(ValueError, match="untagged.pt.*not a playseg-checkpoint file"):
+        load_model(untagged)
 
     model = tiny_ps_model()
     wrong_shape = tmp_path / "wrong.pt"
-    save_checkpoint(wrong_shape, model)
+    save_model(wrong_shape, model)
     payload = torch.load(wrong_shape, weights_only=True)
     payload["config"]["trunk"]["hidden_dim"] = 32
     torch.save(payload, wrong_shape)
-    with pytest.raises(ValueError, match="wrong.pt.*not a playseg checkpoint"):
-        load_checkpoint(wrong_shape)
+    with pytest.raises(ValueError, match="wrong.pt.*not a valid ps model"):
+        load_model(wrong_shape)
 
     with pytest.raises(ValueError, match="missing.pt.*no such file"):
-        load_checkpoint(tmp_path / "missing.pt")
+        load_model(tmp_path / "missing.pt")
 
 
 def test_encoder_ignores_where_things_are() -> None:
@@ -250,6 +308,6 @@ def test_encoder_ignores_where_things_are() -> None:
     other = frame.copy()
     other[24:32, 24:32] = 255 - other[24:32, 24:32]  # a different tile content: features must change
     with torch.no_grad():
-        features = model.encode_frames(torch.from_numpy(np.stack([frame, shifted, other])))
+        features = encode_frames(model, np.stack([frame, shifted, other]))
     torch.testing.assert_close(features[1], features[0], rtol=1e-4, atol=1e-5)
     assert not torch.allclose(features[2], features[0], atol=1e-4)

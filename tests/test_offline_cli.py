@@ -9,8 +9,10 @@ import pytest
 import torch
 
 from playseg_core.data.dataset import PlayDataset
+from playseg_core.data.features import ACTION, Feature
+from playseg_core.domains.babyai.spec import CAMERA
 from playseg_ros.cli import main as cli_main
-from playseg_ros.offline import _num_actions
+from playseg_ros.offline import _action_features
 
 
 @pytest.fixture(scope="module")
@@ -24,13 +26,15 @@ def test_train_calibrate_segment_evaluate(tiny_data: Path, tmp_path: Path, capsy
     model = tmp_path / "ps.pt"
     assert cli_main(["train", "--data", str(tiny_data), "--out", str(model), "--epochs", "1"]) == 0
     printed = capsys.readouterr().out
-    assert "model reads 7 discrete actions" in printed  # BabyAI actions, found by --actions auto
+    # BabyAI's camera by the domain's grid-tile encoder; its declared discrete actions, by --actions auto
+    assert f"model reads {CAMERA} (babyai.grid_tiles), action (discrete_action)" in printed
     assert "end bias" in printed and "label threshold" in printed
     raw = torch.load(model, weights_only=True)
-    assert raw["config"]["num_actions"] == 7
+    assert raw["features"]["features"][ACTION]["num_values"] == 7
+    assert [spec["kind"] for spec in raw["config"]["encoders"]] == ["babyai.grid_tiles", "discrete_action"]
     # the bias the checkpoint records is the one its model segments with
-    assert raw["state_dict"]["end_bias"].item() == raw["extra"]["end_bias"]["bias"]
-    assert len(raw["extra"]["end_bias"]["sweep"]) >= 5
+    assert raw["state_dict"]["end_bias"].item() == raw["meta"]["end_bias"]["bias"]
+    assert len(raw["meta"]["end_bias"]["sweep"]) >= 5
 
     recalibrated = tmp_path / "ps-recalibrated.pt"
     assert (
@@ -38,8 +42,8 @@ def test_train_calibrate_segment_evaluate(tiny_data: Path, tmp_path: Path, capsy
         == 0
     )
     again = torch.load(recalibrated, weights_only=True)
-    assert again["extra"]["end_bias"] == raw["extra"]["end_bias"]  # same model, same val split
-    assert again["extra"]["calibrated_on"] == str(tiny_data.resolve())
+    assert again["meta"]["end_bias"] == raw["meta"]["end_bias"]  # same model, same val split
+    assert again["meta"]["calibrated_on"] == str(tiny_data.resolve())
 
     pred = tmp_path / "pred"
     assert (
@@ -71,10 +75,43 @@ def test_calibrate_refuses_a_dataset_without_annotated_val(tmp_path: Path, capsy
 
 
 def test_actions_option(tiny_data: Path) -> None:
-    episodes = list(PlayDataset.open(tiny_data).episodes("train"))
-    assert _num_actions("auto", episodes) == 7 and _num_actions("none", episodes) == 0
-    assert _num_actions("3", episodes) == 3
-    continuous = [type(episodes[0])("c", episodes[0].frames, episodes[0].actions + 0.5)]
-    assert _num_actions("auto", continuous) == 0  # not BabyAI's discrete actions: frames only
+    features = PlayDataset.open(tiny_data).features
+    assert _action_features("auto", features) == (features, True)  # the declared discrete action
+    assert _action_features("none", features) == (features, False)
+    three, reads = _action_features("3", features)
+    assert reads and three.action.num_values == 3
+    continuous = features.with_action(Feature(ACTION, "action", "float32", (1,)))
+    assert _action_features("auto", continuous) == (continuous, False)  # declared continuous: not read
     with pytest.raises(ValueError, match="--actions must be a count"):
-        _num_actions("many", episodes)
+        _action_features("many", features)
+
+
+def test_segment_refuses_data_with_other_features(tiny_data: Path, tmp_path: Path, capsys) -> None:
+    model = tmp_path / "ps.pt"
+    assert cli_main(["train", "--data", str(tiny_data), "--out", str(model), "--epochs", "1"]) == 0
+    dataset = PlayDataset.open(tiny_data)
+    from playseg_core.data.dataset import DatasetWriter
+
+    other = tmp_path / "wrist"
+    wrist = "observation.images.wrist"
+    with DatasetWriter(other, dataset.instructions) as writer:
+        for index in dataset.episode_indices("test")[:2]:
+            episode = dataset.episode(index)
+            images = {wrist: episode.images[CAMERA]}
+            writer.add(type(episode)(episode.episode_id, episode.actions, images, episode.state), "test")
+    capsys.readouterr()
+    code = cli_main(
+        [
+            "segment",
+            "--model",
+            str(model),
+            "--input",
+            str(other),
+            "--splits",
+            "test",
+            "--out",
+            str(tmp_path / "o"),
+        ]
+    )
+    assert code == 1
+    assert f"reads feature '{CAMERA}', which the data lacks" in capsys.readouterr().err

@@ -8,17 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from playseg_core.domains.babyai.imitation import (
-    PolicyTrainConfig,
-    RandomPolicy,
-    bot_demonstrations,
-    evaluate_policy,
-    mirror_samples,
-    train_policy,
-)
+from playseg_core.checkpoint import CheckpointError
+from playseg_core.domains.babyai.evaluation import RandomPolicy, bot_demonstrations, evaluate_policy
+from playseg_core.domains.babyai.imitation import PolicyTrainConfig, mirror_samples, train_policy
 from playseg_core.domains.babyai.policy import (
     WORD_TO_ID,
-    PolicyCheckpointError,
     PolicyConfig,
     PolicyNet,
     egocentric_offsets,
@@ -108,9 +102,9 @@ def test_training_is_seeded(demonstrations):
 def test_checkpoint_round_trip(tmp_path: Path, trained, demonstrations):
     model, stats = trained
     path = tmp_path / "policy.pt"
-    save_policy(path, model, SMALL, {"num_segments": stats.num_segments, "note": "test"})
-    loaded, config, meta = load_policy(path)
-    assert config == SMALL and meta == {"num_segments": 800, "note": "test"}
+    save_policy(path, model, {"num_segments": stats.num_segments, "note": "test"})
+    loaded, meta = load_policy(path)
+    assert loaded.config == SMALL and meta == {"num_segments": 800, "note": "test"}
     states = np.stack([s[0] for _, s, _ in demonstrations[:64]])
     ids, lengths = encode_instructions([i for i, _, _ in demonstrations[:64]])
     with torch.no_grad():
@@ -122,28 +116,28 @@ def test_bad_checkpoints_name_the_file(tmp_path: Path, trained):
     model, _ = trained
     garbage = tmp_path / "garbage.pt"
     garbage.write_bytes(b"this is not a checkpoint")
-    with pytest.raises(PolicyCheckpointError, match="garbage.pt"):
+    with pytest.raises(CheckpointError, match="garbage.pt"):
         load_policy(garbage)
 
     foreign = tmp_path / "foreign.pt"
     torch.save({"state_dict": model.state_dict()}, foreign)
-    with pytest.raises(PolicyCheckpointError, match="foreign.pt.*format"):
+    with pytest.raises(CheckpointError, match="foreign.pt: not a playseg-checkpoint file"):
         load_policy(foreign)
 
     good = tmp_path / "good.pt"
-    save_policy(good, model, SMALL, {})
+    save_policy(good, model, {})
     checkpoint = torch.load(good, weights_only=True)
     checkpoint["config"]["channels"] = 24  # weights no longer fit the config
     wrong_shapes = tmp_path / "wrong_shapes.pt"
     torch.save(checkpoint, wrong_shapes)
-    with pytest.raises(PolicyCheckpointError, match="wrong_shapes.pt.*do not match"):
+    with pytest.raises(CheckpointError, match="wrong_shapes.pt.*do not match"):
         load_policy(wrong_shapes)
 
     checkpoint = torch.load(good, weights_only=True)
     del checkpoint["state_dict"]["head.1.weight"]
     missing = tmp_path / "missing_key.pt"
     torch.save(checkpoint, missing)
-    with pytest.raises(PolicyCheckpointError, match="(?s)missing_key.pt.*head.1.weight"):
+    with pytest.raises(CheckpointError, match="(?s)missing_key.pt.*head.1.weight"):
         load_policy(missing)
 
 

@@ -16,8 +16,15 @@ from playseg_core.data.episode import Episode
 from playseg_core.data.splits import assign_splits
 from playseg_core.domains.babyai.generate import PRESETS, episode_seed
 from playseg_core.domains.babyai.play import episode_id_for_seed, generate_episode
+from playseg_core.domains.babyai.spec import CAMERA, INSTRUCTIONS
 from playseg_ros.bag import BagReader
-from playseg_ros.play_bags import ANNOTATIONS_TOPIC, GROUND_TRUTH_TOPIC, STEPS_TOPIC, read_play_bag
+from playseg_ros.play_bags import (
+    ANNOTATIONS_TOPIC,
+    GROUND_TRUTH_TOPIC,
+    STEPS_TOPIC,
+    read_play_bag,
+    read_play_bag_info,
+)
 
 BAGS = Path(__file__).resolve().parent.parent / "bags"
 PRESET = PRESETS["sample"]
@@ -30,6 +37,13 @@ REGENERATED_PER_BAG = 2  # the first two and the last episode of each bag
 @pytest.fixture(scope="module")
 def sample() -> dict[str, list[Episode]]:
     return {name: read_play_bag(BAGS / name, truth=True) for name in ("annotated", "play", "test")}
+
+
+def test_bags_declare_the_babyai_features() -> None:
+    for name in ("annotated", "play", "test"):
+        info = read_play_bag_info(BAGS / name)
+        assert info.features == PRESET.play.features and info.domain == "babyai", name
+        assert info.instructions == INSTRUCTIONS and info.camera == CAMERA, name
 
 
 def test_bags_have_the_expected_topics() -> None:
@@ -81,8 +95,9 @@ def test_regenerating_gives_the_same_messages(sample: dict[str, list[Episode]]) 
             seed = int(recorded.episode_id.removeprefix("babyai-"))
             fresh = generate_episode(PRESET.play, seed)
             assert fresh.episode_id == recorded.episode_id
-            assert np.array_equal(recorded.frames, fresh.frames), (name, seed)
-            assert fresh.states is not None and recorded.states is not None
-            assert np.array_equal(recorded.states, fresh.states.astype(np.float32)), (name, seed)
+            assert np.array_equal(recorded.images[CAMERA], fresh.images[CAMERA]), (name, seed)
+            assert fresh.state is not None and recorded.state is not None
+            assert recorded.state.dtype == fresh.state.dtype, (name, seed)
+            assert np.array_equal(recorded.state, fresh.state), (name, seed)
             assert np.array_equal(recorded.actions, fresh.actions), (name, seed)
             assert recorded.segments == fresh.segments, (name, seed)

@@ -11,6 +11,7 @@ from reference_style import reference_style_segment
 from test_models import INSTRUCTIONS, synthetic_episode, tiny_ps_model
 
 from playseg_core.data.episode import Episode
+from playseg_core.domains.babyai.spec import CAMERA
 from playseg_core.ps.calibration import (
     calibrate_end_bias,
     calibrate_on_annotated,
@@ -20,7 +21,7 @@ from playseg_core.ps.calibration import (
 from playseg_core.ps.decoding import OnlineDecoder
 from playseg_core.ps.labelling import keep_confident, label_segments
 from playseg_core.ps.metrics import evaluate
-from playseg_core.ps.segmentation import encode_episode, segment_episode
+from playseg_core.ps.segmentation import segment_episode
 
 torch.set_num_threads(1)
 
@@ -53,13 +54,13 @@ def test_online_decoding_with_end_columns_matches_offline() -> None:
     model = tiny_ps_model(max_len=5, seed=2)
     episode = synthetic_episode(5, num_segments=5)
     offline = [(s.start, s.end) for s in segment_episode(model, episode)]
-    features = encode_episode(model, episode)
+    features = model.encode_episode(episode)
     decoder = OnlineDecoder(max_len=model.max_len)
     online = []
     with torch.no_grad():
         for t in range(1, episode.num_steps + 1):
             first = max(0, t - model.max_len)
-            column = model.end_column(features[first : t + 1], first_is_episode_start=first == 0)
+            column = model.end_column(features[first : t + 1], starts_episode=first == 0)
             online += decoder.push(column.double().numpy())
     online += decoder.finish()
     assert online == offline
@@ -70,7 +71,7 @@ def test_label_segments_uses_the_label_head() -> None:
     episode = synthetic_episode(2, num_segments=3)
     spans = [(seg.start, seg.end) for seg in episode.segments]
     labelled = label_segments(model, episode, spans)
-    features = encode_episode(model, episode)
+    features = model.encode_episode(episode)
     for seg in labelled:
         with torch.no_grad():
             probs = torch.softmax(model.label_logits(features, seg.start, seg.end).double(), -1)
@@ -137,7 +138,9 @@ def test_calibrated_end_bias_is_the_best_candidate_when_segmenting() -> None:
     eligible = [b for b in candidates if f1[b] >= result.best_f1 - result.f1_standard_error - 1e-9]
     assert result.precision == pytest.approx(max(p for b, p, _, _ in result.sweep if b in eligible))
     assert result.f1_without_bias == pytest.approx(f1[0.0]) and result.num_episodes == 4
-    unannotated = Episode("play-0", np.zeros((3, 64, 64, 3), np.uint8), np.zeros((2, 1), np.float32))
+    unannotated = Episode(
+        "play-0", np.zeros((2, 1), np.float32), {CAMERA: np.zeros((3, 64, 64, 3), np.uint8)}
+    )
     with pytest.raises(ValueError, match="annotated episodes"):
         calibrate_end_bias(model, [unannotated])
 

@@ -3,23 +3,31 @@
 import pytest
 import torch
 
-from playseg_core.domains.babyai.play import INSTRUCTIONS, NUM_ACTIONS, PlayConfig, generate_episode
+from playseg_core.data.features import STATE
+from playseg_core.domains.babyai.play import PlayConfig, generate_episode
+from playseg_core.domains.babyai.spec import CAMERA, DOMAIN, INSTRUCTIONS
 from playseg_core.ps.model import PSModel
 from playseg_core.ps.segmentation import segment_episode
 from playseg_core.ps.streaming import StreamingSegmenter
-from playseg_core.ps.training import default_model_config
+from playseg_core.ps.training import model_config_for
 
 
-@pytest.mark.parametrize(("seed", "num_actions"), [(0, 0), (1, 0), (2, NUM_ACTIONS)])
-def test_stream_equals_offline(seed, num_actions):
+def babyai_model(read_actions: bool) -> PSModel:
+    cfg = model_config_for(PlayConfig().features, DOMAIN, len(INSTRUCTIONS), read_actions=read_actions)
+    return PSModel(cfg, list(INSTRUCTIONS))
+
+
+@pytest.mark.parametrize(("seed", "read_actions"), [(0, False), (1, False), (2, True)])
+def test_stream_equals_offline(seed, read_actions):
     torch.manual_seed(seed)  # untrained weights cut arbitrarily: many boundaries to compare
-    model = PSModel(default_model_config(len(INSTRUCTIONS), num_actions=num_actions), list(INSTRUCTIONS))
+    model = babyai_model(read_actions)
     episode = generate_episode(PlayConfig(), 40 + seed)
     stream = StreamingSegmenter(model)
     live = []
-    for t, frame in enumerate(episode.frames):
+    for t, frame in enumerate(episode.images[CAMERA]):
         # as a PlayStep carries them: o_t with a_t, the last observation without an action
-        live += stream.push(frame, episode.actions[t] if t < episode.num_steps else None)
+        observation = {CAMERA: frame, STATE: episode.state[t]}
+        live += stream.push(observation, episode.actions[t] if t < episode.num_steps else None)
         # only frames from the last decided boundary on are kept (older ones are never needed again)
         assert stream._offset == (live[-1].end if live else 0)
     live += stream.finish()
@@ -34,11 +42,14 @@ def test_stream_equals_offline(seed, num_actions):
 
 def test_stream_of_an_action_model_rejects_a_missing_or_invalid_action():
     torch.manual_seed(0)
-    model = PSModel(default_model_config(len(INSTRUCTIONS), num_actions=NUM_ACTIONS), list(INSTRUCTIONS))
+    model = babyai_model(read_actions=True)
     episode = generate_episode(PlayConfig(), 40)
+    frames = episode.images[CAMERA]
     stream = StreamingSegmenter(model)
-    stream.push(episode.frames[0], None)
+    stream.push({CAMERA: frames[0]}, None)
     with pytest.raises(ValueError, match="observation 1: the previous step carried no action"):
-        stream.push(episode.frames[1], episode.actions[1])
+        stream.push({CAMERA: frames[1]}, episode.actions[1])
     with pytest.raises(ValueError, match=r"action of step 0\[0\] = 9.0: not a discrete action index in 0..6"):
-        StreamingSegmenter(model).push(episode.frames[0], [9.0])
+        StreamingSegmenter(model).push({CAMERA: frames[0]}, [9.0])
+    with pytest.raises(ValueError, match=f"step 0: the model reads feature '{CAMERA}', the step lacks it"):
+        StreamingSegmenter(model).push({STATE: episode.state[0]}, [1.0])

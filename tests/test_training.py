@@ -4,20 +4,19 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from test_models import INSTRUCTIONS, synthetic_episode
+from test_models import INSTRUCTIONS, synthetic_episode, tiny_model_config
 
-from playseg_core.ps.model import EncoderConfig, ModelConfig, TrunkConfig
+from playseg_core.domains.babyai.spec import CAMERA
+from playseg_core.ps.encoders import StepEncoders
+from playseg_core.ps.samples import NEGATIVE_KINDS, label_index, make_batch, segment_samples
 from playseg_core.ps.segmentation import segment_episode
-from playseg_core.ps.training import (
-    NEGATIVE_KINDS,
-    TrainConfig,
-    epochs_to_train,
-    label_index,
-    make_batch,
-    segment_samples,
-    train_labeller,
-    train_ps,
-)
+from playseg_core.ps.training import TrainConfig, epochs_to_train, train_labeller, train_ps
+
+
+def encoders_for(size: int = 64) -> StepEncoders:
+    cfg = tiny_model_config(size=size)
+    return StepEncoders(cfg.encoders, cfg.features)
+
 
 torch.set_num_threads(1)
 
@@ -74,11 +73,13 @@ def test_batch_windows_never_cross_episodes() -> None:
     episodes = [synthetic_episode(s, num_segments=3) for s in range(3)]
     rng = np.random.default_rng(0)
     items = [(ep, seg) for ep in episodes for seg in ep.segments]
-    batch = make_batch(items, label_index(INSTRUCTIONS), 6, 3, rng, dense_prefix_negatives=True)
+    batch = make_batch(
+        items, label_index(INSTRUCTIONS), encoders_for(), 6, 3, rng, dense_prefix_negatives=True
+    )
     # Each segment contributes the frames [start - k_max, end + k_max] of its episode, clipped.
     regions = [(max(0, s.start - 3), min(ep.num_steps, s.end + 3)) for ep, s in items]
     total = sum(hi - lo + 1 for lo, hi in regions)
-    assert len(batch.frames) == total
+    assert len(batch.inputs[CAMERA]) == total
     starts = np.cumsum([0] + [hi - lo + 1 for lo, hi in regions])
     for row in batch.window_index.numpy():
         region = np.searchsorted(starts, row[0], side="right") - 1
@@ -92,9 +93,6 @@ def test_batch_windows_never_cross_episodes() -> None:
     positives = batch.end_weight[batch.label_window]
     for row, length in zip(positives, batch.label_position.tolist(), strict=True):
         assert torch.all(row[1 : length + 1] == 1) and row[0] == 0
-
-
-SMALL = {"image_size": 16, "tile_channels": 8, "object_dim": 8, "feature_dim": 16}
 
 
 def _small_data(ends_in_actions: bool = False) -> tuple[list, list]:
@@ -120,13 +118,7 @@ def _train_small_ps(dense: bool, epochs: int, num_actions: int = 0, ends_in_acti
         log_epochs=False,
         num_threads=1,
     )
-    model_cfg = ModelConfig(
-        EncoderConfig(**SMALL),
-        TrunkConfig(16, 1, 3, 8),
-        len(INSTRUCTIONS),
-        num_actions=num_actions,
-        action_dim=4,
-    )
+    model_cfg = tiny_model_config(max_len=8, num_actions=num_actions, num_layers=1, size=16)
     return train_ps(train, val, INSTRUCTIONS, cfg, model_cfg), val
 
 
@@ -186,7 +178,7 @@ def test_short_labeller_training_learns() -> None:
         log_epochs=False,
         num_threads=1,
     )
-    model_cfg = ModelConfig(EncoderConfig(**SMALL), TrunkConfig(16, 1, 3, 8), len(INSTRUCTIONS))
+    model_cfg = tiny_model_config(max_len=8, num_layers=1, size=16)
     result = train_labeller(train, val, INSTRUCTIONS, cfg, model_cfg)
     assert max(h["val"]["label_accuracy"] for h in result.history) >= 0.8  # chance: 0.25
     assert result.history[-1]["train"]["loss"] < 0.3 * result.history[0]["train"]["loss"]
@@ -195,13 +187,14 @@ def test_short_labeller_training_learns() -> None:
 def test_augmentation_rotates_or_mirrors_each_clip_as_a_whole() -> None:
     episode = synthetic_episode(3, num_segments=2, size=16)
     items = [(episode, episode.segments[1])]  # one clip: the frames within k_max of this segment
-    plain = make_batch(items, label_index(INSTRUCTIONS), 8, 2, np.random.default_rng(0))
+    encoders = encoders_for(size=16)
+    plain = make_batch(items, label_index(INSTRUCTIONS), encoders, 8, 2, np.random.default_rng(0))
     seen = set()
     for seed in range(12):
         augmented = make_batch(
-            items, label_index(INSTRUCTIONS), 8, 2, np.random.default_rng(seed), augment=True
+            items, label_index(INSTRUCTIONS), encoders, 8, 2, np.random.default_rng(seed), augment=True
         )
-        original, changed = plain.frames.numpy(), augmented.frames.numpy()
+        original, changed = plain.inputs[CAMERA].numpy(), augmented.inputs[CAMERA].numpy()
         for k in range(4):
             for mirror in (False, True):
                 candidate = np.rot90(original, k=k, axes=(1, 2))
@@ -216,10 +209,12 @@ def test_dense_window_negatives_supervise_every_position_of_off_start_windows() 
     true_starts = {s.start for s in episode.segments}
     items = [(episode, episode.segments[2])]  # a middle segment: all negative kinds fit
     classes = label_index(INSTRUCTIONS)
-    plain = make_batch(items, classes, 6, 3, np.random.default_rng(0), dense_prefix_negatives=True)
+    encoders = encoders_for()
+    plain = make_batch(items, classes, encoders, 6, 3, np.random.default_rng(0), dense_prefix_negatives=True)
     dense = make_batch(
         items,
         classes,
+        encoders,
         6,
         3,
         np.random.default_rng(0),
@@ -232,7 +227,9 @@ def test_dense_window_negatives_supervise_every_position_of_off_start_windows() 
     first_frame = max(0, episode.segments[2].start - 3)
     for row in range(len(dense.window_index)):
         start = first_frame + int(dense.window_index[row, 0])
-        inside = int((dense.window_index[row] < len(dense.frames)).sum())  # positions with real frames
+        inside = int(
+            (dense.window_index[row] < len(dense.inputs[CAMERA])).sum()
+        )  # positions with real frames
         if start in true_starts:
             torch.testing.assert_close(dense.end_weight[row], plain.end_weight[row])
         else:

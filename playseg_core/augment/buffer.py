@@ -5,7 +5,9 @@ header (JSON) | payload (raw arrays)``. ``append`` returns only after the record
 so every segment the trainer acknowledged survives a crash. On open, a torn record at the tail (a crash
 mid-write) is cut off; a corrupt record elsewhere is an error naming the file and byte offset.
 Each record is one `SegmentClip`; the header holds its episode id, source and segment fields (start,
-end, instruction, confidence, log_prob), the payload its actions, states and frames (those present).
+end, instruction, confidence, log_prob), the payload its arrays by feature name (``action``,
+``observation.state`` and every ``observation.images.<camera>`` present). Records written before feature
+names (arrays ``actions``, ``states``, ``frames``) are read as well.
 """
 
 from __future__ import annotations
@@ -20,13 +22,14 @@ from pathlib import Path
 import numpy as np
 
 from playseg_core.data.episode import Segment, SegmentClip
+from playseg_core.data.features import ACTION, DEFAULT_CAMERA, STATE
 
 MAGIC = b"PSB1"
 _PREFIX = struct.Struct("<4sIQI")  # magic, header length, payload length, crc32 of header + payload
 LOG_NAME = "segments.log"
 
 
-_ARRAYS = ("actions", "states", "frames")
+_LEGACY_ARRAYS = {"actions": ACTION, "states": STATE, "frames": DEFAULT_CAMERA}
 
 
 class AugmentationBuffer:
@@ -62,10 +65,12 @@ class AugmentationBuffer:
             "source": clip.source,
         }
         chunks, arrays = [], {}
-        for name in _ARRAYS:
-            array = getattr(clip, name)
-            if array is None:
-                continue
+        named = {
+            ACTION: clip.actions,
+            **({STATE: clip.state} if clip.state is not None else {}),
+            **clip.images,
+        }
+        for name, array in named.items():
             array = np.ascontiguousarray(array)
             arrays[name] = {"dtype": array.dtype.str, "shape": list(array.shape)}
             chunks.append(array.tobytes())
@@ -149,7 +154,9 @@ def _read_record(f, path: Path) -> tuple[SegmentClip, int]:
     for name, spec in header.pop("arrays").items():
         dtype = np.dtype(spec["dtype"])
         count = int(np.prod(spec["shape"], dtype=np.int64))
-        arrays[name] = np.frombuffer(payload, dtype, count, cursor).reshape(spec["shape"])
+        arrays[_LEGACY_ARRAYS.get(name, name)] = np.frombuffer(payload, dtype, count, cursor).reshape(
+            spec["shape"]
+        )
         cursor += count * dtype.itemsize
     try:
         segment = Segment(
@@ -159,7 +166,14 @@ def _read_record(f, path: Path) -> tuple[SegmentClip, int]:
             header.pop("confidence"),
             header.pop("log_prob"),
         )
-        clip = SegmentClip(segment=segment, **header, **arrays)
+        clip = SegmentClip(
+            segment=segment,
+            actions=arrays.pop(ACTION),
+            state=arrays.pop(STATE, None),
+            images=arrays,
+            episode_id=header.pop("episode_id"),
+            source=header.pop("source", ""),
+        )
     except (KeyError, TypeError, ValueError) as error:
         raise ValueError(f"{path}: record at byte {offset} is not a segment: {error}") from None
     return clip, offset + _PREFIX.size + header_len + payload_len

@@ -1,7 +1,8 @@
-"""Policy augmentation: train the instruction-conditioned policy on the annotated segments plus the
-extracted (segmented and labelled) ones, keep versioned checkpoints, evaluate reproducibly.
+"""Policy augmentation: train an instruction-following policy on the annotated segments plus the extracted
+(segmented and labelled) ones, keep versioned checkpoints, evaluate reproducibly.
 
-The trainer node is a thin ROS adapter over `AugmentationTrainer`.
+The policy is any `augment.policy.PolicyLearner`; the trainer node is a thin ROS adapter over
+`AugmentationTrainer`.
 """
 
 from __future__ import annotations
@@ -10,45 +11,18 @@ import json
 import os
 import threading
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from playseg_core.augment.buffer import AugmentationBuffer
-from playseg_core.data.episode import Episode, Segment, SegmentClip
-from playseg_core.domains.babyai.imitation import (
-    Demonstration,
-    EvalResult,
-    PolicyTrainConfig,
-    evaluate_policy,
-    train_policy,
-)
-from playseg_core.domains.babyai.policy import PolicyNet, load_policy, save_policy
+from playseg_core.augment.policy import PolicyEvaluation, PolicyLearner
+from playseg_core.data.episode import Episode, SegmentClip
+from playseg_core.data.features import Features
 
 
-def demonstrations_from_episodes(episodes: Iterable[Episode]) -> list[Demonstration]:
-    """(instruction, states o_start..o_end, actions a_start..a_end-1) for every labelled segment."""
-    demos = []
-    for episode in episodes:
-        if episode.states is None:
-            raise ValueError(f"episode {episode.episode_id!r}: the policy needs states, the episode has none")
-        for seg in episode.segments:
-            demos.append(
-                (
-                    seg.instruction,
-                    np.asarray(episode.states[seg.start : seg.end + 1]),
-                    np.asarray(episode.actions[seg.start : seg.end]),
-                )
-            )
-    return demos
-
-
-def demonstration_from_clip(clip: SegmentClip) -> Demonstration:
-    seg = clip.segment
-    if clip.states is None:
-        raise ValueError(f"segment {clip.episode_id}[{seg.start}, {seg.end}) has no states")
-    return seg.instruction, clip.states, clip.actions
+def annotated_clips(episodes: Iterable[Episode]) -> list[SegmentClip]:
+    """A clip of every labelled segment of ``episodes`` (source "annotation")."""
+    return [SegmentClip.from_episode(ep, seg, "annotation") for ep in episodes for seg in ep.segments]
 
 
 @dataclass
@@ -58,16 +32,14 @@ class TrainerConfig:
     retrain_every: int = 0  # retrain after this many new segments (0: only on request)
     min_confidence: float = 0.0  # segments below this label confidence are stored but not trained on
     eval_episodes: int = 512
-    eval_max_steps: int = 25
     eval_seed: int = 1_000_000  # evaluation seeds are disjoint from the play-generation seeds
-    train: PolicyTrainConfig = field(default_factory=PolicyTrainConfig)
 
 
 @dataclass
 class PolicyVersion:
     version: int
     checkpoint: str
-    success_rate: float
+    success_rate: float  # NaN when the policy's domain has no simulator to evaluate in
     eval_episodes: int
     train_loss: float
     num_base_segments: int
@@ -77,9 +49,12 @@ class PolicyVersion:
 class AugmentationTrainer:
     """Buffer + base data -> versioned policies. Thread-safe: `add` may run while `retrain` runs."""
 
-    def __init__(self, config: TrainerConfig, base_demos: list[Demonstration] | None = None) -> None:
+    def __init__(
+        self, config: TrainerConfig, learner: PolicyLearner, base_clips: list[SegmentClip] | None = None
+    ) -> None:
         self.config = config
-        self.base_demos = list(base_demos or [])
+        self.learner = learner
+        self.base_clips = list(base_clips or [])
         self.buffer = AugmentationBuffer(config.buffer_dir)
         self.checkpoint_dir = Path(config.checkpoint_dir)
         self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
@@ -98,51 +73,47 @@ class AugmentationTrainer:
             self._since_retrain += 1
             return self.config.retrain_every > 0 and self._since_retrain >= self.config.retrain_every
 
-    def training_demos(self) -> list[Demonstration]:
+    def training_clips(self) -> list[SegmentClip]:
+        """The base clips and every buffered clip at or above the confidence threshold."""
         with self._lock:
             extracted = [
-                demonstration_from_clip(clip)
-                for clip in self.buffer
-                if clip.segment.confidence >= self.config.min_confidence
+                clip for clip in self.buffer if clip.segment.confidence >= self.config.min_confidence
             ]
             self._since_retrain = 0
-        return self.base_demos + extracted
+        return self.base_clips + extracted
 
     def retrain(self, progress: bool = False) -> PolicyVersion:
         """Train a new policy version on base + buffer, evaluate it, write its checkpoint."""
-        demos = self.training_demos()
-        if not demos:
+        clips = self.training_clips()
+        if not clips:
             raise ValueError("no segments to train on: the buffer and the annotated data are empty")
-        model, stats = train_policy(demos, self.config.train, progress=progress)
+        model, report = self.learner.train(clips, progress=progress)
         result = self.evaluate(model)
+        success = result.success_rate if result else float("nan")
         version = self.policy_version + 1
         path = self.checkpoint_dir / f"policy-v{version:04d}.pt"
-        meta = {"version": version, "success_rate": result.success_rate, "segments": len(demos)}
-        save_policy(path, model, model.config, meta)
+        meta = {"version": version, "success_rate": success, "segments": len(clips)}
+        self.learner.save(path, model, meta)
         latest = PolicyVersion(
             version=version,
             checkpoint=str(path),
-            success_rate=result.success_rate,
-            eval_episodes=result.num_episodes,
-            train_loss=stats.final_loss,
-            num_base_segments=len(self.base_demos),
-            num_buffer_segments=len(demos) - len(self.base_demos),
+            success_rate=success,
+            eval_episodes=result.num_episodes if result else 0,
+            train_loss=report.final_loss,
+            num_base_segments=len(self.base_clips),
+            num_buffer_segments=len(clips) - len(self.base_clips),
         )
         _write_json_atomically(self.checkpoint_dir / "latest.json", latest.__dict__)
         self.latest = latest
         return latest
 
-    def evaluate(self, model: PolicyNet | None = None, episodes: int | None = None) -> EvalResult:
+    def evaluate(self, model: object | None = None, episodes: int | None = None) -> PolicyEvaluation | None:
+        """Evaluate ``model`` (default: the latest version) in the domain's simulator; None without one."""
         if model is None:
             if self.latest is None:
                 raise ValueError("no policy trained yet")
-            model = load_policy(self.latest.checkpoint)[0]
-        return evaluate_policy(
-            model,
-            num_episodes=episodes or self.config.eval_episodes,
-            max_steps=self.config.eval_max_steps,
-            seed=self.config.eval_seed,
-        )
+            model = self.learner.load(Path(self.latest.checkpoint))[0]
+        return self.learner.evaluate(model, episodes or self.config.eval_episodes, self.config.eval_seed)
 
     def close(self) -> None:
         self.buffer.close()
@@ -163,31 +134,29 @@ def _write_json_atomically(path: Path, data: dict) -> None:
     os.replace(tmp, path)
 
 
-def export_buffer_dataset(buffer: AugmentationBuffer, path: str | Path) -> int:
+def export_buffer_dataset(
+    buffer: AugmentationBuffer,
+    path: str | Path,
+    instructions: Iterable[str] = (),
+    features: Features | None = None,
+) -> int:
     """Write every buffered segment as a one-segment episode of a playseg dataset (split 'train').
 
-    Episode ids are ``<source episode>:<start>-<end>``; segment confidence and log-score are kept.
-    Returns the number of segments written. The dataset appears at ``path`` only when complete.
+    Episode ids are ``<source episode>:<start>-<end>``; segment confidence and log-score are kept. The
+    dataset's instruction list is ``instructions`` followed by any other instruction the buffer holds;
+    ``features`` is its schema (default: taken from the first clip). Returns the number of segments
+    written. The dataset appears at ``path`` only when complete.
     """
     from playseg_core.data.dataset import DatasetWriter
-    from playseg_core.domains.babyai.play import INSTRUCTIONS
 
     clips = list(buffer)
-    used = {clip.segment.instruction for clip in clips}
-    instructions = INSTRUCTIONS if used <= set(INSTRUCTIONS) else sorted(used)
-    with DatasetWriter(path, instructions, meta={"source": f"augmentation buffer {buffer.path}"}) as writer:
+    known = list(dict.fromkeys(instructions))
+    known += sorted({clip.segment.instruction for clip in clips} - set(known))
+    meta = {"source": f"augmentation buffer {buffer.path}"}
+    with DatasetWriter(path, known, meta, features=features) as writer:
         for clip in clips:
             seg = clip.segment
-            if clip.frames is None:
-                raise ValueError(
-                    f"{buffer.path}: segment {clip.episode_id}[{seg.start}, {seg.end}) has no frames"
-                )
-            episode = Episode(
-                episode_id=f"{clip.episode_id}:{seg.start}-{seg.end}",
-                frames=np.asarray(clip.frames),
-                actions=np.asarray(clip.actions, np.float32),
-                states=None if clip.states is None else np.asarray(clip.states),
-                segments=[Segment(0, seg.length, seg.instruction, seg.confidence, seg.log_prob)],
+            writer.add(
+                clip.as_episode(f"{clip.episode_id}:{seg.start}-{seg.end}"), "train", {"source": clip.source}
             )
-            writer.add(episode, "train", extra={"source": clip.source})
     return len(clips)

@@ -1,16 +1,19 @@
 """The training-dataset format: versioned, memory-mapped, split by episode (see docs/dataset-format.md).
 
-Layout of a dataset directory::
+Layout of a dataset directory (format version 2)::
 
-    meta/info.json        format name and version, array shapes and dtypes, counts, instructions, meta
-    meta/episodes.jsonl   one JSON object per episode: id, split, offsets into the arrays
-    data/frames.bin       all episodes' frames, (sum of T+1, H, W, 3) uint8, C order
-    data/states.bin       all episodes' states, (sum of T+1, *state_shape) (absent without states)
-    data/actions.bin      all episodes' actions, (sum of T, action_dim) float32
-    data/segments.npy     structured table: episode, start, end, instruction, confidence, log_prob
+    meta/info.json           format name and version, the feature schema (data/features.py), array files,
+                             counts, instructions, domain, free-form meta
+    meta/episodes.jsonl      one JSON object per episode: id, split, offsets into the arrays
+    data/<feature>.bin       one flat file per feature, e.g. data/observation.images.front.bin
+                             (sum of T+1, H, W, 3) uint8, data/observation.state.bin (sum of T+1, ...),
+                             data/action.bin (sum of T, ...) float32; C order
+    data/segments.npy        structured table: episode, start, end, instruction, confidence, log_prob
 
-Each episode's boundary frames are stored once (T+1 frames per episode); segments are half-open step
+Each episode's boundary observations are stored once (T+1 per episode); segments are half-open step
 ranges into their episode. Arrays are opened with ``np.memmap`` so a corpus larger than RAM loads lazily.
+Version 1 (one unnamed camera in data/frames.bin, data/states.bin, data/actions.bin) is read as well:
+see `_features_of_version_1`.
 """
 
 from __future__ import annotations
@@ -26,15 +29,32 @@ from typing import Any
 import numpy as np
 
 from playseg_core.data.episode import Episode, Segment
+from playseg_core.data.features import (
+    ACTION,
+    DEFAULT_CAMERA,
+    STATE,
+    Feature,
+    FeatureError,
+    Features,
+    infer_features,
+)
 from playseg_core.data.splits import ANNOTATED_SPLITS, SPLITS
 
 FORMAT_NAME = "playseg-dataset"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 
 INFO_FILE = "meta/info.json"
 EPISODES_FILE = "meta/episodes.jsonl"
 SEGMENTS_FILE = "data/segments.npy"
-ARRAY_FILES = {"frames": "data/frames.bin", "states": "data/states.bin", "actions": "data/actions.bin"}
+VERSION_1_FILES = {"frames": DEFAULT_CAMERA, "states": STATE, "actions": ACTION}
+"""Version 1 array names -> the feature each one is."""
+
+
+def array_file(feature: str) -> str:
+    """Where a feature's flat array lies inside a dataset directory."""
+    return f"data/{feature}.bin"
+
 
 UNLABELLED = -1
 """Instruction index of a segment without a label."""
@@ -63,7 +83,7 @@ class EpisodeRecord:
     episode_id: str
     split: str
     num_steps: int
-    frame_start: int
+    observation_start: int  # first row of its observations (version 1 called it frame_start)
     step_start: int
     segment_start: int
     num_segments: int
@@ -85,6 +105,10 @@ class DatasetWriter:
     Arrays are appended to flat files in a temporary sibling directory; ``close()`` writes the segment
     table and meta/info.json and renames the directory into place, so ``path`` never holds a
     half-written dataset. Leaving the ``with`` block through an exception discards everything.
+
+    ``features`` is the schema every episode must follow (FeatureError naming the episode and feature
+    otherwise); when None it is taken from the first episode, with a continuous action. ``domain`` names
+    the world the data comes from when it is a known one (its step encoders and policy may be used).
     """
 
     def __init__(
@@ -93,6 +117,8 @@ class DatasetWriter:
         instructions: Sequence[str],
         meta: dict[str, Any] | None = None,
         overwrite: bool = False,
+        features: Features | None = None,
+        domain: str | None = None,
     ) -> None:
         self.path = Path(path)
         if self.path.exists() and not overwrite:
@@ -104,6 +130,8 @@ class DatasetWriter:
             raise ValueError("DatasetWriter: instructions contain duplicates")
         self._instruction_index = {text: i for i, text in enumerate(self.instructions)}
         self.meta = dict(meta or {})
+        self.features = features
+        self.domain = domain
         self.overwrite = overwrite
         self._tmp = self.path.with_name(f".{self.path.name}.partial-{os.getpid()}")
         if self._tmp.exists():
@@ -112,12 +140,9 @@ class DatasetWriter:
         (self._tmp / "data").mkdir()
         self._files: dict[str, Any] = {}
         self._episodes_file = open(self._tmp / EPISODES_FILE, "w", encoding="utf-8")  # noqa: SIM115
-        self._shapes: dict[str, tuple[int, ...]] = {}
-        self._dtypes: dict[str, np.dtype] = {}
-        self._has_states: bool | None = None
         self._ids: set[str] = set()
         self._segments: list[tuple[int, int, int, int, float, float]] = []
-        self._num_frames = 0
+        self._num_observations = 0
         self._num_steps = 0
         self._split_counts = {name: {"episodes": 0, "steps": 0, "segments": 0} for name in SPLITS}
         self._closed = False
@@ -153,17 +178,11 @@ class DatasetWriter:
             raise ValueError(f"{name}: unknown split {split!r} (expected one of {SPLITS})")
         if episode.episode_id in self._ids:
             raise ValueError(f"{name}: episode_id already written to this dataset")
-        has_states = episode.states is not None
-        if self._has_states is None:
-            self._has_states = has_states
-        elif has_states != self._has_states:
-            want = "states" if self._has_states else "no states"
-            raise ValueError(f"{name}: field 'states' present={has_states}, but the dataset has {want}")
-        arrays = {"frames": episode.frames, "actions": episode.actions.astype(np.float32, copy=False)}
-        if has_states:
-            arrays["states"] = episode.states
-        for key, array in arrays.items():
-            self._append(name, key, np.asarray(array))
+        actions = episode.actions.astype(np.float32, copy=False)
+        if self.features is None:
+            self.features = infer_features(episode.images, episode.state, actions)
+        episode = Episode(episode.episode_id, actions, episode.images, episode.state, episode.segments)
+        self.features.check_episode(episode)
         labels = []
         for seg in episode.segments:
             if seg.instruction == "":
@@ -175,13 +194,20 @@ class DatasetWriter:
                     f"{name}: segment [{seg.start}, {seg.end}) field 'instruction' {seg.instruction!r} "
                     "is not in the dataset's instruction list"
                 )
+        arrays = {**episode.images, ACTION: actions}
+        if episode.state is not None:
+            arrays[STATE] = episode.state
+        for feature, array in arrays.items():
+            if feature not in self._files:
+                self._files[feature] = open(self._tmp / array_file(feature), "wb")  # noqa: SIM115
+            self._files[feature].write(np.ascontiguousarray(array).data)
         index = len(self._ids)
         record = EpisodeRecord(
             index=index,
             episode_id=episode.episode_id,
             split=split,
             num_steps=episode.num_steps,
-            frame_start=self._num_frames,
+            observation_start=self._num_observations,
             step_start=self._num_steps,
             segment_start=len(self._segments),
             num_segments=len(episode.segments),
@@ -191,25 +217,13 @@ class DatasetWriter:
             self._segments.append((index, seg.start, seg.end, label, seg.confidence, seg.log_prob))
         self._episodes_file.write(record.to_json() + "\n")
         self._ids.add(episode.episode_id)
-        self._num_frames += episode.num_steps + 1
+        self._num_observations += episode.num_steps + 1
         self._num_steps += episode.num_steps
         counts = self._split_counts[split]
         counts["episodes"] += 1
         counts["steps"] += episode.num_steps
         counts["segments"] += len(episode.segments)
         return index
-
-    def _append(self, name: str, key: str, array: np.ndarray) -> None:
-        if key not in self._shapes:
-            self._shapes[key] = tuple(array.shape[1:])
-            self._dtypes[key] = array.dtype
-            self._files[key] = open(self._tmp / ARRAY_FILES[key], "wb")  # noqa: SIM115
-        if tuple(array.shape[1:]) != self._shapes[key] or array.dtype != self._dtypes[key]:
-            raise ValueError(
-                f"{name}: field {key!r} is {array.shape[1:]} {array.dtype} per row, but the dataset holds "
-                f"{self._shapes[key]} {self._dtypes[key]}"
-            )
-        self._files[key].write(np.ascontiguousarray(array).data)
 
     def close(self) -> Path:
         """Write the metadata, then move the finished dataset to ``path``. Returns ``path``."""
@@ -223,32 +237,31 @@ class DatasetWriter:
         return self.path
 
     def _finish(self) -> None:
-        if not self._ids:
+        if not self._ids or self.features is None:
             raise ValueError(f"{self.path}: no episodes were added; refusing to write an empty dataset")
         for handle in [*self._files.values(), self._episodes_file]:
             handle.flush()
             os.fsync(handle.fileno())
             handle.close()
         np.save(self._tmp / SEGMENTS_FILE, np.array(self._segments, dtype=SEGMENT_DTYPE))
-        rows = {"frames": self._num_frames, "states": self._num_frames, "actions": self._num_steps}
+        arrays = {}
+        for name, feature in self.features.by_name.items():
+            rows = self._num_steps if feature.kind == "action" else self._num_observations
+            arrays[name] = {"file": array_file(name), "dtype": feature.dtype, "shape": [rows, *feature.shape]}
         info = {
             "format": FORMAT_NAME,
             "format_version": FORMAT_VERSION,
+            "domain": self.domain,
+            "fps": self.features.fps,
+            "features": self.features.to_json()["features"],
             "instructions": list(self.instructions),
-            "arrays": {
-                key: {
-                    "file": ARRAY_FILES[key],
-                    "dtype": self._dtypes[key].str,
-                    "shape": [rows[key], *self._shapes[key]],
-                }
-                for key in self._shapes
-            },
+            "arrays": arrays,
             "segments_file": SEGMENTS_FILE,
             "episodes_file": EPISODES_FILE,
             "counts": {
                 "episodes": len(self._ids),
                 "steps": self._num_steps,
-                "frames": self._num_frames,
+                "observations": self._num_observations,
                 "segments": len(self._segments),
                 "splits": self._split_counts,
             },
@@ -292,7 +305,10 @@ class PlayDataset:
         self.info = info
         self.records = records
         self.instructions: tuple[str, ...] = tuple(info["instructions"])
-        self._arrays = self._open_arrays()
+        self.format_version: int = info["format_version"]
+        self.domain: str | None = info.get("domain")
+        self.features, files = _features_and_files(path, info)
+        self._arrays = self._open_arrays(files)
         self.segment_table: np.ndarray = self._load_segments()
         self._by_split = {name: [r.index for r in records if r.split == name] for name in SPLITS}
 
@@ -322,20 +338,10 @@ class PlayDataset:
         """Names of the splits that hold at least one episode, in the order of SPLITS."""
         return tuple(name for name in SPLITS if self._by_split[name])
 
-    @property
-    def frames(self) -> np.ndarray:
-        """All frames, (total frames, H, W, 3) uint8, memory-mapped."""
-        return self._arrays["frames"]
-
-    @property
-    def states(self) -> np.ndarray | None:
-        """All states, memory-mapped, or None when the dataset has none."""
-        return self._arrays.get("states")
-
-    @property
-    def actions(self) -> np.ndarray:
-        """All actions, (total steps, action_dim) float32, memory-mapped."""
-        return self._arrays["actions"]
+    def array(self, feature: str) -> np.ndarray:
+        """All episodes' rows of ``feature``, memory-mapped (observations: sum of T+1 rows; action: sum of T)."""
+        self.features[feature]  # FeatureError naming the feature when the dataset has no such feature
+        return self._arrays[feature]
 
     def episode_indices(self, split: str) -> list[int]:
         """Indices of the episodes in ``split`` (empty when the split holds none)."""
@@ -361,18 +367,18 @@ class PlayDataset:
         ]
 
     def episode(self, index: int, truth: bool = False) -> Episode:
-        """Episode ``index`` with memory-mapped arrays (no frame is read until used)."""
+        """Episode ``index`` with memory-mapped arrays (nothing is read until used)."""
         if not 0 <= index < len(self.records):
             raise IndexError(f"{self.path}: episode index {index} out of range (0..{len(self.records) - 1})")
         record = self.records[index]
-        frames = slice(record.frame_start, record.frame_start + record.num_steps + 1)
+        observations = slice(record.observation_start, record.observation_start + record.num_steps + 1)
         steps = slice(record.step_start, record.step_start + record.num_steps)
-        states = self.states
+        state = self._arrays.get(STATE)
         return Episode(
             episode_id=record.episode_id,
-            frames=self.frames[frames],
-            actions=self.actions[steps],
-            states=None if states is None else states[frames],
+            actions=self._arrays[ACTION][steps],
+            images={name: self._arrays[name][observations] for name in self.features.cameras},
+            state=None if state is None else state[observations],
             segments=self.segments(index, truth=truth),
         )
 
@@ -381,39 +387,29 @@ class PlayDataset:
         for index in self.episode_indices(split):
             yield self.episode(index, truth=truth)
 
-    def _open_arrays(self) -> dict[str, np.ndarray]:
+    def _open_arrays(self, files: dict[str, str]) -> dict[str, np.ndarray]:
+        counts = self.info["counts"]
         arrays = {}
-        for key, spec in self.info["arrays"].items():
-            file = self.path / spec["file"]
-            field = f"{INFO_FILE} arrays.{key}"
+        for name, relative in files.items():
+            feature = self.features[name]
+            file = self.path / relative
+            rows = counts["steps"] if feature.kind == "action" else counts["observations"]
+            field = f"{INFO_FILE} features.{name}"
             if not file.is_file():
-                raise FileNotFoundError(f"{file}: missing (named by {field}.file)")
-            dtype, shape = np.dtype(spec["dtype"]), tuple(int(n) for n in spec["shape"])
+                raise FileNotFoundError(f"{file}: missing (the array of {field})")
+            dtype, shape = np.dtype(feature.dtype), (rows, *feature.shape)
             expected = int(np.prod(shape)) * dtype.itemsize
             actual = file.stat().st_size
             if actual != expected:
                 raise _fail(
                     file,
-                    f"size {actual} bytes, but {field} (shape {list(shape)}, {dtype}) needs {expected} bytes",
+                    f"size {actual} bytes, but {field} ({rows} rows of {list(feature.shape)} {dtype}) "
+                    f"needs {expected} bytes",
                 )
             if expected == 0:
-                arrays[key] = np.zeros(shape, dtype)
+                arrays[name] = np.zeros(shape, dtype)
             else:
-                arrays[key] = np.memmap(file, dtype=dtype, mode="r", shape=shape)
-        for key in ("frames", "actions"):
-            if key not in arrays:
-                raise _fail(self.path / INFO_FILE, f"field arrays.{key} is missing")
-        counts = self.info["counts"]
-        for key, rows in (
-            ("frames", counts["frames"]),
-            ("states", counts["frames"]),
-            ("actions", counts["steps"]),
-        ):
-            if key in arrays and arrays[key].shape[0] != rows:
-                raise _fail(
-                    self.path / INFO_FILE,
-                    f"arrays.{key}.shape[0] = {arrays[key].shape[0]} disagrees with counts ({rows} rows)",
-                )
+                arrays[name] = np.memmap(file, dtype=dtype, mode="r", shape=shape)
         return arrays
 
     def _load_segments(self) -> np.ndarray:
@@ -451,6 +447,55 @@ class PlayDataset:
         return table
 
 
+def _features_and_files(root: Path, info: dict[str, Any]) -> tuple[Features, dict[str, str]]:
+    """The dataset's feature schema and the file of each feature, for either format version."""
+    if info["format_version"] == 1:
+        return _features_of_version_1(root, info)
+    try:
+        features = Features.from_json({"fps": info.get("fps"), "features": info["features"]})
+    except FeatureError as error:
+        raise _fail(root / INFO_FILE, str(error)) from None
+    arrays = info.get("arrays", {})
+    files = {}
+    for name in features.by_name:
+        spec = arrays.get(name)
+        if not isinstance(spec, dict) or "file" not in spec:
+            raise _fail(root / INFO_FILE, f"field arrays.{name}.file is missing")
+        files[name] = str(spec["file"])
+    return features, files
+
+
+def _features_of_version_1(root: Path, info: dict[str, Any]) -> tuple[Features, dict[str, str]]:
+    """Version 1 held one unnamed camera (`DEFAULT_CAMERA`), an optional state and the actions.
+
+    It declared no action kind: actions of shape (1,) that are all whole numbers >= 0 read as discrete
+    with max + 1 values (the only discrete action spaces version 1 held); anything else as continuous.
+    """
+    arrays, features, files = info["arrays"], [], {}
+    for key, name in VERSION_1_FILES.items():
+        if key not in arrays:
+            if key != "states":
+                raise _fail(root / INFO_FILE, f"field arrays.{key} is missing")
+            continue
+        spec = arrays[key]
+        shape, dtype = tuple(int(n) for n in spec["shape"][1:]), str(np.dtype(spec["dtype"]))
+        kind = {"frames": "image", "states": "state", "actions": "action"}[key]
+        files[name] = str(spec["file"])
+        features.append(Feature(name, kind, dtype, shape))  # type: ignore[arg-type]
+    schema = Features.of(features)
+    action = schema.action
+    if action.shape == (1,):
+        file = root / files[ACTION]
+        rows = int(info["counts"]["steps"])
+        values = np.memmap(file, np.float32, "r", shape=(rows,)) if rows and file.is_file() else np.zeros(0)
+        whole = values.size > 0 and bool(np.all((values >= 0) & (values == np.round(values))))
+        if whole:
+            schema = schema.with_action(
+                Feature(ACTION, "action", "float32", (1,), num_values=int(values.max()) + 1)
+            )
+    return schema, files
+
+
 def _read_info(root: Path) -> dict[str, Any]:
     file = root / INFO_FILE
     if not file.is_file():
@@ -463,15 +508,20 @@ def _read_info(root: Path) -> dict[str, Any]:
         raise _fail(file, "top level must be a JSON object")
     if info.get("format") != FORMAT_NAME:
         raise _fail(file, f"field 'format' is {info.get('format')!r}, expected {FORMAT_NAME!r}")
-    if info.get("format_version") != FORMAT_VERSION:
+    version = info.get("format_version")
+    if version not in READABLE_VERSIONS:
         raise _fail(
             file,
-            f"field 'format_version' is {info.get('format_version')!r}; this playseg reads version {FORMAT_VERSION}",
+            f"field 'format_version' is {version!r}; this playseg reads versions {list(READABLE_VERSIONS)}",
         )
-    for field in ("instructions", "arrays", "counts"):
+    for field in ("instructions", "arrays", "counts") + (("features",) if version >= 2 else ()):
         if field not in info:
             raise _fail(file, f"field {field!r} is missing")
-    for field in ("episodes", "steps", "frames", "segments"):
+    if not isinstance(info["counts"], dict):
+        raise _fail(file, "field 'counts' must be an object")
+    if version == 1 and "frames" in info["counts"]:  # version 1 called observations frames
+        info["counts"]["observations"] = info["counts"]["frames"]
+    for field in ("episodes", "steps", "observations", "segments"):
         if not isinstance(info["counts"].get(field), int):
             raise _fail(file, f"field 'counts.{field}' is missing or not an integer")
     return info
@@ -482,7 +532,7 @@ def _read_episodes(root: Path, info: dict[str, Any]) -> list[EpisodeRecord]:
     if not file.is_file():
         raise FileNotFoundError(f"{file}: missing (the episode table)")
     records: list[EpisodeRecord] = []
-    frame_start = step_start = segment_start = 0
+    observation_start = step_start = segment_start = 0
     with open(file, encoding="utf-8") as handle:
         for line_number, line in enumerate(handle, start=1):
             where = f"line {line_number}"
@@ -493,7 +543,7 @@ def _read_episodes(root: Path, info: dict[str, Any]) -> list[EpisodeRecord]:
                     episode_id=str(fields["episode_id"]),
                     split=str(fields["split"]),
                     num_steps=int(fields["num_steps"]),
-                    frame_start=int(fields["frame_start"]),
+                    observation_start=int(fields.get("observation_start", fields.get("frame_start"))),
                     step_start=int(fields["step_start"]),
                     segment_start=int(fields["segment_start"]),
                     num_segments=int(fields["num_segments"]),
@@ -501,12 +551,12 @@ def _read_episodes(root: Path, info: dict[str, Any]) -> list[EpisodeRecord]:
                 )
             except (json.JSONDecodeError, KeyError, TypeError, ValueError) as error:
                 raise _fail(file, f"{where}: bad episode record ({type(error).__name__}: {error})") from error
-            expected = (len(records), frame_start, step_start, segment_start)
-            actual = (record.index, record.frame_start, record.step_start, record.segment_start)
+            expected = (len(records), observation_start, step_start, segment_start)
+            actual = (record.index, record.observation_start, record.step_start, record.segment_start)
             if actual != expected or record.num_steps < 0:
                 raise _fail(
                     file,
-                    f"{where} (episode {record.episode_id!r}): fields index/frame_start/step_start/"
+                    f"{where} (episode {record.episode_id!r}): fields index/observation_start/step_start/"
                     f"segment_start are {actual}, expected {expected}",
                 )
             if record.split not in SPLITS:
@@ -514,11 +564,16 @@ def _read_episodes(root: Path, info: dict[str, Any]) -> list[EpisodeRecord]:
                     file, f"{where} (episode {record.episode_id!r}): field 'split' {record.split!r} unknown"
                 )
             records.append(record)
-            frame_start += record.num_steps + 1
+            observation_start += record.num_steps + 1
             step_start += record.num_steps
             segment_start += record.num_segments
     counts = info["counts"]
-    totals = {"episodes": len(records), "frames": frame_start, "steps": step_start, "segments": segment_start}
+    totals = {
+        "episodes": len(records),
+        "observations": observation_start,
+        "steps": step_start,
+        "segments": segment_start,
+    }
     for field, total in totals.items():
         if counts[field] != total:
             raise _fail(file, f"adds up to {total} {field}, but {INFO_FILE} counts.{field} = {counts[field]}")

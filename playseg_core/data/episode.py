@@ -1,7 +1,7 @@
 """The data model: play episodes and segments. Every other module speaks these types.
 
-A play episode is ``(o_0, a_0, o_1, a_1, ..., o_T)``: T+1 observations (an RGB frame and an optional
-low-dimensional state each) and T actions. A segment is a half-open step range ``[start, end)`` of one
+A play episode is ``(o_0, a_0, o_1, a_1, ..., o_T)``: T+1 observations (any number of camera frames and
+an optional low-dimensional state each) and T actions. A segment is a half-open step range ``[start, end)`` of one
 episode plus an instruction: actions ``a_start .. a_end-1`` and observations ``o_start .. o_end``. The
 boundary observation ``o_end`` belongs to both neighbouring segments and is stored once, in the episode.
 """
@@ -40,18 +40,21 @@ class Segment:
 
 @dataclass
 class Episode:
-    """One play episode.
+    """One play episode: T actions and T+1 observations.
 
-    frames:  (T+1, H, W, 3) uint8 RGB observations.
-    states:  (T+1, *state_shape) low-dimensional observations (BabyAI: (T+1, 8, 8, 3) uint8), or None.
-    actions: (T, action_dim) float32 (BabyAI: action_dim 1, the discrete action index).
+    actions: (T, *action_shape) float32 (a discrete action is its index, shape (T, 1)).
+    images:  camera feature name (``observation.images.<camera>``) -> (T+1, H, W, 3) uint8; any number of
+             cameras, none included.
+    state:   (T+1, *state_shape) low-dimensional observations, or None.
     segments: the labelled segments known for this episode (all, some or none of them), sorted, disjoint.
+
+    data/features.py names and describes these arrays (`Features`).
     """
 
     episode_id: str
-    frames: np.ndarray
     actions: np.ndarray
-    states: np.ndarray | None = None
+    images: dict[str, np.ndarray] = field(default_factory=dict)
+    state: np.ndarray | None = None
     segments: list[Segment] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -62,13 +65,17 @@ class Episode:
         """T, the number of actions (the episode has T+1 observations)."""
         return int(self.actions.shape[0])
 
+    def with_segments(self, segments: Sequence[Segment]) -> Episode:
+        """The same data (no copy) with other segments."""
+        return Episode(self.episode_id, self.actions, self.images, self.state, list(segments))
+
 
 @dataclass
 class SegmentClip:
     """A labelled segment carrying its own data: a LabelledSegment message, a trainer buffer record.
 
     ``segment`` is in the source episode's step numbering (with its label, confidence and log-score);
-    ``actions`` holds its ``length`` actions a_start..a_end-1, ``frames`` and ``states`` (each optional)
+    ``actions`` holds its ``length`` actions a_start..a_end-1, ``images`` and ``state`` (as in `Episode`)
     its ``length + 1`` observations o_start..o_end. ``source`` says who labelled it: the segmentation
     model id, or "annotation".
     """
@@ -76,27 +83,16 @@ class SegmentClip:
     episode_id: str
     segment: Segment
     actions: np.ndarray
-    frames: np.ndarray | None = None
-    states: np.ndarray | None = None
+    images: dict[str, np.ndarray] = field(default_factory=dict)
+    state: np.ndarray | None = None
     source: str = ""
 
     def __post_init__(self) -> None:
         seg = self.segment
         name = f"episode {self.episode_id!r} segment [{seg.start}, {seg.end})"
-        if self.actions.ndim != 2 or self.actions.shape[0] != seg.length:
+        if self.actions.ndim < 2 or self.actions.shape[0] != seg.length:
             raise ValueError(f"{name}: actions must be ({seg.length}, action_dim), got {self.actions.shape}")
-        frames = self.frames
-        if frames is not None and (
-            frames.ndim != 4
-            or frames.shape[0] != seg.length + 1
-            or frames.shape[-1] != 3
-            or frames.dtype != np.uint8
-        ):
-            raise ValueError(
-                f"{name}: frames must be ({seg.length + 1}, H, W, 3) uint8, got {frames.shape} {frames.dtype}"
-            )
-        if self.states is not None and self.states.shape[:1] != (seg.length + 1,):
-            raise ValueError(f"{name}: states must have {seg.length + 1} rows, got shape {self.states.shape}")
+        _check_observations(name, self.images, self.state, seg.length + 1)
 
     @classmethod
     def from_episode(cls, episode: Episode, segment: Segment, source: str) -> SegmentClip:
@@ -106,27 +102,42 @@ class SegmentClip:
             episode_id=episode.episode_id,
             segment=segment,
             actions=episode.actions[start:end],
-            frames=episode.frames[start : end + 1],
-            states=None if episode.states is None else episode.states[start : end + 1],
+            images={name: frames[start : end + 1] for name, frames in episode.images.items()},
+            state=None if episode.state is None else episode.state[start : end + 1],
             source=source,
         )
+
+    def as_episode(self, episode_id: str) -> Episode:
+        """The clip as a one-segment episode (steps renumbered from 0)."""
+        seg = self.segment
+        return Episode(
+            episode_id=episode_id,
+            actions=np.asarray(self.actions, np.float32),
+            images={name: np.asarray(frames) for name, frames in self.images.items()},
+            state=None if self.state is None else np.asarray(self.state),
+            segments=[Segment(0, seg.length, seg.instruction, seg.confidence, seg.log_prob)],
+        )
+
+
+def _check_observations(
+    name: str, images: dict[str, np.ndarray], state: np.ndarray | None, rows: int
+) -> None:
+    for camera, frames in images.items():
+        if frames.ndim != 4 or frames.shape[0] != rows or frames.shape[-1] != 3 or frames.dtype != np.uint8:
+            raise ValueError(
+                f"{name}: images[{camera!r}] must be ({rows}, H, W, 3) uint8, got {frames.shape} {frames.dtype}"
+            )
+    if state is not None and state.shape[:1] != (rows,):
+        raise ValueError(f"{name}: state must have {rows} rows, got shape {state.shape}")
 
 
 def check_episode(episode: Episode) -> None:
     """Raise ValueError naming the episode and field when the arrays or segments are inconsistent."""
     name = f"episode {episode.episode_id!r}"
-    frames, actions = episode.frames, episode.actions
-    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
-        raise ValueError(f"{name}: frames must be (T+1, H, W, 3) uint8, got {frames.shape} {frames.dtype}")
-    if actions.ndim != 2:
-        raise ValueError(f"{name}: actions must be (T, action_dim), got shape {actions.shape}")
-    if frames.shape[0] != actions.shape[0] + 1:
-        raise ValueError(
-            f"{name}: {frames.shape[0]} frames for {actions.shape[0]} actions (need actions + 1 frames)"
-        )
-    if episode.states is not None and episode.states.shape[0] != frames.shape[0]:
-        raise ValueError(f"{name}: {episode.states.shape[0]} states for {frames.shape[0]} frames")
-    check_segments(episode.segments, actions.shape[0], name)
+    if episode.actions.ndim < 2:
+        raise ValueError(f"{name}: actions must be (T, action_dim), got shape {episode.actions.shape}")
+    _check_observations(name, episode.images, episode.state, episode.num_steps + 1)
+    check_segments(episode.segments, episode.num_steps, name)
 
 
 def check_segments(segments: Sequence[Segment], num_steps: int, name: str) -> None:
@@ -142,8 +153,3 @@ def check_segments(segments: Sequence[Segment], num_steps: int, name: str) -> No
                 f"{name}: segment [{seg.start}, {seg.end}) overlaps or precedes the previous one"
             )
         previous_end = seg.end
-
-
-def boundaries(segments: Sequence[Segment]) -> list[int]:
-    """End steps of the segments, in order (the positions where a segment ends)."""
-    return [seg.end for seg in segments]

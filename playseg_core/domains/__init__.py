@@ -1,0 +1,31 @@
+"""Domains: everything one world knows, one package each (``playseg_core.domains.<name>``).
+
+The generic machinery (data/, ps/, augment/) never imports a domain package; it asks for one by name,
+the name a dataset, bag or checkpoint records (`load_domain`). On import, a domain package registers its
+step encoders (ps/encoders.py) and exposes:
+
+- ``image_encoder(feature) -> EncoderSpec | None``: the step encoder for one of its camera features;
+- ``POLICIES``: policy name -> factory of an `augment.policy.PolicyLearner` (config dict -> learner);
+- optionally ``PRESET_NAMES`` and ``generate_dataset(out, preset, seed, workers, progress, overwrite,
+  annotated_share)`` when it can generate play (`playseg generate --domain <name>`).
+
+A new robot's domain is a new package here.
+"""
+
+from __future__ import annotations
+
+import importlib
+import re
+from types import ModuleType
+
+
+def load_domain(name: str) -> ModuleType:
+    """The domain package ``name``; ValueError naming it when there is none."""
+    if not re.fullmatch(r"[a-z][a-z0-9_]*", name or ""):
+        raise ValueError(f"invalid domain name {name!r}")
+    try:
+        return importlib.import_module(f"{__name__}.{name}")
+    except ModuleNotFoundError as error:
+        if error.name != f"{__name__}.{name}":
+            raise
+        raise ValueError(f"unknown domain {name!r} (no package playseg_core.domains.{name})") from None

@@ -23,7 +23,6 @@ from playseg_core.ps.decoding import decode_segments
 from playseg_core.ps.labelling import label_segments
 from playseg_core.ps.metrics import BoundaryCounts, match_boundaries
 from playseg_core.ps.model import LabelModel, PSModel
-from playseg_core.ps.segmentation import encode_episode
 
 END_BIAS_CANDIDATES: tuple[float, ...] = tuple(float(b) for b in np.arange(-3.0, 1.01, 0.25))
 """End biases `calibrate_end_bias` tries by default."""
@@ -55,9 +54,8 @@ def calibrate_end_bias(
     included), with the one-standard-error rule: among the candidates whose F1 is within one standard
     error of the best, the one with the highest precision (ties: the lower bias).
 
-    Why the rule: in BabyAI play F1 is flat over a wide range of biases (decoys trade one-for-one with
-    missed ends, docs/segmentation.md "What the data allows"), and where held-out data cannot tell
-    candidates apart, fewer and surer cuts are preferred. The model is not changed: set
+    Why the rule: F1 can be flat over a wide range of biases (extra cuts trade one-for-one with missed
+    ends), and where held-out data cannot tell candidates apart, fewer and surer cuts are preferred. The model is not changed: set
     ``model.end_bias`` to the result's bias to segment with it (`calibrate_ps_model` does).
     """
     if not candidates:
@@ -67,7 +65,7 @@ def calibrate_end_bias(
     for episode in episodes:
         if episode.num_steps == 0 or not episode.segments:
             continue
-        hidden = model.window_hidden(encode_episode(model, episode))
+        hidden = model.window_hidden(model.encode_episode(episode))
         raw_logits.append((model.end_logits_from_hidden(hidden) - model.end_bias).double().numpy())
         true_ends.append([seg.end for seg in episode.segments])
     if not raw_logits:

@@ -13,7 +13,6 @@ import torch
 
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.ps.model import LabelModel, PSModel
-from playseg_core.ps.segmentation import encode_episode
 
 
 @torch.no_grad()
@@ -25,7 +24,7 @@ def label_segments(
     spans = list(spans)
     if not spans:
         return []
-    features = encode_episode(model, episode)
+    features = model.encode_episode(episode)
     labelled = []
     for start, end in spans:
         probs = torch.softmax(model.label_logits(features, start, end).double(), dim=-1)

@@ -1,137 +1,80 @@
-"""The networks of Play Segmentation: frame encoder, labelling model and PS model, in one file.
+"""The networks of Play Segmentation: the start-causal trunk, the PS model and the labelling model.
 
-Shapes: a frame is (64, 64, 3) uint8; an episode has T+1 frames and T actions. Frames are encoded once
-each (no temporal mixing in the encoder); everything temporal happens on the (T+1, d) feature sequence.
+Step features: every observation o_t of an episode (T+1 of them) becomes one row of step features, the
+concatenation of the model's step encoders (ps/encoders.py: cameras, state, the previous action a_{t-1}),
+each row encoded once (no temporal mixing); everything temporal happens on the (T+1, step_dim) sequence.
 
 The PS trunk is causal in time *from the segment start*: for a window starting at step i, position p
-(frame o_{i+p}) sees only o_i .. o_{i+p}, the start frame's features and the offset p. One pass over the
+(row o_{i+p}) sees only o_i .. o_{i+p}, the start row's features and the offset p. One pass over the
 window therefore scores every candidate end j = i+p at once, and all T windows of an episode go through
 the trunk as one batch (see `PSModel.end_logits`).
-
-Step features: row t of the sequence the trunk reads is the frame features of o_t, followed (when the
-model reads actions, ``ModelConfig.num_actions > 0``) by an embedding of a_{t-1}, the action that led to
-o_t (row 0: a "no action" embedding). Frames alone often cannot tell a turn towards an object from a step
-up to it, and in BabyAI play that decides whether facing an object ends a task (see
-docs/segmentation.md "Reading the actions").
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-
-@dataclass
-class EncoderConfig:
-    image_size: int = 64
-    tile_size: int = 8  # BabyAI renders a grid of 8x8-pixel tiles: the first conv reads one tile
-    tile_channels: int = 64
-    object_dim: int = 32  # per-tile "what is here" embedding
-    look_heads: int = 2  # attention maps over tiles ("the tile the agent faces", ...)
-    feature_dim: int = 128
+from playseg_core.checkpoint import Checkpoint, CheckpointError, read_checkpoint, save_checkpoint
+from playseg_core.data.episode import Episode
+from playseg_core.data.features import Features
+from playseg_core.ps.encoders import EncoderSpec, StepEncoders, as_tensors
 
 
 @dataclass
 class TrunkConfig:
+    """The start-causal trunk. max_len (L_max) is the longest segment, in actions, the model can score."""
+
     hidden_dim: int = 64
     num_layers: int = 2
     kernel_size: int = 5
-    max_len: int = 25  # L_max: the longest segment (in actions) the model can score
+    max_len: int = 25
 
 
 @dataclass
 class ModelConfig:
     """Configuration of a PS model or a labelling model (same parts, different heads).
 
-    num_actions: size of the discrete action space the model reads (BabyAI: 7); 0 = frames only.
-    action_dim: size of the action embedding appended to each step's frame features.
+    encoders: the step encoders, in the order their outputs are concatenated (observations first).
+    features: the data features the model reads, as the data declared them when it was trained: a
+        dataset to segment or train on must declare the same (`check_features`).
     """
 
-    encoder: EncoderConfig
-    trunk: TrunkConfig
+    encoders: list[EncoderSpec]
+    features: Features
+    trunk: TrunkConfig = field(default_factory=TrunkConfig)
     num_classes: int = 36
-    num_actions: int = 0
-    action_dim: int = 16
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "encoders": [spec.to_json() for spec in self.encoders],
+            "features": self.features.to_json(),
+            "trunk": asdict(self.trunk),
+            "num_classes": self.num_classes,
+        }
 
     @staticmethod
-    def from_dict(raw: dict) -> ModelConfig:
+    def from_json(raw: dict[str, Any]) -> ModelConfig:
         return ModelConfig(
-            encoder=EncoderConfig(**raw["encoder"]),
+            encoders=[EncoderSpec.from_json(spec) for spec in raw["encoders"]],
+            features=Features.from_json(raw["features"]),
             trunk=TrunkConfig(**raw["trunk"]),
             num_classes=int(raw["num_classes"]),
-            # Checkpoints written before actions were read have neither key: frames only.
-            num_actions=int(raw.get("num_actions", 0)),
-            action_dim=int(raw.get("action_dim", 16)),
         )
 
     @property
-    def step_dim(self) -> int:
-        """Width of a step feature row: frame features (+ action embedding)."""
-        return self.encoder.feature_dim + (self.action_dim if self.num_actions else 0)
+    def feature_names(self) -> list[str]:
+        """The features the step encoders read."""
+        return [spec.feature for spec in self.encoders]
 
-
-def previous_actions(actions: np.ndarray, num_actions: int, where: str = "actions") -> np.ndarray:
-    """(T, 1) discrete action indices -> (T+1,) int64 index of a_{t-1} per observation o_t.
-
-    Row 0 holds ``num_actions`` ("no action led here"). Raises ValueError naming `where` when an action
-    is not a single integer in 0..num_actions-1.
-    """
-    actions = np.asarray(actions)
-    if actions.ndim != 2 or actions.shape[1] != 1:
-        raise ValueError(f"{where}: a model reading discrete actions needs shape (T, 1), got {actions.shape}")
-    values = actions[:, 0]
-    whole = np.isfinite(values) & (values == np.round(values))
-    if not whole.all() or (values < 0).any() or (values >= num_actions).any():
-        bad = int(np.flatnonzero(~whole | (values < 0) | (values >= num_actions))[0])
-        raise ValueError(
-            f"{where}[{bad}] = {float(values[bad])}: not a discrete action index in 0..{num_actions - 1}"
-        )
-    return np.concatenate([[num_actions], values.astype(np.int64)])
-
-
-class FrameEncoder(nn.Module):
-    """Per-frame CNN over the tile grid; translation-equivariant up to attention and sum pooling.
-
-    The tile conv (kernel = stride = tile size) embeds each tile (object type and colour, the agent and
-    its direction). Two per-tile maps come from it: `what` (the tile's content) and `look` (a 3x3 conv:
-    "this tile is in front of the agent", from the neighbouring agent tile and its direction). Softmax
-    attention of `look` over the tiles reads out the content of the faced tile; the product of that with
-    the summed contents counts how many tiles hold the same thing (the article "the" vs "a"). Nothing
-    depends on where things are, so the model cannot memorise room layouts, and "what is faced" is a
-    product of where and what, so it holds for objects never faced in training.
-    """
-
-    def __init__(self, cfg: EncoderConfig) -> None:
-        super().__init__()
-        self.tile = nn.Conv2d(3, cfg.tile_channels, cfg.tile_size, stride=cfg.tile_size)
-        self.tile_mix = nn.Conv2d(cfg.tile_channels, cfg.tile_channels, 1)
-        self.what = nn.Conv2d(cfg.tile_channels, cfg.object_dim, 1)
-        self.look = nn.Conv2d(cfg.tile_channels, cfg.look_heads, 3, padding=1)
-        self.what_norm = nn.LayerNorm(cfg.object_dim)
-        # Per head: how sharply "looks like the faced tile" falls off with the embedding distance.
-        self.log_sharpness = nn.Parameter(torch.full((cfg.look_heads,), 2.0))
-        faced_dim = cfg.look_heads * cfg.object_dim
-        self.proj = nn.Sequential(
-            nn.Linear(faced_dim + cfg.look_heads, cfg.feature_dim),
-            nn.GELU(),
-            nn.Linear(cfg.feature_dim, cfg.feature_dim),
-        )
-
-    def forward(self, frames: torch.Tensor) -> torch.Tensor:
-        """(N, H, W, 3) uint8 -> (N, feature_dim)."""
-        x = frames.permute(0, 3, 1, 2).float() / 255.0
-        tiles = F.relu(self.tile_mix(F.relu(self.tile(x))))
-        what = self.what_norm(self.what(tiles).flatten(2).transpose(1, 2))  # (N, tiles, object_dim)
-        look = torch.softmax(self.look(tiles).flatten(2), dim=-1)  # (N, heads, tiles)
-        faced = look @ what  # (N, heads, object_dim)
-        # Identical tiles have identical embeddings: count the tiles that look like the faced one.
-        distance = (what[:, None] - faced[:, :, None]).square().mean(-1)  # (N, heads, tiles)
-        count = torch.exp(-distance * self.log_sharpness.exp()[:, None]).sum(-1)
-        return self.proj(torch.cat([faced.flatten(1), count], dim=1))
+    def check_features(self, data: Features, what: str) -> None:
+        """FeatureError naming the first feature this model reads that ``data`` lacks or declares otherwise."""
+        self.features.check_compatible(data, self.feature_names, what)
 
 
 class CausalConvBlock(nn.Module):
@@ -213,21 +156,14 @@ def episode_windows(features: torch.Tensor, window_len: int) -> torch.Tensor:
 
 
 class StepModel(nn.Module):
-    """The parts PS and the labelling model share: frame encoder, action embedding, start-causal trunk."""
+    """The parts PS and the labelling model share: step encoders and the start-causal trunk."""
 
     def __init__(self, cfg: ModelConfig, instructions: list[str] | None = None) -> None:
         super().__init__()
         self.cfg = cfg
         self.instructions = _class_names(instructions, cfg.num_classes)
-        self.encoder = FrameEncoder(cfg.encoder)
-        # Index num_actions = "no action" (the first observation of an episode).
-        self.action_embedding = None
-        if cfg.num_actions:
-            self.action_embedding = nn.Embedding(cfg.num_actions + 1, cfg.action_dim)
-            # Small at first, as the offset embedding: with unit-scale action vectors the trunk leaned on
-            # the actions from the start and the encoder learnt "what is faced" far more slowly.
-            nn.init.normal_(self.action_embedding.weight, std=0.02)
-        self.trunk = StartCausalTrunk(cfg.step_dim, cfg.trunk)
+        self.encoders = StepEncoders(cfg.encoders, cfg.features)
+        self.trunk = StartCausalTrunk(self.encoders.step_dim, cfg.trunk)
 
     @property
     def max_len(self) -> int:
@@ -235,32 +171,27 @@ class StepModel(nn.Module):
 
     @property
     def reads_actions(self) -> bool:
-        return self.action_embedding is not None
+        return self.encoders.reads_actions
 
-    def encode_frames(self, frames: torch.Tensor) -> torch.Tensor:
-        """(N, 64, 64, 3) uint8 -> (N, feature_dim): the frame encoder alone."""
-        return self.encoder(frames)
+    def encode_steps(self, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Input rows by feature (N rows each, see `StepEncoders.episode_inputs`) -> (N, step_dim).
 
-    def encode_steps(self, frames: torch.Tensor, prev_actions: torch.Tensor | None = None) -> torch.Tensor:
-        """(N, 64, 64, 3) uint8 frames, (N,) index of the action that led to each -> (N, step_dim).
-
-        prev_actions comes from `previous_actions` (index num_actions = none); a frames-only model
-        ignores it. Encode an episode once and reuse the rows: each depends on its own step only.
+        Encode an episode once and reuse the rows: each depends on its own step only.
         """
-        features = self.encoder(frames)
-        if self.action_embedding is None:
-            return features
-        if prev_actions is None:
-            raise ValueError("this model reads actions: encode_steps needs prev_actions")
-        if prev_actions.shape != (frames.shape[0],):
-            raise ValueError(
-                f"prev_actions must have shape ({frames.shape[0]},), got {tuple(prev_actions.shape)}"
-            )
-        return torch.cat([features, self.action_embedding(prev_actions.long())], dim=-1)
+        return self.encoders(inputs)
 
-    def frame_part(self, features: torch.Tensor) -> torch.Tensor:
-        """The frame-encoder columns of step features."""
-        return features[..., : self.cfg.encoder.feature_dim]
+    @torch.no_grad()
+    def encode_episode(self, episode: Episode, chunk: int = 2048) -> torch.Tensor:
+        """(T+1, step_dim) step features of ``episode``, ``chunk`` rows at a time (bounds memory)."""
+        inputs = self.encoders.episode_inputs(episode)
+        rows = episode.num_steps + 1
+        return torch.cat(
+            [self.encode_steps(as_tensors(inputs, slice(c, c + chunk))) for c in range(0, rows, chunk)]
+        )
+
+    def observation_part(self, features: torch.Tensor) -> torch.Tensor:
+        """The observation encoders' columns of step features (without the previous action's)."""
+        return features[..., : self.encoders.observation_dim]
 
 
 class PSModel(StepModel):
@@ -270,9 +201,9 @@ class PSModel(StepModel):
         super().__init__(cfg, instructions)
         self.end_head = nn.Linear(cfg.trunk.hidden_dim, 1)
         self.label_head = nn.Linear(cfg.trunk.hidden_dim, cfg.num_classes)
-        # Training only: the label from the end frame's features alone, an auxiliary loss that teaches
-        # the encoder "what is faced" directly (the trunk's mixing slows that down a lot at first).
-        self.frame_label_head = nn.Linear(cfg.encoder.feature_dim, cfg.num_classes)
+        # Training only: the label from the end observation's encoding alone, an auxiliary loss that trains
+        # the observation encoders directly (through the trunk's mixing they learn slowly at first).
+        self.frame_label_head = nn.Linear(self.encoders.observation_dim, cfg.num_classes)
         # Added to the end logit when segmenting, never in training: set after training to correct for
         # the positives' weight in the loss (calibration.py). Part of the state dict, so every path that
         # segments with this checkpoint (offline, streaming, nodes) cuts the same way.
@@ -298,12 +229,12 @@ class PSModel(StepModel):
         """
         return self.end_logits_from_hidden(self.window_hidden(features))
 
-    def end_column(self, features_window: torch.Tensor, first_is_episode_start: bool) -> torch.Tensor:
+    def end_column(self, features_window: torch.Tensor, starts_episode: bool) -> torch.Tensor:
         """Features of o_{t-n+1} .. o_t (n <= L_max+1 rows) -> (L_max,) for the online decoder.
 
         [k] = logit that the segment [t-k-1, t) ends at t (the diagonal end_logits[t-k-1, k]); starts
         before the window (k >= n-1) get -inf: such a segment cannot be scored from this window.
-        first_is_episode_start: the window's first row is o_0.
+        starts_episode: the window's first row is o_0.
         """
         n = features_window.shape[0]
         column = torch.full((self.max_len,), float("-inf"), dtype=features_window.dtype)
@@ -314,7 +245,7 @@ class PSModel(StepModel):
         windows = torch.zeros(n - 1, n, features_window.shape[1], dtype=features_window.dtype)
         for row, length in enumerate(lengths.tolist()):
             windows[row, :length] = features_window[n - length :]
-        starts_episode = (lengths == n) & first_is_episode_start
+        starts_episode = (lengths == n) & starts_episode
         hidden = self.trunk(windows, starts_episode)
         logits = self.end_logit(hidden[torch.arange(n - 1), lengths - 1])
         column[: n - 1] = logits
@@ -329,14 +260,14 @@ class PSModel(StepModel):
 
 
 class LabelModel(StepModel):
-    """Labelling model p_LM(instruction | o_i..o_j): encoder + start-causal trunk + mean/last pooling."""
+    """Labelling model p_LM(instruction | o_i..o_j): step encoders + start-causal trunk + mean/last pooling."""
 
     def __init__(self, cfg: ModelConfig, instructions: list[str] | None = None) -> None:
         super().__init__(cfg, instructions)
         self.head = nn.Linear(2 * cfg.trunk.hidden_dim, cfg.num_classes)
-        # Training only, as PSModel's: without it the encoder never learnt "what is faced" through the
-        # pooled trunk (val accuracy at chance, 0.04, after 16 epochs at the paper scale).
-        self.frame_label_head = nn.Linear(cfg.encoder.feature_dim, cfg.num_classes)
+        # Training only, as PSModel's: through the pooled trunk alone the observation encoders learnt
+        # far more slowly (docs/segmentation.md, "The labelling model").
+        self.frame_label_head = nn.Linear(self.encoders.observation_dim, cfg.num_classes)
 
     def logits_from_windows(
         self, windows: torch.Tensor, lengths: torch.Tensor, starts_episode: torch.Tensor | None = None
@@ -355,3 +286,33 @@ class LabelModel(StepModel):
             raise ValueError(f"segment [{start}, {end}) must have 1..{self.max_len} steps")
         window = features[start : end + 1].unsqueeze(0)
         return self.logits_from_windows(window, torch.tensor([end - start]), torch.tensor([start == 0]))[0]
+
+
+# ----------------------------------------------------------------------------------------------------
+# Checkpoints (the format is playseg_core/checkpoint.py)
+
+_MODEL_KINDS: dict[str, type[StepModel]] = {"ps": PSModel, "labeller": LabelModel}
+
+
+def save_model(path: str | Path, model: PSModel | LabelModel, meta: dict[str, Any] | None = None) -> Path:
+    """Write a PS or labelling model's checkpoint: its configuration, instructions, weights and ``meta``."""
+    kind = "ps" if isinstance(model, PSModel) else "labeller"
+    config = {**model.cfg.to_json(), "instructions": list(model.instructions)}
+    return save_checkpoint(path, Checkpoint(kind, config, model.cfg.features, model.state_dict(), meta or {}))
+
+
+def load_model(
+    path: str | Path, kinds: tuple[str, ...] = ("ps", "labeller")
+) -> tuple[PSModel | LabelModel, dict]:
+    """-> (model in eval mode with its .instructions, meta); CheckpointError naming the file if invalid."""
+    checkpoint = read_checkpoint(path, kinds)
+    try:
+        cfg = ModelConfig.from_json(checkpoint.config)
+        model = _MODEL_KINDS[checkpoint.kind](cfg, [str(s) for s in checkpoint.config["instructions"]])
+        model.load_state_dict(checkpoint.state_dict)
+    except Exception as error:
+        raise CheckpointError(
+            f"checkpoint {path}: not a valid {checkpoint.kind} model ({error!r})"
+        ) from error
+    model.eval()
+    return model, checkpoint.meta

@@ -1,4 +1,4 @@
-"""End-to-end Play Segmentation of an episode: encode frames once, score all windows, decode, label.
+"""End-to-end Play Segmentation of an episode: encode steps once, score all windows, decode, label.
 
 `segment_episode`: T step encodings, one batched trunk pass over the T windows, the exact O(T * L_max)
 decoder of decoding.py, then the label head at each chosen end. (The reference's cost model, for
@@ -7,43 +7,11 @@ comparison, is in benchmarks/reference_style.py.)
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.ps.decoding import decode_segments
-from playseg_core.ps.model import PSModel, StepModel, previous_actions
-
-ENCODE_CHUNK = 2048  # frames per encoder call: bounds memory on long episodes
-
-
-def episode_frames(episode: Episode) -> torch.Tensor:
-    """The episode's frames as a uint8 tensor (copied: dataset frames are read-only memmaps)."""
-    return torch.from_numpy(np.array(episode.frames, dtype=np.uint8))
-
-
-def episode_prev_actions(model: StepModel, episode: Episode) -> torch.Tensor | None:
-    """(T+1,) index of the action that led to each observation, or None for a frames-only model."""
-    if not model.reads_actions:
-        return None
-    where = f"episode {episode.episode_id} actions"
-    return torch.from_numpy(previous_actions(episode.actions, model.cfg.num_actions, where))
-
-
-@torch.no_grad()
-def encode_episode(model: StepModel, episode: Episode) -> torch.Tensor:
-    """(T+1, step_dim) step features, each step encoded once."""
-    frames = episode_frames(episode)
-    actions = episode_prev_actions(model, episode)
-    chunks = range(0, frames.shape[0], ENCODE_CHUNK)
-    return torch.cat(
-        [
-            model.encode_steps(
-                frames[c : c + ENCODE_CHUNK], None if actions is None else actions[c : c + ENCODE_CHUNK]
-            )
-            for c in chunks
-        ]
-    )
+from playseg_core.ps.model import PSModel
 
 
 def labelled_segment(
@@ -64,7 +32,7 @@ def segment_episode(model: PSModel, episode: Episode, min_len: int = 1) -> list[
     model.eval()
     if episode.num_steps == 0:
         return []
-    features = encode_episode(model, episode)
+    features = model.encode_episode(episode)
     hidden = model.window_hidden(features)
     end_logits = model.end_logits_from_hidden(hidden).double().numpy()
     max_len = min(model.max_len, episode.num_steps)

@@ -1,26 +1,27 @@
-"""Play Segmentation of a stream: one episode fed frame by frame, segments emitted as soon as decided.
+"""Play Segmentation of a stream: one episode fed step by step, segments emitted as soon as decided.
 
-Each frame is encoded once; at step t the PS model scores every segment that could end at t (one column
-of the end-logit matrix, from the last L_max+1 frame features) and the online decoder commits boundaries
+Each observation is encoded once; at step t the PS model scores every segment that could end at t (one column
+of the end-logit matrix, from the last L_max+1 step features) and the online decoder commits boundaries
 once every surviving best path passes through them. The output equals `segment_episode` on the whole
 episode (same model, same decoder recursion and tie rule).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch
 
 from playseg_core.data.episode import Segment
 from playseg_core.ps.decoding import OnlineDecoder
-from playseg_core.ps.model import PSModel, previous_actions
+from playseg_core.ps.encoders import as_tensors
+from playseg_core.ps.model import PSModel
 from playseg_core.ps.segmentation import labelled_segment
 
 
 class StreamingSegmenter:
-    """Segments one episode incrementally: `push(frame, action)` per step, `finish()` at episode end."""
+    """Segments one episode incrementally: `push(observation, action)` per step, `finish()` at episode end."""
 
     def __init__(self, model: PSModel, min_len: int = 1) -> None:
         model.eval()
@@ -28,49 +29,49 @@ class StreamingSegmenter:
         self.decoder = OnlineDecoder(max_len=model.max_len, min_len=min_len)
         self._features: list[torch.Tensor] = []  # only the last L_max+1 are needed; older are dropped
         self._offset = 0  # step index of self._features[0]
-        self._segments: list[Segment] = []
-        self._pending_action: int | None = None  # a_t of the last pushed o_t: read with o_{t+1}
+        # The action encoders' inputs for the next observation, from the action pushed with the last one.
+        self._next_action_inputs: dict[str, np.ndarray] | None = model.encoders.previous_action_inputs(
+            None, "observation 0"
+        )
 
     @property
-    def num_frames(self) -> int:
+    def num_observations(self) -> int:
         return self._offset + len(self._features)
 
     @torch.no_grad()
-    def push(self, frame: np.ndarray, action: np.ndarray | None = None) -> list[Segment]:
+    def push(self, observation: Mapping[str, np.ndarray], action: np.ndarray | None = None) -> list[Segment]:
         """Add observation o_t (t = 0, 1, ...) and a_t, the action taken after it; returns the segments
         decided by o_t.
 
-        `action` is what a PlayStep carries with o_t; a model that reads actions needs it for every
-        observation but the episode's last (it is read with o_{t+1}). A frames-only model ignores it.
+        ``observation`` maps feature names (``observation.images.<camera>``, ``observation.state``) to
+        one row each; features the model does not read are ignored. ``action`` is what a PlayStep carries
+        with o_t; a model that reads actions needs it for every observation but the episode's last (it
+        is read with o_{t+1}). ValueError naming the step and feature for a bad observation or action.
         """
-        prev = None
-        if self.model.reads_actions:
-            if self._pending_action is None and self.num_frames > 0:
-                raise ValueError(f"observation {self.num_frames}: the previous step carried no action")
-            prev = torch.tensor(
-                [self.model.cfg.num_actions if self.num_frames == 0 else self._pending_action]
+        where = f"step {self.num_observations}"
+        if self._next_action_inputs is None:
+            raise ValueError(f"observation {self.num_observations}: the previous step carried no action")
+        inputs = {**self.model.encoders.observation_inputs(observation, where), **self._next_action_inputs}
+        self._next_action_inputs = None
+        if not self.model.reads_actions:
+            self._next_action_inputs = {}
+        elif action is not None and np.asarray(action).size:
+            self._next_action_inputs = self.model.encoders.previous_action_inputs(
+                action, f"action of {where}"
             )
-            self._pending_action = None
-            if action is not None and np.asarray(action).size:
-                where = f"action of step {self.num_frames}"
-                self._pending_action = int(
-                    previous_actions(
-                        np.asarray(action, np.float32).reshape(1, -1), self.model.cfg.num_actions, where
-                    )[1]
-                )
-        feature = self.model.encode_steps(torch.from_numpy(np.array(frame, np.uint8))[None], prev)[0]
+        feature = self.model.encode_steps(as_tensors(inputs))[0]
         self._features.append(feature)
-        if self.num_frames < 2:
+        if self.num_observations < 2:
             return []
         window = torch.stack(self._features[-(self.model.max_len + 1) :])
-        at_episode_start = self.num_frames - len(window) == 0
-        column = self.model.end_column(window, at_episode_start).double().numpy()
+        starts_episode = self.num_observations == len(window)
+        column = self.model.end_column(window, starts_episode).double().numpy()
         return self._label(self.decoder.push(column))
 
     @torch.no_grad()
     def finish(self) -> list[Segment]:
         """The episode ended with the last pushed frame: decide the remaining segments."""
-        if self.num_frames < 2:
+        if self.num_observations < 2:
             return []
         return self._label(self.decoder.finish())
 
@@ -89,5 +90,4 @@ class StreamingSegmenter:
             keep_from = decided[-1][1] - self._offset
             self._features = self._features[keep_from:]
             self._offset += keep_from
-        self._segments.extend(segments)
         return segments

@@ -1,13 +1,7 @@
-"""Training of the PS model and the labelling model on annotated segments, and their checkpoints.
+"""Training of the PS model and the labelling model on annotated segments (samples: samples.py).
 
-Training samples follow the paper: every annotated segment [s, e) is a positive; its negatives move the
-end later / earlier, widen both sides, take the window before it, and shift it left / right, by k drawn
-from 1..k_max, always inside the episode and never longer than the model's L_max. Beyond the paper
-(`dense_prefix_negatives`): the trunk is causal from the start, so one pass over a positive window also
-yields the end logit of every proper prefix [s, s+m), m < e-s, which did *not* end — supervised as 0.
-That is exactly the `log(1 - p_seg)` term of the segment score the decoder maximises.
-
-Frames are encoded once per batch of episodes; windows are gathered from those features by index.
+nanoGPT-style: the configuration, the losses and one explicit loop (`_fit`); the learning rate follows a
+one-cycle schedule; the best epoch on the annotated val split is kept.
 """
 
 from __future__ import annotations
@@ -17,71 +11,17 @@ import sys
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from playseg_core.data.episode import Episode, Segment
-from playseg_core.ps.model import (
-    EncoderConfig,
-    LabelModel,
-    ModelConfig,
-    PSModel,
-    TrunkConfig,
-    previous_actions,
-)
-
-NEGATIVE_KINDS = ("end_later", "end_earlier", "widened", "before", "shift_left", "shift_right")
-
-
-@dataclass(frozen=True)
-class Sample:
-    """A training window [start, end) of one episode; is_end says whether a segment ends at `end`."""
-
-    start: int
-    end: int
-    is_end: bool
-    kind: str  # "positive" or one of NEGATIVE_KINDS
-
-
-def _draw(rng: np.random.Generator, high: int) -> int | None:
-    """k uniform in 1..high, or None when the range is empty."""
-    return int(rng.integers(1, high + 1)) if high >= 1 else None
-
-
-def segment_samples(
-    start: int, end: int, num_steps: int, max_len: int, k_max: int, rng: np.random.Generator
-) -> list[Sample]:
-    """The positive [start, end) and up to six negatives; a kind that cannot fit is left out.
-
-    A segment longer than max_len cannot be scored by the model and yields no samples at all.
-    """
-    length = end - start
-    if not 0 < length <= max_len or end > num_steps or start < 0:
-        return []
-    samples = [Sample(start, end, True, "positive")]
-
-    def add(kind: str, s: int, e: int) -> None:
-        samples.append(Sample(s, e, False, kind))
-
-    room_left, room_right, room_len = start, num_steps - end, max_len - length
-    if (k := _draw(rng, min(k_max, room_right, room_len))) is not None:
-        add("end_later", start, end + k)
-    if (k := _draw(rng, min(k_max, length - 1))) is not None:
-        add("end_earlier", start, end - k)
-    if (k3 := _draw(rng, min(k_max, room_left, room_len - 1))) is not None:
-        if (k4 := _draw(rng, min(k_max, room_right, room_len - k3))) is not None:
-            add("widened", start - k3, end + k4)
-    if (k := _draw(rng, min(k_max, room_left, max_len))) is not None:
-        add("before", start - k, start)
-    if (k := _draw(rng, min(k_max, room_left))) is not None:
-        add("shift_left", start - k, end - k)
-    if (k := _draw(rng, min(k_max, room_right))) is not None:
-        add("shift_right", start + k, end + k)
-    return samples
+from playseg_core.data.episode import Episode
+from playseg_core.data.features import Features
+from playseg_core.ps.encoders import choose_encoders
+from playseg_core.ps.model import LabelModel, ModelConfig, PSModel, TrunkConfig
+from playseg_core.ps.samples import Batch, label_index, make_batch
 
 
 @dataclass
@@ -89,149 +29,39 @@ class TrainConfig:
     seed: int = 0
     epochs: int = 16
     # Small datasets train for more epochs, up to at least this many optimizer steps: at the demo scale
-    # (100 steps per epoch) 1,600 steps often ended before the encoder learnt "what is faced".
+    # (100 steps per epoch) 1,600 steps often ended before the labels were learnt (docs/segmentation.md).
     min_steps: int = 3200
     segments_per_batch: int = 16  # drawn from all annotated episodes; small batches = more steps
     lr: float = 3e-3
     weight_decay: float = 1e-4
-    k_max: int = 5  # negatives shift by 1..k_max steps (BabyAI: 5)
+    k_max: int = 5  # negatives shift by 1..k_max steps
     dense_prefix_negatives: bool = True
     dense_window_negatives: bool = False  # windows starting off a true start: every position is "no end"
     augment: bool = False  # random rotation/mirror per training segment (slower to learn; see docs)
     label_weight: float = 1.0
-    frame_label_weight: float = 1.0  # auxiliary label loss on the end frame's features (encoder)
+    frame_label_weight: float = 1.0  # auxiliary label loss on the end observation's encoding
     end_pos_weight: float = 4.0  # weight of the end head's positives in the BCE (ends are rare)
     num_threads: int = 2
     progress: bool = True  # tqdm bars
     log_epochs: bool = True  # one line per epoch and split
 
 
-def default_model_config(num_classes: int, max_len: int = 25, num_actions: int = 0) -> ModelConfig:
-    """The measured default model; `num_actions` > 0 makes it read discrete actions (BabyAI: 7)."""
-    return ModelConfig(EncoderConfig(), TrunkConfig(max_len=max_len), num_classes, num_actions=num_actions)
-
-
-# ----------------------------------------------------------------------------------------------------
-# Batches
-
-
-@dataclass
-class Batch:
-    """Training windows of a few episodes. A window starts at one step and is supervised at positions.
-
-    Samples that share a start share a window (the trunk is causal from the start, so one pass yields
-    the end logit at every position): the positive and its end-earlier / end-later negatives all live
-    in the window of the segment's true start.
-    """
-
-    frames: torch.Tensor  # (N, H, W, 3) uint8, the frames of all episodes of the batch
-    prev_actions: torch.Tensor | None  # (N,) index of the action that led to each frame (None: unused)
-    window_index: torch.Tensor  # (S, L_max+1) rows into features (N = a zero row past an episode end)
-    starts_episode: torch.Tensor  # (S,) bool: the window starts at step 0
-    end_target: torch.Tensor  # (S, L_max+1) 1 where a segment ends at that position
-    end_weight: torch.Tensor  # (S, L_max+1) 1 where the end head is supervised
-    label_window: torch.Tensor  # (M,) window of each positive
-    label_position: torch.Tensor  # (M,) its length (the position of its end in the window)
-    labels: torch.Tensor  # (M,) its class index
-
-    @property
-    def needed_len(self) -> torch.Tensor:
-        """(S,) positions each window needs: 1 + the last supervised position."""
-        positions = torch.arange(self.end_weight.shape[1])
-        return (positions * (self.end_weight > 0)).amax(1) + 1
-
-
-def label_index(instructions: Sequence[str]) -> dict[str, int]:
-    return {text: index for index, text in enumerate(instructions)}
-
-
-def make_batch(
-    items: Sequence[tuple[Episode, Segment]],
-    classes: dict[str, int],
-    max_len: int,
-    k_max: int,
-    rng: np.random.Generator,
-    negatives: bool = True,
-    dense_prefix_negatives: bool = False,
-    augment: bool = False,
-    dense_window_negatives: bool = False,
-    num_actions: int = 0,
-) -> Batch:
-    """The windows of the annotated segments `items` (only positives if not `negatives`).
-
-    Only the frames each segment's samples can touch (k_max around it) are included: a batch holds
-    segments from many episodes, which trains far faster than whole episodes (many rooms per step).
-    With `dense_prefix_negatives`, the true-start window is also supervised as "not ended" at every
-    position before the end and at every position up to k_max after it (the end-earlier and end-later
-    negatives for all k at once). With `augment`, each segment's frames get one random rotation by a
-    multiple of 90 degrees and an optional mirror (the whole clip alike): facing, goals and instructions
-    are unchanged by them, so the model cannot lean on memorised room layouts. With `num_actions` > 0
-    (a model that reads actions) the batch also carries the action that led to each frame.
-    """
-    if augment and num_actions:
-        # A mirror swaps left and right turns: the actions would need the env's own remapping.
-        raise ValueError("augment is not supported for models that read actions")
-    regions = [(max(0, seg.start - k_max), min(ep.num_steps, seg.end + k_max)) for ep, seg in items]
-    zero_row = sum(hi - lo + 1 for lo, hi in regions)
-    num_pos = max_len + 1
-    frames, prev_actions, rows, starts_episode, targets, weights = [], [], [], [], [], []
-    label_window, label_position, labels = [], [], []
-    offset = 0
-    for (ep, seg), (lo, hi) in zip(items, regions, strict=True):
-        clip = np.array(ep.frames[lo : hi + 1], dtype=np.uint8)
-        if augment:
-            clip = np.rot90(clip, k=int(rng.integers(4)), axes=(1, 2))
-            if rng.integers(2):
-                clip = clip[:, :, ::-1]
-        frames.append(torch.from_numpy(np.ascontiguousarray(clip)))
-        if num_actions:
-            where = f"episode {ep.episode_id} actions"
-            prev_actions.append(
-                torch.from_numpy(previous_actions(ep.actions, num_actions, where)[lo : hi + 1])
-            )
-        samples = segment_samples(seg.start, seg.end, ep.num_steps, max_len, k_max, rng)
-        windows: dict[int, int] = {}  # start -> row
-        for sample in samples:
-            if not negatives and not sample.is_end:
-                continue
-            if sample.start not in windows:
-                windows[sample.start] = len(rows)
-                steps = sample.start + np.arange(num_pos)
-                rows.append(np.where(steps <= hi, offset + steps - lo, zero_row))
-                starts_episode.append(sample.start == 0)
-                targets.append(np.zeros(num_pos, np.float32))
-                weights.append(np.zeros(num_pos, np.float32))
-            row, position = windows[sample.start], sample.end - sample.start
-            targets[row][position] = float(sample.is_end)
-            weights[row][position] = 1.0
-            if sample.is_end:
-                label_window.append(row)
-                label_position.append(position)
-                labels.append(classes[seg.instruction])
-        if negatives and dense_prefix_negatives and seg.start in windows:
-            row, length = windows[seg.start], seg.end - seg.start
-            last = min(length + k_max, max_len, ep.num_steps - seg.start)
-            weights[row][1 : last + 1] = 1.0  # targets stay 0 except at the true end
-        if negatives and dense_window_negatives:
-            true_starts = {s.start for s in ep.segments}
-            for start, row in windows.items():
-                if start not in true_starts:  # no true segment starts here: no position is an end
-                    weights[row][1 : min(max_len, hi - start) + 1] = 1.0
-        offset += hi - lo + 1
-
-    def stack(arrays: list[np.ndarray], dtype: type) -> torch.Tensor:
-        return torch.from_numpy(np.array(arrays, dtype=dtype).reshape(-1, num_pos))
-
-    return Batch(
-        frames=torch.cat(frames),
-        prev_actions=torch.cat(prev_actions) if num_actions else None,
-        window_index=stack(rows, np.int64),
-        starts_episode=torch.tensor(starts_episode, dtype=torch.bool),
-        end_target=stack(targets, np.float32),
-        end_weight=stack(weights, np.float32),
-        label_window=torch.tensor(label_window, dtype=torch.long),
-        label_position=torch.tensor(label_position, dtype=torch.long),
-        labels=torch.tensor(labels, dtype=torch.long),
+def model_config_for(
+    features: Features,
+    domain: str | None,
+    num_classes: int,
+    max_len: int = 25,
+    read_actions: bool = True,
+) -> ModelConfig:
+    """The default model for data with ``features`` (step encoders by `choose_encoders`)."""
+    encoders = choose_encoders(features, domain, read_actions)
+    observed = [features[spec.feature] for spec in encoders if spec.feature != features.action.name]
+    # The action is always recorded (what the model was trained on), read or not.
+    return ModelConfig(
+        encoders,
+        Features.of([*observed, features.action], features.fps),
+        TrunkConfig(max_len=max_len),
+        num_classes,
     )
 
 
@@ -259,7 +89,7 @@ class BatchStats:
 
 def ps_loss(model: PSModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tensor, BatchStats]:
     """BCE on the end head at the supervised positions + CE on the label head at positive ends."""
-    features = model.encode_steps(batch.frames, batch.prev_actions)
+    features = model.encode_steps(batch.inputs)
     num_windows, num_pos = batch.window_index.shape
     end_sum = features.new_zeros(())
     label_hidden = features.new_zeros(len(batch.labels), model.cfg.trunk.hidden_dim)
@@ -304,18 +134,18 @@ def ps_loss(model: PSModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tenso
 def _frame_label_loss(
     model: PSModel | LabelModel, batch: Batch, features: torch.Tensor, cfg: TrainConfig
 ) -> torch.Tensor:
-    """Auxiliary CE of `frame_label_head` on each positive's end-frame encoder features (weighted)."""
+    """Auxiliary CE of `frame_label_head` on each positive's end-observation encoding (weighted)."""
     if cfg.frame_label_weight <= 0:
         return features.new_zeros(())
-    end_frames = batch.window_index[batch.label_window, batch.label_position]
-    frame_logits = model.frame_label_head(model.frame_part(features[end_frames]))
+    end_rows = batch.window_index[batch.label_window, batch.label_position]
+    frame_logits = model.frame_label_head(model.observation_part(features[end_rows]))
     return cfg.frame_label_weight * F.cross_entropy(frame_logits, batch.labels)
 
 
 def labeller_loss(model: LabelModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tensor, BatchStats]:
     """CE of the labelling model on the positives of the batch (one window per positive), plus the
     auxiliary CE of `frame_label_head` on each end frame's encoder features (as in `ps_loss`)."""
-    features = model.encode_steps(batch.frames, batch.prev_actions)
+    features = model.encode_steps(batch.inputs)
     windows = _gather_windows(features, batch.window_index[batch.label_window])
     starts_episode = batch.starts_episode[batch.label_window]
     logits = model.logits_from_windows(windows, batch.label_position, starts_episode)
@@ -374,6 +204,7 @@ def _run_epoch(loss_fn, model, episodes, classes, cfg, rng, optimizer, epoch, de
         batch = make_batch(
             [items[i] for i in chosen],
             classes,
+            model.encoders,
             model.max_len,
             cfg.k_max,
             rng,
@@ -381,7 +212,6 @@ def _run_epoch(loss_fn, model, episodes, classes, cfg, rng, optimizer, epoch, de
             dense_prefix_negatives=cfg.dense_prefix_negatives,
             dense_window_negatives=cfg.dense_window_negatives,
             augment=training and cfg.augment,
-            num_actions=model.cfg.num_actions,
         )
         if batch.labels.numel() == 0:
             continue
@@ -466,11 +296,11 @@ def train_ps(
     val_episodes: Sequence[Episode],
     instructions: Sequence[str],
     cfg: TrainConfig,
-    model_cfg: ModelConfig | None = None,
+    model_cfg: ModelConfig,
 ) -> TrainResult:
     """Train a PS model (end head + label head) on the annotated segments; keeps the best val epoch."""
     torch.manual_seed(cfg.seed)
-    model = PSModel(model_cfg or default_model_config(len(instructions)), list(instructions))
+    model = PSModel(model_cfg, list(instructions))
     return _fit(model, lambda m, b: ps_loss(m, b, cfg), train_episodes, val_episodes, instructions, cfg, "ps")
 
 
@@ -479,11 +309,11 @@ def train_labeller(
     val_episodes: Sequence[Episode],
     instructions: Sequence[str],
     cfg: TrainConfig,
-    model_cfg: ModelConfig | None = None,
+    model_cfg: ModelConfig,
 ) -> TrainResult:
     """Train the stand-alone labelling model on the annotated segments (positives only)."""
     torch.manual_seed(cfg.seed)
-    model = LabelModel(model_cfg or default_model_config(len(instructions)), list(instructions))
+    model = LabelModel(model_cfg, list(instructions))
     return _fit(
         model,
         lambda m, b: labeller_loss(m, b, cfg),
@@ -493,45 +323,3 @@ def train_labeller(
         cfg,
         "labeller",
     )
-
-
-# ----------------------------------------------------------------------------------------------------
-# Checkpoints: plain tensors and builtins only, loaded with weights_only=True (checkpoints are untrusted).
-
-_KINDS = {"ps": PSModel, "labeller": LabelModel}
-
-
-def save_checkpoint(path: str | Path, model: PSModel | LabelModel, extra: dict | None = None) -> None:
-    kind = "ps" if isinstance(model, PSModel) else "labeller"
-    payload = {
-        "kind": kind,
-        "config": asdict(model.cfg),
-        "state_dict": model.state_dict(),
-        "instructions": list(model.instructions),
-        "extra": extra or {},
-    }
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    torch.save(payload, path)
-
-
-def load_checkpoint(path: str | Path) -> tuple[PSModel | LabelModel, dict]:
-    """-> (model in eval mode with its .instructions, extra); ValueError naming the file if invalid."""
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"checkpoint {path}: no such file")
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # corrupt, truncated, or carrying objects weights_only refuses
-        raise ValueError(f"checkpoint {path}: cannot be read safely ({error})") from error
-    try:
-        model_class = _KINDS[payload["kind"]]
-        cfg = ModelConfig.from_dict(payload["config"])
-        model = model_class(cfg, [str(s) for s in payload["instructions"]])
-        state = dict(payload["state_dict"])
-        if model_class is PSModel:
-            state.setdefault("end_bias", torch.zeros(()))  # checkpoints from before the end bias
-        model.load_state_dict(state)
-    except Exception as error:
-        raise ValueError(f"checkpoint {path}: not a playseg checkpoint ({error!r})") from error
-    model.eval()
-    return model, dict(payload.get("extra", {}))

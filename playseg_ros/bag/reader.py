@@ -53,6 +53,11 @@ class BagReader:
         return {c.topic: c.msgtype for c in self._reader.connections}
 
     @property
+    def custom_data(self) -> dict[str, str]:
+        """metadata.yaml's ``custom_data`` (empty when the bag has none)."""
+        return {str(k): str(v) for k, v in (self.metadata.get("custom_data") or {}).items()}
+
+    @property
     def message_count(self) -> int:
         return self._reader.message_count
 

@@ -205,6 +205,7 @@ class BagSummary:
     path: Path
     files: list[FileStats]
     topics: dict[str, TopicInfo]
+    custom_data: dict[str, str] = field(default_factory=dict)  # rosbag2's free-form string map
 
     @property
     def message_count(self) -> int:
@@ -255,7 +256,7 @@ class BagSummary:
                 }
                 for f in self.files
             ],
-            "custom_data": {},
+            "custom_data": dict(self.custom_data),
             "ros_distro": ROS_DISTRO,
         }
 

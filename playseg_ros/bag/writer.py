@@ -85,8 +85,9 @@ class BagWriter:
     """Writes a rosbag2 MCAP bag from serialized messages.
 
     ``max_file_bytes`` / ``max_file_duration_ns`` (0: no limit) start a new .mcap file when the current
-    one would grow past them. ``chunk_bytes`` bounds a chunk (and what a crash can lose). Use as a
-    context manager: leaving it by an exception removes everything written.
+    one would grow past them. ``chunk_bytes`` bounds a chunk (and what a crash can lose).
+    ``custom_data`` goes to metadata.yaml's ``custom_data`` (strings only, as rosbag2 stores it). Use as
+    a context manager: leaving it by an exception removes everything written.
     """
 
     def __init__(
@@ -97,6 +98,7 @@ class BagWriter:
         max_file_duration_ns: int = 0,
         chunk_bytes: int = 1 << 20,
         compression: str = "zstd",
+        custom_data: dict[str, str] | None = None,
     ) -> None:
         if compression not in ("zstd", "none"):
             raise ValueError(f"compression must be 'zstd' or 'none', got {compression!r}")
@@ -117,7 +119,9 @@ class BagWriter:
         self.max_file_duration_ns = max_file_duration_ns
         self.chunk_bytes = chunk_bytes
         self._compression = CompressionType.ZSTD if compression == "zstd" else CompressionType.NONE
-        self._summary = BagSummary(self.path, [], {})
+        self._summary = BagSummary(
+            self.path, [], {}, {str(k): str(v) for k, v in (custom_data or {}).items()}
+        )
         self._sequence: dict[str, int] = {}
         self._file: McapFile | None = None
         self._closed = False

@@ -19,8 +19,9 @@ import torch
 from playseg_msgs.msg import LabelledSegment, PlayStep
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
+from playseg_core.data.features import DEFAULT_CAMERA
+from playseg_core.ps.model import load_model
 from playseg_core.ps.streaming import StreamingSegmenter
-from playseg_core.ps.training import load_checkpoint
 from playseg_ros import qos
 from playseg_ros.messages import (
     RCLPY,
@@ -64,6 +65,7 @@ class SegmenterNode(LifecycleNode):
             self, "torch_threads", 1, "torch CPU threads (more threads than cores is slow)"
         )
         self.model = None
+        self.camera = DEFAULT_CAMERA  # the feature the PlaySteps' image is: the model's camera
         self.episodes: dict[str, _OpenEpisode] = {}
         self.finished: set[str] = set()
         self.published = 0
@@ -78,7 +80,11 @@ class SegmenterNode(LifecycleNode):
             require(self.episode_timeout_s > 0, self, "episode_timeout_s must be > 0")
             require(self.threads >= 1, self, "torch_threads must be >= 1")
             torch.set_num_threads(self.threads)
-            self.model, _ = load_checkpoint(self.model_path)
+            self.model, _ = load_model(self.model_path, kinds=("ps",))
+            cameras = self.model.cfg.features.cameras
+            require(len(cameras) <= 1, self, f"the model reads {cameras}; a PlayStep carries one camera")
+            self.camera = cameras[0] if cameras else DEFAULT_CAMERA
+            self._frame_shape = self.model.cfg.features[cameras[0]].shape if cameras else None
         except ValueError as exc:
             self.get_logger().error(str(exc))
             return TransitionCallbackReturn.FAILURE
@@ -131,12 +137,11 @@ class SegmenterNode(LifecycleNode):
             episode = self.episodes[data.episode_id] = _OpenEpisode(
                 StreamingSegmenter(self.model, self.min_len)
             )
-            self._frame_shape = self._frame_shape or data.frame.shape
         else:
             check_step_number(data.episode_id, data.step, episode.next_step)
         episode.steps.append(msg)
         episode.last_seen = time.monotonic()
-        decided = episode.segmenter.push(data.frame, data.action)
+        decided = episode.segmenter.push(data.observation(self.camera), data.action)
         if data.episode_end:
             decided += episode.segmenter.finish()
             del self.episodes[data.episode_id]

@@ -4,7 +4,8 @@ Lifecycle: configure opens the buffer and loads the annotated base data; activat
 deactivate stops listening; cleanup closes the buffer. Every received segment is fsync'ed to the buffer
 before it counts (TrainerStatus.buffer_segments is the acknowledged count), so a crash loses nothing
 that was acknowledged. Retraining runs in a background thread every `retrain_every` segments and on the
-`~/retrain` service; each run writes `policy-vNNNN.pt` and evaluates it on fixed seeded BabyAI episodes.
+`~/retrain` service; each run writes `policy-vNNNN.pt` and evaluates it on fixed seeded episodes of the
+policy's simulator (the `policy` parameter names it: ``<domain>.<policy>``, see playseg_core.augment.policy).
 """
 
 from __future__ import annotations
@@ -17,18 +18,17 @@ from playseg_msgs.srv import EvaluatePolicy, Retrain, SaveBuffer
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
+from playseg_core.augment.policy import load_policy_learner
 from playseg_core.augment.retraining import (
     AugmentationTrainer,
     TrainerConfig,
-    demonstrations_from_episodes,
+    annotated_clips,
     export_buffer_dataset,
 )
-from playseg_core.domains.babyai.imitation import PolicyTrainConfig
-from playseg_core.domains.babyai.policy import PolicyConfig
 from playseg_ros import qos
 from playseg_ros.messages import clip_from_labelled
 from playseg_ros.nodes.common import declare, require, run_node
-from playseg_ros.play_bags import load_annotated_episodes
+from playseg_ros.play_bags import PlayBagInfo, load_annotated
 
 
 class TrainerNode(LifecycleNode):
@@ -52,15 +52,17 @@ class TrainerNode(LifecycleNode):
             "min_confidence": declare(
                 self, "min_confidence", 0.0, "train only on segments at this confidence+"
             ),
+            "policy": declare(self, "policy", "babyai.film", "the policy to train: <domain>.<policy>"),
             "train_steps": declare(self, "train_steps", 2000, "optimiser steps per retraining"),
             "batch_size": declare(self, "batch_size", 256, "imitation batch size"),
-            "policy_channels": declare(self, "policy_channels", 64, "width of the FiLM policy network"),
+            "policy_channels": declare(self, "policy_channels", 64, "width of the policy network"),
             "seed": declare(self, "seed", 0, "training seed"),
             "eval_episodes": declare(self, "eval_episodes", 512, "fixed seeded evaluation episodes"),
             "eval_max_steps": declare(self, "eval_max_steps", 25, "success must come within this many steps"),
             "status_period_s": declare(self, "status_period_s", 2.0, "status republish period"),
         }
         self.trainer: AugmentationTrainer | None = None
+        self.base_info = PlayBagInfo()
         self.state = "idle"
         self.message = ""
         self.last_eval = math.nan
@@ -84,26 +86,33 @@ class TrainerNode(LifecycleNode):
             require(bool(p["checkpoint_dir"]), self, "checkpoint_dir must be set")
             require(p["retrain_every"] >= 0, self, "retrain_every must be >= 0")
             require(p["eval_episodes"] > 0 and p["eval_max_steps"] > 0, self, "eval_* must be > 0")
-            base = (
-                demonstrations_from_episodes(load_annotated_episodes(p["base_data"]))
-                if p["base_data"]
-                else []
+            learner = load_policy_learner(
+                p["policy"],
+                {
+                    "steps": p["train_steps"],
+                    "batch_size": p["batch_size"],
+                    "seed": p["seed"],
+                    "channels": p["policy_channels"],
+                    "eval_max_steps": p["eval_max_steps"],
+                },
             )
+            base = []
+            if p["base_data"]:
+                annotated = load_annotated(p["base_data"])
+                self.base_info = annotated.info
+                if annotated.info.features is not None:
+                    learner.features.check_compatible(
+                        annotated.info.features, sorted(learner.features.by_name), f"policy {p['policy']}"
+                    )
+                base = annotated_clips(annotated.episodes)
             config = TrainerConfig(
                 buffer_dir=p["buffer_dir"],
                 checkpoint_dir=p["checkpoint_dir"],
                 retrain_every=p["retrain_every"],
                 min_confidence=p["min_confidence"],
                 eval_episodes=p["eval_episodes"],
-                eval_max_steps=p["eval_max_steps"],
-                train=PolicyTrainConfig(
-                    steps=p["train_steps"],
-                    batch_size=p["batch_size"],
-                    seed=p["seed"],
-                    policy=PolicyConfig(channels=p["policy_channels"]),
-                ),
             )
-            self.trainer = AugmentationTrainer(config, base)
+            self.trainer = AugmentationTrainer(config, learner, base)
         except Exception as exc:  # any configuration problem: report it, stay unconfigured
             self.get_logger().error(f"configure failed: {exc!r}")
             return TransitionCallbackReturn.FAILURE
@@ -138,7 +147,7 @@ class TrainerNode(LifecycleNode):
     # -- data ------------------------------------------------------------------------------------------
     def _on_segment(self, msg: LabelledSegment) -> None:
         try:
-            clip = clip_from_labelled(msg)
+            clip = clip_from_labelled(msg, self.base_info.camera)
         except ValueError as exc:
             self.get_logger().error(f"dropped LabelledSegment on {self.p['segments_topic']}: {exc}")
             return
@@ -190,8 +199,13 @@ class TrainerNode(LifecycleNode):
     def _on_save_buffer(
         self, request: SaveBuffer.Request, response: SaveBuffer.Response
     ) -> SaveBuffer.Response:
+        if self.trainer is None:
+            response.success, response.message = False, "trainer is not configured"
+            return response
         try:
-            response.segments = export_buffer_dataset(self.trainer.buffer, request.path)
+            response.segments = export_buffer_dataset(
+                self.trainer.buffer, request.path, self.base_info.instructions, self.base_info.features
+            )
             response.success, response.path = True, request.path
         except Exception as exc:
             response.success, response.message = False, str(exc)
@@ -200,8 +214,13 @@ class TrainerNode(LifecycleNode):
     def _on_evaluate(
         self, request: EvaluatePolicy.Request, response: EvaluatePolicy.Response
     ) -> EvaluatePolicy.Response:
+        if self.trainer is None:
+            response.success, response.message = False, "trainer is not configured"
+            return response
         try:
             result = self.trainer.evaluate(episodes=request.episodes or None)
+            if result is None:
+                raise ValueError(f"policy {self.p['policy']} has no simulator to evaluate in")
             response.success, response.success_rate = True, result.success_rate
             response.episodes, response.policy_version = result.num_episodes, self.trainer.policy_version
         except ValueError as exc:

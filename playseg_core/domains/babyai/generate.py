@@ -22,7 +22,8 @@ from tqdm import tqdm
 from playseg_core.data.dataset import DatasetWriter
 from playseg_core.data.episode import Episode
 from playseg_core.data.splits import SPLITS, SplitAssigner, SplitTargets
-from playseg_core.domains.babyai.play import INSTRUCTIONS, PlayConfig, generate_episode
+from playseg_core.domains.babyai.play import PlayConfig, generate_episode
+from playseg_core.domains.babyai.spec import DOMAIN, INSTRUCTIONS
 
 SEED_STRIDE = 10**9
 """Episode seeds of one run are ``base_seed * SEED_STRIDE + index``."""
@@ -163,7 +164,9 @@ def generate_dataset(
     skipped = 0
     started = time.perf_counter()
     with (
-        DatasetWriter(out, INSTRUCTIONS, meta, overwrite=overwrite) as writer,
+        DatasetWriter(
+            out, INSTRUCTIONS, meta, overwrite=overwrite, features=preset.play.features, domain=DOMAIN
+        ) as writer,
         tqdm(
             total=targets.total_segments, unit="seg", file=sys.stderr, disable=not progress, desc=preset.name
         ) as bar,

@@ -20,6 +20,14 @@ from typing import Any
 import numpy as np
 
 from playseg_core.data.episode import Episode, Segment
+from playseg_core.data.features import ACTION, STATE, Feature, Features
+from playseg_core.domains.babyai.spec import (
+    CAMERA,
+    INSTRUCTIONS,
+    NUM_ACTIONS,
+    OBJECT_TYPES,
+    STEPS_PER_SECOND,
+)
 
 # pygame (imported by minigrid) prints a banner to stdout on import unless told not to.
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
@@ -28,21 +36,6 @@ with contextlib.redirect_stdout(io.StringIO()):
     from minigrid.envs.babyai.core.verifier import GoToInstr, ObjDesc
     from minigrid.envs.babyai.goto import GoToLocal
     from minigrid.utils.baby_ai_bot import BabyAIBot
-
-COLOURS: tuple[str, ...] = ("red", "green", "blue", "purple", "yellow", "grey")
-OBJECT_TYPES: tuple[str, ...] = ("box", "ball", "key")
-ARTICLES: tuple[str, ...] = ("the", "a")
-
-INSTRUCTIONS: tuple[str, ...] = tuple(
-    f"go to {article} {colour} {obj_type}"
-    for article in ARTICLES
-    for colour in COLOURS
-    for obj_type in OBJECT_TYPES
-)
-"""The 36 BabyAI GoTo instructions in a fixed order: class index = position in this tuple."""
-
-NUM_ACTIONS = 7
-"""minigrid's discrete actions: left, right, forward, pickup, drop, toggle, done."""
 
 # The env's own step limit would truncate long play episodes; our per-task limit replaces it.
 _UNLIMITED_ENV_STEPS = 2**31 - 1
@@ -80,6 +73,19 @@ class PlayConfig:
     @property
     def state_shape(self) -> tuple[int, int, int]:
         return (self.room_size, self.room_size, 3)
+
+    @property
+    def features(self) -> Features:
+        """The dataset features of this play: the top camera, the symbolic grid state, a discrete action."""
+        return Features.of(
+            [
+                Feature(CAMERA, "image", "uint8", self.frame_shape),
+                # minigrid's grid encoding, indexed [x, y]: (object type, colour, state) per cell.
+                Feature(STATE, "state", "uint8", self.state_shape),
+                Feature(ACTION, "action", "float32", (1,), num_values=NUM_ACTIONS),
+            ],
+            fps=STEPS_PER_SECOND,
+        )
 
 
 @contextlib.contextmanager
@@ -193,8 +199,8 @@ def generate_episode(config: PlayConfig, seed: int) -> Episode:
 
     return Episode(
         episode_id=episode_id_for_seed(seed),
-        frames=np.stack(frames).astype(np.uint8, copy=False),
-        states=np.stack(states).astype(np.uint8, copy=False),
         actions=np.asarray(actions, dtype=np.float32).reshape(-1, 1),
+        images={CAMERA: np.stack(frames).astype(np.uint8, copy=False)},
+        state=np.stack(states).astype(np.uint8, copy=False),
         segments=segments,
     )

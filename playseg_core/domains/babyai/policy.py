@@ -15,12 +15,13 @@ relative to the agent, so re-expressing the grid in the agent's frame makes the 
 same wherever the agent stands and whichever way it faces. It is a fixed re-indexing (no learning) and
 generalises far better from few demonstrations (see docs/policy.md for the measured difference).
 
-Checkpoints are plain dicts of tensors, numbers and strings, loaded with ``torch.load(weights_only=True)``.
+Checkpoints: playseg_core/checkpoint.py (kind "policy", policy name "babyai.film").
 """
 
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -30,10 +31,10 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-CHECKPOINT_FORMAT = "playseg-policy"
-CHECKPOINT_VERSION = 1
+from playseg_core.checkpoint import Checkpoint, CheckpointError, read_checkpoint, save_checkpoint
+from playseg_core.data.features import ACTION, STATE, Feature, Features
+from playseg_core.domains.babyai.spec import NUM_ACTIONS
 
-NUM_ACTIONS = 7  # BabyAI: left, right, forward, pickup, drop, toggle, done
 # Value ranges of the grid encoding channels (minigrid constants): 11 object types, 6 colours, and the
 # state channel (door state 0..2, agent direction 0..3).
 NUM_OBJECT_TYPES = 11
@@ -50,10 +51,6 @@ GRAMMAR_WORDS = (
 )  # fmt: skip
 VOCABULARY: tuple[str, ...] = (PAD_WORD, UNKNOWN_WORD, *GRAMMAR_WORDS, *COLOUR_WORDS, *OBJECT_WORDS)
 WORD_TO_ID = {word: index for index, word in enumerate(VOCABULARY)}
-
-
-class PolicyCheckpointError(ValueError):
-    """A file that is not a valid policy checkpoint; the message names the file."""
 
 
 @dataclass
@@ -212,63 +209,59 @@ class PolicyNet(nn.Module):
         return self.head(x)
 
     @torch.no_grad()
-    def act(self, states: np.ndarray, instructions: list[str]) -> np.ndarray:
-        """Greedy actions (B,) int64 for a batch of uint8 states (B, 8, 8, 3) and their instructions."""
+    def act(self, observations: Mapping[str, np.ndarray], instructions: Sequence[str]) -> np.ndarray:
+        """Greedy actions (B,) int64 for a batch of observations (the uint8 grid states (B, 8, 8, 3) under
+        ``observation.state``) and their instructions."""
         was_training = self.training
         self.eval()
-        word_ids, lengths = encode_instructions(instructions, self.config.max_words)
-        logits = self(torch.from_numpy(np.ascontiguousarray(states)), word_ids, lengths)
+        word_ids, lengths = encode_instructions(list(instructions), self.config.max_words)
+        states = np.ascontiguousarray(observations[STATE])
+        logits = self(torch.from_numpy(states), word_ids, lengths)
         self.train(was_training)
         return logits.argmax(dim=-1).numpy()
 
 
-def save_policy(path: str | Path, model: PolicyNet, config: PolicyConfig, meta: dict[str, Any]) -> None:
-    """Write config + state_dict (+ plain-data ``meta``) so that ``load_policy`` can read it safely."""
-    checkpoint = {
-        "format": CHECKPOINT_FORMAT,
-        "version": CHECKPOINT_VERSION,
-        "config": asdict(config),
-        "vocabulary": list(VOCABULARY),
-        "state_dict": {name: tensor.detach().cpu().clone() for name, tensor in model.state_dict().items()},
-        "meta": dict(meta),
-    }
-    torch.save(checkpoint, Path(path))
+POLICY_NAME = "babyai.film"
 
 
-def load_policy(path: str | Path) -> tuple[PolicyNet, PolicyConfig, dict[str, Any]]:
-    """Read a checkpoint written by ``save_policy`` -> (model in eval mode, config, meta).
+def policy_features(config: PolicyConfig) -> Features:
+    """What the policy reads: the grid state; what it outputs: the discrete action."""
+    return Features.of(
+        [
+            Feature(STATE, "state", "uint8", (config.grid_size, config.grid_size, 3)),
+            Feature(ACTION, "action", "float32", (1,), num_values=config.num_actions),
+        ]
+    )
 
-    Raises PolicyCheckpointError (naming the file) on anything that is not such a checkpoint.
+
+def save_policy(path: str | Path, model: PolicyNet, meta: dict[str, Any]) -> None:
+    """Write a policy checkpoint (playseg_core/checkpoint.py) that ``load_policy`` reads back."""
+    config = {"policy": POLICY_NAME, **asdict(model.config), "vocabulary": list(VOCABULARY)}
+    save_checkpoint(
+        path, Checkpoint("policy", config, policy_features(model.config), model.state_dict(), meta)
+    )
+
+
+def load_policy(path: str | Path) -> tuple[PolicyNet, dict[str, Any]]:
+    """Read a checkpoint written by ``save_policy`` -> (model in eval mode, meta).
+
+    Raises CheckpointError (naming the file) on anything that is not such a checkpoint.
     """
-    path = Path(path)
-    try:
-        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-    except FileNotFoundError:
-        raise
-    except Exception as error:  # pickle, zip and weights_only errors all mean "not a checkpoint"
-        raise PolicyCheckpointError(f"{path}: not a readable policy checkpoint ({error})") from error
-    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
-        raise PolicyCheckpointError(
-            f"{path}: not a policy checkpoint (format tag {CHECKPOINT_FORMAT!r} missing)"
-        )
-    if checkpoint.get("version") != CHECKPOINT_VERSION:
-        raise PolicyCheckpointError(
-            f"{path}: unsupported policy checkpoint version {checkpoint.get('version')!r}"
-        )
-    missing = {"config", "vocabulary", "state_dict", "meta"} - checkpoint.keys()
-    if missing:
-        raise PolicyCheckpointError(f"{path}: policy checkpoint lacks {sorted(missing)}")
-    if list(checkpoint["vocabulary"]) != list(VOCABULARY):
-        raise PolicyCheckpointError(f"{path}: policy checkpoint was written with another word vocabulary")
+    checkpoint = read_checkpoint(path, kinds=("policy",))
+    raw = dict(checkpoint.config)
+    if raw.pop("policy", None) != POLICY_NAME:
+        raise CheckpointError(f"checkpoint {path}: not a {POLICY_NAME} policy")
+    if list(raw.pop("vocabulary", [])) != list(VOCABULARY):
+        raise CheckpointError(f"checkpoint {path}: policy written with another word vocabulary")
     known = {f.name for f in fields(PolicyConfig)}
-    raw_config = checkpoint["config"]
-    if not isinstance(raw_config, dict) or not set(raw_config) <= known:
-        raise PolicyCheckpointError(f"{path}: policy checkpoint has an invalid config {raw_config!r}")
-    config = PolicyConfig(**raw_config)
-    model = PolicyNet(config)
+    if not set(raw) <= known:
+        raise CheckpointError(f"checkpoint {path}: unknown policy settings {sorted(set(raw) - known)}")
+    model = PolicyNet(PolicyConfig(**raw))
     try:
-        model.load_state_dict(checkpoint["state_dict"], strict=True)
+        model.load_state_dict(checkpoint.state_dict, strict=True)
     except (RuntimeError, TypeError, AttributeError) as error:
-        raise PolicyCheckpointError(f"{path}: policy weights do not match its config: {error}") from error
+        raise CheckpointError(
+            f"checkpoint {path}: policy weights do not match its config: {error}"
+        ) from error
     model.eval()
-    return model, config, dict(checkpoint["meta"])
+    return model, checkpoint.meta

@@ -1,0 +1,82 @@
+"""The policy interface augmentation trains through: train on segment clips, act, evaluate, save, load.
+
+A `PolicyLearner` is one policy family of one domain (a domain package lists its own in ``POLICIES``);
+the trainer node and `AugmentationTrainer` know only this interface and find a learner by its name,
+``<domain>.<policy>`` (`load_policy_learner`). A learner without a simulator returns no evaluation.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from playseg_core.data.episode import SegmentClip
+from playseg_core.data.features import Features
+from playseg_core.domains import load_domain
+
+
+@dataclass
+class PolicyTrainReport:
+    """What one training run of a policy did."""
+
+    steps: int
+    seconds: float
+    num_segments: int
+    final_loss: float
+    losses: list[tuple[int, float]] = field(default_factory=list)  # (step, mean loss since the last entry)
+
+
+@dataclass
+class PolicyEvaluation:
+    """Task success of a policy on fixed, seeded episodes of the domain's simulator."""
+
+    success_rate: float
+    num_episodes: int
+    num_successes: int
+    seed: int
+    seconds: float
+    episode_success: list[bool] = field(default_factory=list)
+
+
+class InstructionPolicy(Protocol):
+    """An instruction-following policy: a batch of observations and instructions -> a batch of actions."""
+
+    def act(self, observations: Mapping[str, np.ndarray], instructions: Sequence[str]) -> np.ndarray: ...
+
+
+class PolicyLearner(Protocol):
+    """How one policy family trains, evaluates, saves and loads.
+
+    name: ``<domain>.<policy>``, recorded in its checkpoints.
+    features: the data features it reads (a clip must hold them; a base dataset must declare them).
+    """
+
+    name: str
+
+    @property
+    def features(self) -> Features: ...
+
+    def train(
+        self, clips: Sequence[SegmentClip], progress: bool = False
+    ) -> tuple[Any, PolicyTrainReport]: ...
+
+    def evaluate(self, policy: Any, num_episodes: int, seed: int) -> PolicyEvaluation | None: ...
+
+    def save(self, path: Path, policy: Any, meta: dict[str, Any]) -> None: ...
+
+    def load(self, path: Path) -> tuple[Any, dict[str, Any]]: ...
+
+
+def load_policy_learner(name: str, config: Mapping[str, Any] | None = None) -> PolicyLearner:
+    """The learner ``<domain>.<policy>`` built from ``config``; ValueError naming what is unknown."""
+    domain, _, policy = name.partition(".")
+    if not policy:
+        raise ValueError(f"policy {name!r}: expected <domain>.<policy>")
+    policies = getattr(load_domain(domain), "POLICIES", {})
+    if policy not in policies:
+        raise ValueError(f"policy {name!r}: domain {domain!r} has {sorted(policies) or 'no policies'}")
+    return policies[policy](dict(config or {}))
