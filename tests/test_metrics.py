@@ -13,7 +13,7 @@ from playseg_core.ps.metrics import (
     format_metrics_table,
     label_accuracy,
     match_boundaries,
-    segment_precision,
+    segment_matches,
 )
 
 
@@ -34,7 +34,7 @@ def test_perfect_prediction_scores_one_everywhere():
             counts = boundary_scores(TRUTH, TRUTH, tolerance, final, num_steps=10)
             assert (counts.precision, counts.recall, counts.f1) == (1.0, 1.0, 1.0)
     assert label_accuracy(TRUTH, TRUTH, 10).accuracy == 1.0
-    assert (segment_precision(TRUTH, TRUTH).precision, segment_precision(TRUTH, TRUTH).recall) == (1.0, 1.0)
+    assert (segment_matches(TRUTH, TRUTH).precision, segment_matches(TRUTH, TRUTH).recall) == (1.0, 1.0)
 
 
 def test_empty_prediction_scores_zero():
@@ -42,7 +42,7 @@ def test_empty_prediction_scores_zero():
     assert counts == BoundaryCounts(matched=0, num_pred=0, num_truth=3)
     assert (counts.precision, counts.recall, counts.f1) == (0.0, 0.0, 0.0)
     assert label_accuracy([], TRUTH, 10).accuracy == 0.0
-    assert segment_precision([], TRUTH).precision == 0.0
+    assert segment_matches([], TRUTH).precision == 0.0
 
 
 def test_off_by_one_is_missed_exactly_and_found_with_tolerance():
@@ -90,7 +90,7 @@ def test_label_accuracy_on_a_hand_made_example():
 def test_segment_precision_needs_same_span_and_instruction():
     pred = segs((0, 3, "a"), (3, 7, "x"), (7, 9, "c"), (9, 10, "c"))
     # (0,3,a) matches; (3,7,x) has the wrong label; (7,9) and (9,10) have the wrong span.
-    counts = segment_precision(pred, TRUTH)
+    counts = segment_matches(pred, TRUTH)
     assert (counts.matched, counts.num_pred, counts.num_truth) == (1, 4, 3)
     assert (counts.precision, counts.recall) == (0.25, pytest.approx(1 / 3))
 
@@ -102,7 +102,7 @@ def test_bad_segments_are_rejected_naming_the_argument():
     with pytest.raises(ValueError, match="truth"):
         label_accuracy(TRUTH, [Segment(0, 12)], num_steps=10)
     with pytest.raises(TypeError, match="pred"):
-        segment_precision([(0, 3)], TRUTH)
+        segment_matches([(0, 3)], TRUTH)
     with pytest.raises(ValueError, match="tolerance"):
         boundary_scores(TRUTH, TRUTH, tolerance=-1)
 

@@ -1,6 +1,6 @@
 """Play Segmentation decoding: the most likely segmentation of an episode from segment-end logits.
 
-Score matrix convention (docs/contracts.md "Decoding"): ``end_logits`` has shape (T, L_max) and
+Score matrix convention: ``end_logits`` has shape (T, L_max) and
 ``end_logits[i, k]`` is the logit that the segment starting at step i ends at step ``i + k + 1``, i.e. the
 segment ``[i, i+k+1)`` of k+1 actions. Entries with ``i + k + 1 > T`` are ignored (they may hold anything,
 NaN included).

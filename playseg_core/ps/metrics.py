@@ -32,7 +32,7 @@ __all__ = [
     "format_metrics_table",
     "label_accuracy",
     "match_boundaries",
-    "segment_precision",
+    "segment_matches",
 ]
 
 TOLERANCES: tuple[int, ...] = (0, 1, 2)
@@ -164,7 +164,7 @@ def label_accuracy(pred: Sequence[Segment], truth: Sequence[Segment], num_steps:
     return LabelCounts(correct, sum(seg.length for seg in truth))
 
 
-def segment_precision(pred: Sequence[Segment], truth: Sequence[Segment]) -> SegmentCounts:
+def segment_matches(pred: Sequence[Segment], truth: Sequence[Segment]) -> SegmentCounts:
     """Predicted segments with the same start, end and instruction as a true segment."""
     _check(pred, "pred")
     _check(truth, "truth")
@@ -208,7 +208,7 @@ def evaluate(
             for tol, final in variants:
                 boundaries[(tol, final)] += boundary_scores(pred, truth, tol, final, num_steps)
             labels += label_accuracy(pred, truth, num_steps)
-            segments += segment_precision(pred, truth)
+            segments += segment_matches(pred, truth)
         except ValueError as error:
             raise ValueError(f"episode {episode_id!r}: {error}") from error
 
