@@ -109,8 +109,8 @@ def read_checkpoint(path: str | os.PathLike[str], kinds: Iterable[str] = KINDS) 
         features = Features.from_json(payload["features"])
     except FeatureError as error:
         raise CheckpointError(f"checkpoint {path}: {error}") from None
-    if not isinstance(payload["config"], Mapping) or not isinstance(payload["state_dict"], Mapping):
-        raise CheckpointError(f"checkpoint {path}: config and state_dict must be mappings")
+    if not all(isinstance(payload[key], Mapping) for key in ("config", "state_dict", "meta")):
+        raise CheckpointError(f"checkpoint {path}: config, state_dict and meta must be mappings")
     return Checkpoint(
         kind=payload["kind"],
         config=dict(payload["config"]),

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from playseg_core.data.episode import Episode, Segment, SegmentClip
 from playseg_core.data.features import ACTION, Feature, Features
-from playseg_ros.play_bags import PlayBagInfo
+from playseg_ros.play_bags import DataInfo
 
 
 def _is_bag(path: Path) -> bool:
@@ -134,13 +134,15 @@ def train(
     return 0
 
 
-def _input_episodes(path: Path, splits: list[str]) -> tuple[Iterator[Episode], PlayBagInfo, str]:
-    """Episodes to segment: a dataset's `splits` (annotations hidden), or every episode of a play bag."""
-
+def _input_episodes(
+    path: Path, splits: list[str], camera: str | None
+) -> tuple[Iterator[Episode], DataInfo, str]:
+    """Episodes to segment: a dataset's `splits` (annotations hidden), or every episode of a play bag
+    (its image as ``camera`` when the bag declares no features, as the live segmenter reads it)."""
     if _is_bag(path):
         from playseg_ros.play_bags import iter_play_bag, read_play_bag_info
 
-        return iter_play_bag(path), read_play_bag_info(path), "bag"
+        return iter_play_bag(path, camera=camera), read_play_bag_info(path), "bag"
     from playseg_core.data.dataset import PlayDataset
 
     dataset = PlayDataset.open(path)
@@ -149,7 +151,7 @@ def _input_episodes(path: Path, splits: list[str]) -> tuple[Iterator[Episode], P
         for split in splits:
             yield from dataset.episodes(split)
 
-    return episodes(), PlayBagInfo(dataset.features, dataset.domain, dataset.instructions), "dataset"
+    return episodes(), DataInfo.of_dataset(dataset), "dataset"
 
 
 def segment(
@@ -162,12 +164,18 @@ def segment(
 
     model, extra = load_model(model_path, kinds=("ps",))
     source = Path(input_path)
-    episodes, info, kind = _input_episodes(source, splits)
+    cameras = model.cfg.features.cameras
+    episodes, info, kind = _input_episodes(source, splits, cameras[0] if len(cameras) == 1 else None)
     if info.features is not None:
         model.cfg.check_features(info.features, f"model {model_path}")
     threshold = float(extra.get("calibration", {}).get("threshold", 0.0))
     meta = {"segmented_by": str(model_path), "source": str(source), "label_threshold": threshold}
     instructions = info.instructions or tuple(model.instructions)
+    unknown = sorted(set(model.instructions) - set(instructions))
+    if unknown:
+        raise ValueError(
+            f"{source}: model {model_path} labels instructions the data does not list: {unknown[:3]}"
+        )
     started, steps, count, results = time.perf_counter(), 0, 0, []
     with DatasetWriter(
         out, instructions, meta, overwrite=overwrite, features=info.features, domain=info.domain

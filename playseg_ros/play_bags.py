@@ -6,7 +6,7 @@ Topics of a play bag:
   /play/ground_truth  playseg_msgs/msg/Annotation  the true segments, for evaluation only
 A segment bag has /segments (playseg_msgs/msg/LabelledSegment), one self-contained message per segment.
 
-What the data is travels in metadata.yaml's ``custom_data`` (`PlayBagInfo`): the feature schema
+What the data is travels in metadata.yaml's ``custom_data`` (`DataInfo`): the feature schema
 (data/features.py: which camera the PlaySteps' image is, the state's dtype, the action's kind), the domain
 and the instruction list. A bag without it reads with `DEFAULT_CAMERA`, float32 states and a continuous
 action. Readers validate as they go and raise `BagError` naming the bag, topic, episode and step.
@@ -24,7 +24,7 @@ import numpy as np
 
 from playseg_core.data.dataset import PlayDataset
 from playseg_core.data.episode import Episode, Segment, SegmentClip
-from playseg_core.data.features import DEFAULT_CAMERA, FeatureError, Features
+from playseg_core.data.features import DEFAULT_CAMERA, FeatureError, Features, conform_episode
 from playseg_ros.bag import BagError, BagReader, BagSummary, BagWriter, topic_info
 from playseg_ros.messages import (
     ANNOTATION,
@@ -52,7 +52,7 @@ TOPIC_TYPES = {
     SEGMENTS_TOPIC: LABELLED_SEGMENT,
 }
 DEFAULT_START_NS = 1_700_000_000_000_000_000
-DEFAULT_STEP_PERIOD_NS = 100_000_000  # 10 Hz
+DEFAULT_STEP_PERIOD_NS = 100_000_000  # 10 Hz, when nothing declares a step rate
 
 
 def _serialize(msg: Any, type_name: str) -> bytes:
@@ -60,14 +60,19 @@ def _serialize(msg: Any, type_name: str) -> bytes:
 
 
 @dataclass(frozen=True)
-class PlayBagInfo:
-    """What a play or segment bag declares about its data in metadata.yaml's ``custom_data``."""
+class DataInfo:
+    """What a source declares about its data: the features, the domain, the instruction list.
+
+    A play or segment bag keeps it in metadata.yaml's ``custom_data``; a dataset in its info.json.
+    """
 
     features: Features | None = None
     domain: str | None = None
     instructions: tuple[str, ...] = ()
 
-    CUSTOM_DATA_KEYS = ("playseg.features", "playseg.domain", "playseg.instructions")
+    @classmethod
+    def of_dataset(cls, dataset: PlayDataset) -> DataInfo:
+        return cls(dataset.features, dataset.domain, dataset.instructions)
 
     def custom_data(self) -> dict[str, str]:
         data = {}
@@ -80,7 +85,7 @@ class PlayBagInfo:
         return data
 
     @classmethod
-    def of_bag(cls, reader: BagReader) -> PlayBagInfo:
+    def of_bag(cls, reader: BagReader) -> DataInfo:
         data = reader.custom_data
         try:
             features = (
@@ -102,25 +107,23 @@ class PlayBagInfo:
         """The feature name of the PlaySteps' image."""
         return self.features.cameras[0] if self.features and self.features.cameras else DEFAULT_CAMERA
 
-    def conform(self, episode: Episode, reader: BagReader) -> Episode:
-        """``episode`` with its state in the declared dtype, checked against the declared features."""
+    def conform(self, episode: Episode, bag: Path) -> Episode:
+        """``episode`` as the declared features say (state dtype), checked against them; BagError naming
+        the bag and episode when it does not fit."""
         if self.features is None:
             return episode
-        state = episode.state
-        if state is not None and self.features.state is not None:
-            state = state.astype(self.features.state.dtype)
-        episode = Episode(episode.episode_id, episode.actions, episode.images, state, episode.segments)
+        episode = conform_episode(episode, self.features)
         try:
             self.features.check_episode(episode)
         except FeatureError as error:
-            raise BagError(reader.path, str(error), STEPS_TOPIC, episode.episode_id) from None
+            raise BagError(bag, str(error), STEPS_TOPIC, episode.episode_id) from None
         return episode
 
 
-def read_play_bag_info(path: Path | str) -> PlayBagInfo:
+def read_play_bag_info(path: Path | str) -> DataInfo:
     """The data a bag declares (features, domain, instructions), without reading its messages."""
     with BagReader(path) as reader:
-        return PlayBagInfo.of_bag(reader)
+        return DataInfo.of_bag(reader)
 
 
 def write_play_bag(
@@ -130,9 +133,9 @@ def write_play_bag(
     *,
     ground_truth: bool = True,
     start_ns: int = DEFAULT_START_NS,
-    step_period_ns: int = DEFAULT_STEP_PERIOD_NS,
+    step_period_ns: int | None = None,
     frame_id: str = "play",
-    info: PlayBagInfo | None = None,
+    info: DataInfo | None = None,
     **writer_options: Any,
 ) -> BagSummary:
     """Write episodes as a play bag at ``path`` (a new directory).
@@ -140,12 +143,16 @@ def write_play_bag(
     ``annotated``: True (every episode), False (none) or the ids of the annotated episodes; their
     segments go to /play/annotations. With ``ground_truth`` every episode's segments also go to
     /play/ground_truth. Step t of the k-th episode is stamped ``step_period_ns`` after the previous
-    step; an episode's annotations are stamped with its last step. ``writer_options`` go to
+    step (default: the declared step rate, else 10 Hz); an episode's annotations are stamped with its
+    last step. Episodes must fit the declared features (BagError naming the episode otherwise). ``writer_options`` go to
     `BagWriter` (max_file_bytes, max_file_duration_ns, chunk_bytes, compression). ``info`` (features,
     domain, instructions) goes to metadata.yaml's custom_data. If writing fails, nothing is left at
     ``path``.
     """
     custom_data = info.custom_data() if info else {}
+    fps = info.features.fps if info and info.features else None
+    if step_period_ns is None:
+        step_period_ns = round(1e9 / fps) if fps else DEFAULT_STEP_PERIOD_NS
     with BagWriter(path, custom_data=custom_data, **writer_options) as writer:
         writer.add_topic(topic_info(STEPS_TOPIC, PLAY_STEP))
         if annotated:
@@ -154,6 +161,8 @@ def write_play_bag(
             writer.add_topic(topic_info(GROUND_TRUTH_TOPIC, ANNOTATION))
         now = start_ns
         for episode in episodes:
+            if info is not None:
+                episode = info.conform(episode, Path(path))
             stamps = now + step_period_ns * np.arange(episode.num_steps + 1, dtype=np.int64)
             for msg in episode_messages(episode, stamps.tolist(), frame_id):
                 writer.write(STEPS_TOPIC, _serialize(msg, PLAY_STEP), stamp_ns(msg.header))
@@ -241,8 +250,13 @@ def _fit_segments(
     return sorted(segments)
 
 
-def iter_play_bag(path: Path | str, truth: bool = False, drop_incomplete: bool = False) -> Iterator[Episode]:
+def iter_play_bag(
+    path: Path | str, truth: bool = False, drop_incomplete: bool = False, camera: str | None = None
+) -> Iterator[Episode]:
     """Episodes of a play bag, each as soon as its last step is read.
+
+    The PlaySteps' image is the declared camera; in a bag that declares none, ``camera`` (the feature a
+    model reads, as the live segmenter does) or `DEFAULT_CAMERA`.
 
     Segments come from /play/annotations (episodes without annotations get none) or, with ``truth``,
     from /play/ground_truth. An episode whose stream stops before ``episode_end`` (e.g. a recovered
@@ -250,7 +264,8 @@ def iter_play_bag(path: Path | str, truth: bool = False, drop_incomplete: bool =
     """
     segment_topic = GROUND_TRUTH_TOPIC if truth else ANNOTATIONS_TOPIC
     with BagReader(path) as reader:
-        info = PlayBagInfo.of_bag(reader)
+        info = DataInfo.of_bag(reader)
+        image = info.camera if info.features is not None or camera is None else camera
         _check_topics(reader, [STEPS_TOPIC, GROUND_TRUTH_TOPIC] if truth else [STEPS_TOPIC])
         segments = _read_annotations(reader, segment_topic) if segment_topic in reader.topics else {}
         open_episodes: dict[str, EpisodeBuilder] = {}
@@ -266,7 +281,7 @@ def iter_play_bag(path: Path | str, truth: bool = False, drop_incomplete: bool =
                     episode_id,
                     int(msg.step),
                 )
-            builder = open_episodes.setdefault(episode_id, EpisodeBuilder(episode_id, camera=info.camera))
+            builder = open_episodes.setdefault(episode_id, EpisodeBuilder(episode_id, camera=image))
             try:
                 builder.add(msg)
             except StepError as error:
@@ -282,7 +297,7 @@ def iter_play_bag(path: Path | str, truth: bool = False, drop_incomplete: bool =
                     episode = builder.build(episode_segments)
                 except StepError as error:
                     raise _located(reader, STEPS_TOPIC, error) from None
-                yield info.conform(episode, reader)
+                yield info.conform(episode, reader.path)
         if open_episodes and not drop_incomplete:
             episode_id, builder = next(iter(open_episodes.items()))
             raise BagError(
@@ -315,7 +330,7 @@ def write_segment_bag(
     start_ns: int = DEFAULT_START_NS,
     period_ns: int = DEFAULT_STEP_PERIOD_NS,
     frame_id: str = "play",
-    info: PlayBagInfo | None = None,
+    info: DataInfo | None = None,
     **writer_options: Any,
 ) -> BagSummary:
     """Write labelled segments to /segments, one LabelledSegment each, ``period_ns`` apart."""
@@ -331,7 +346,7 @@ def write_segment_bag(
 def iter_segment_bag(path: Path | str) -> Iterator[SegmentClip]:
     """The labelled segments of a segment bag, in order."""
     with BagReader(path) as reader:
-        info = PlayBagInfo.of_bag(reader)
+        info = DataInfo.of_bag(reader)
         _check_topics(reader, [SEGMENTS_TOPIC])
         for raw in reader.messages([SEGMENTS_TOPIC]):
             msg = _deserialize(reader, raw.data, SEGMENTS_TOPIC)
@@ -379,7 +394,7 @@ def write_dataset_bags(
     for name in DATASET_BAGS:  # refuse before writing anything, so no half set of bags is left
         if (out / name).exists():
             raise FileExistsError(f"bag {str(out / name)!r}: already exists (remove it to write new bags)")
-    info = PlayBagInfo(dataset.features, dataset.domain, dataset.instructions)
+    info = DataInfo.of_dataset(dataset)
     summaries: dict[str, BagSummary] = {}
     for name, (_, annotated) in DATASET_BAGS.items():
         summaries[name] = write_play_bag(
@@ -393,7 +408,7 @@ class AnnotatedData:
     """Annotated episodes with what their source declares about them."""
 
     episodes: list[Episode]
-    info: PlayBagInfo
+    info: DataInfo
 
 
 def load_annotated(path: Path | str) -> AnnotatedData:
@@ -403,5 +418,4 @@ def load_annotated(path: Path | str) -> AnnotatedData:
         info = read_play_bag_info(path)
         return AnnotatedData([episode for episode in iter_play_bag(path) if episode.segments], info)
     dataset = PlayDataset.open(path)
-    info = PlayBagInfo(dataset.features, dataset.domain, dataset.instructions)
-    return AnnotatedData(list(dataset.episodes("train")), info)
+    return AnnotatedData(list(dataset.episodes("train")), DataInfo.of_dataset(dataset))

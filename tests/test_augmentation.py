@@ -11,6 +11,7 @@ from playseg_core.augment.retraining import (
 )
 from playseg_core.data.dataset import PlayDataset
 from playseg_core.data.episode import SegmentClip
+from playseg_core.data.features import DEFAULT_CAMERA
 from playseg_core.domains.babyai.imitation import PolicyTrainConfig
 from playseg_core.domains.babyai.learner import FilmPolicyLearner, demonstration
 from playseg_core.domains.babyai.play import PlayConfig, generate_episode
@@ -92,4 +93,43 @@ def test_buffer_exports_as_a_dataset(tmp_path, episodes):
         assert episode.segments[0].length == clip.segment.length
     with pytest.raises(FileExistsError):
         export_buffer_dataset(trainer.buffer, tmp_path / "exported")
+    trainer.close()
+
+
+def test_a_clip_without_what_the_policy_reads_is_refused_before_it_is_stored(tmp_path, episodes):
+    trainer = AugmentationTrainer(_config(tmp_path), _learner())
+    seg = episodes[0].segments[0]
+    clip = SegmentClip.from_episode(episodes[0], seg, "test-model")
+    stateless = SegmentClip(clip.episode_id, seg, clip.actions, clip.images, None, "test-model")
+    with pytest.raises(
+        ValueError, match=r"segment babyai-5\[0, \d+\): policy babyai.film reads observation.state"
+    ):
+        trainer.add(stateless)
+    assert len(trainer.buffer) == 0  # nothing stored: later retrainings are not poisoned
+    trainer.add(clip)
+    assert len(trainer.buffer) == 1
+    trainer.close()
+
+
+def test_export_follows_the_declared_features(tmp_path, episodes):
+    """Clips from LabelledSegment messages carry a float32 state and, without a declaration, an unnamed
+    camera; exported with the base data's features they read back as that data declares them."""
+    features = PlayConfig().features
+    trainer = AugmentationTrainer(_config(tmp_path), _learner())
+    seg = episodes[0].segments[0]
+    clip = SegmentClip.from_episode(episodes[0], seg, "ps")
+    as_received = SegmentClip(
+        clip.episode_id,
+        seg,
+        clip.actions,
+        {DEFAULT_CAMERA: clip.images[CAMERA]},
+        clip.state.astype(np.float32),
+    )
+    trainer.add(as_received)
+    assert export_buffer_dataset(trainer.buffer, tmp_path / "ds", ["x"], features, "babyai") == 1
+    dataset = PlayDataset.open(tmp_path / "ds")
+    assert dataset.features == features and dataset.domain == "babyai"
+    exported = dataset.episode(0)
+    assert exported.state.dtype == np.uint8 and list(exported.images) == [CAMERA]
+    np.testing.assert_array_equal(exported.state, clip.state)
     trainer.close()

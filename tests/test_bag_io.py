@@ -36,7 +36,7 @@ from playseg_ros.play_bags import (
     ANNOTATIONS_TOPIC,
     GROUND_TRUTH_TOPIC,
     STEPS_TOPIC,
-    PlayBagInfo,
+    DataInfo,
     read_play_bag,
     read_play_bag_info,
     read_segment_bag,
@@ -109,21 +109,21 @@ def test_a_bag_declaring_its_features_reads_back_under_them(tmp_path: Path) -> N
         ],
         fps=10.0,
     )
-    info = PlayBagInfo(features, domain="babyai", instructions=INSTRUCTIONS)
+    info = DataInfo(features, domain="babyai", instructions=INSTRUCTIONS)
     write_play_bag(tmp_path / "play", episodes, annotated=True, info=info)
     assert read_play_bag_info(tmp_path / "play") == info
     for got, want in zip(read_play_bag(tmp_path / "play"), episodes, strict=True):
         assert list(got.images) == [wrist] and got.state.dtype == np.uint8  # the declared camera and dtype
         np.testing.assert_array_equal(got.images[wrist], want.images[wrist])
         np.testing.assert_array_equal(got.state, want.state)
-    # Data that contradicts its declaration is refused, naming the episode and feature.
+    # Data that contradicts its declaration is refused, naming the episode and feature; nothing is left.
     bad = tmp_path / "bad"
     wrong = Features.of(
         [features[wrist], features.action], fps=10.0
     )  # declares no state, the steps carry one
-    write_play_bag(bad, episodes, annotated=True, info=PlayBagInfo(wrong))
     with pytest.raises(BagError, match="episode 'ep-000'.*has \\['observation.state'\\] features"):
-        read_play_bag(bad)
+        write_play_bag(bad, episodes, annotated=True, info=DataInfo(wrong))
+    assert not bad.exists() and not (tmp_path / "bad.partial").exists()
 
 
 def test_a_state_only_episode_round_trips_through_a_play_bag(tmp_path: Path) -> None:

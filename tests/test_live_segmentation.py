@@ -20,7 +20,7 @@ from playseg_core.ps.training import model_config_for
 from playseg_ros import qos
 from playseg_ros.launch import Graph, GraphSpec, NodeSpec
 from playseg_ros.messages import RCLPY, episode_step_message
-from playseg_ros.play_bags import PlayBagInfo, read_play_bag, write_play_bag
+from playseg_ros.play_bags import DataInfo, read_play_bag, write_play_bag
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +66,7 @@ def test_live_segments_equal_offline_segmentation(tmp_path, model_path):
     episodes = [generate_episode(PlayConfig(), seed) for seed in (11, 12, 13)]
     bag = tmp_path / "play"
     # The bag declares BabyAI's features, so offline its image reads as the model's camera.
-    info = PlayBagInfo(PlayConfig().features, DOMAIN, INSTRUCTIONS)
+    info = DataInfo(PlayConfig().features, DOMAIN, INSTRUCTIONS)
     write_play_bag(bag, episodes, annotated=False, info=info)
     segmenter = _start(tmp_path, "segmenter", model=str(model_path))
     collector = _Collector()

@@ -40,7 +40,7 @@ def tiny_model_config(
         features = features.with_action(Feature(ACTION, "action", "float32", (1,), num_values=num_actions))
         encoders.append(EncoderSpec("discrete_action", ACTION, {"dim": 4}))
     trunk = TrunkConfig(hidden_dim=16, num_layers=num_layers, kernel_size=3, max_len=max_len)
-    return ModelConfig(encoders, features, trunk, NUM_CLASSES)
+    return ModelConfig(encoders, features, NUM_CLASSES, trunk)
 
 
 def tiny_ps_model(max_len: int = 6, seed: int = 0, num_actions: int = 0) -> PSModel:
@@ -228,7 +228,7 @@ def test_checkpoint_round_trip_gives_identical_outputs(tmp_path) -> None:
     raw = torch.load(path, weights_only=True)
     assert raw["format"] == "playseg-checkpoint" and raw["kind"] == "ps"
     assert raw["config"]["instructions"] == INSTRUCTIONS and raw["config"]["trunk"]["max_len"] == 6
-    assert sorted(raw["features"]["features"]) == [ACTION, CAMERA]
+    assert sorted(raw["features"]["features"]) == [ACTION, CAMERA] and "features" not in raw["config"]
     loaded, meta = load_model(path)
     assert isinstance(loaded, PSModel) and loaded.instructions == INSTRUCTIONS
     assert meta == {"note": "test"}
@@ -264,9 +264,14 @@ def test_a_checkpoint_refuses_data_with_other_features(tmp_path) -> None:
     bigger = Features.of([Feature(CAMERA, "image", "uint8", (96, 96, 3)), FEATURES.action])
     with pytest.raises(FeatureError, match=CAMERA):
         loaded.cfg.check_features(bigger, "model ps.pt")
-    continuous = FEATURES.with_action(Feature(ACTION, "action", "float32", (1,)))
-    with pytest.raises(FeatureError, match="action.*discrete, 3 values.*continuous"):
-        loaded.cfg.check_features(continuous, "model ps.pt")
+    five = FEATURES.with_action(Feature(ACTION, "action", "float32", (1,), num_values=5))
+    with pytest.raises(FeatureError, match="action.*discrete, 3 values.*discrete, 5 values"):
+        loaded.cfg.check_features(five, "model ps.pt")
+    planar = FEATURES.with_action(Feature(ACTION, "action", "float32", (2,)))
+    with pytest.raises(FeatureError, match="action.*discrete, 3 values.*continuous, 2-d"):
+        loaded.cfg.check_features(planar, "model ps.pt")
+    # An undeclared one-value action (a source without a schema) is read as indices, each one checked.
+    loaded.cfg.check_features(FEATURES.with_action(Feature(ACTION, "action", "float32", (1,))), "model ps.pt")
 
 
 def test_corrupt_checkpoints_fail_clearly(tmp_path) -> None:

@@ -100,6 +100,19 @@ def test_segment_refuses_data_with_other_features(tiny_data: Path, tmp_path: Pat
             images = {wrist: episode.images[CAMERA]}
             writer.add(type(episode)(episode.episode_id, episode.actions, images, episode.state), "test")
     capsys.readouterr()
+    # A bag that declares nothing (as the recorder writes it): its image is the camera the model reads,
+    # as in the live segmenter.
+    from playseg_ros.play_bags import read_play_bag_info, write_play_bag
+
+    test_episodes = [dataset.episode(i) for i in dataset.episode_indices("test")[:2]]
+    write_play_bag(tmp_path / "recorded", test_episodes, annotated=False)
+    assert read_play_bag_info(tmp_path / "recorded").features is None
+    out = tmp_path / "from-bag"
+    assert (
+        cli_main(["segment", "--model", str(model), "--input", str(tmp_path / "recorded"), "--out", str(out)])
+        == 0
+    )
+    assert len(PlayDataset.open(out)) == 2 and (out / "segments_bag" / "metadata.yaml").is_file()
     code = cli_main(
         [
             "segment",

@@ -17,7 +17,20 @@ from pathlib import Path
 from playseg_core.augment.buffer import AugmentationBuffer
 from playseg_core.augment.policy import PolicyEvaluation, PolicyLearner
 from playseg_core.data.episode import Episode, SegmentClip
-from playseg_core.data.features import Features
+from playseg_core.data.features import ACTION, STATE, Features
+
+
+def _check_clip(clip: SegmentClip, features: Features, what: str) -> None:
+    seg = clip.segment
+    where = f"segment {clip.episode_id}[{seg.start}, {seg.end})"
+    rows = {**clip.images, ACTION: clip.actions, **({} if clip.state is None else {STATE: clip.state})}
+    for name, feature in features.by_name.items():
+        if name not in rows:
+            raise ValueError(f"{where}: {what} reads {feature.describe()}, the segment has no {name!r}")
+        if rows[name].shape[1:] != feature.shape:
+            raise ValueError(
+                f"{where}: {what} reads {feature.describe()}, the segment's is {list(rows[name].shape[1:])}"
+            )
 
 
 def annotated_clips(episodes: Iterable[Episode]) -> list[SegmentClip]:
@@ -67,7 +80,12 @@ class AugmentationTrainer:
         return self.latest.version if self.latest else 0
 
     def add(self, clip: SegmentClip) -> bool:
-        """Store a segment durably. Returns True when a periodic retraining is due."""
+        """Store a segment durably. Returns True when a periodic retraining is due.
+
+        ValueError naming the segment and feature, and nothing stored, when the clip lacks what the
+        policy reads (one such clip in the buffer would fail every later retraining).
+        """
+        _check_clip(clip, self.learner.features, f"policy {self.learner.name}")
         with self._lock:
             self.buffer.append(clip)
             self._since_retrain += 1
@@ -139,12 +157,14 @@ def export_buffer_dataset(
     path: str | Path,
     instructions: Iterable[str] = (),
     features: Features | None = None,
+    domain: str | None = None,
 ) -> int:
     """Write every buffered segment as a one-segment episode of a playseg dataset (split 'train').
 
     Episode ids are ``<source episode>:<start>-<end>``; segment confidence and log-score are kept. The
     dataset's instruction list is ``instructions`` followed by any other instruction the buffer holds;
-    ``features`` is its schema (default: taken from the first clip). Returns the number of segments
+    ``features`` is its schema (default: taken from the first clip), ``domain`` the domain it comes
+    from (so its step encoders apply when training on it). Returns the number of segments
     written. The dataset appears at ``path`` only when complete.
     """
     from playseg_core.data.dataset import DatasetWriter
@@ -153,7 +173,7 @@ def export_buffer_dataset(
     known = list(dict.fromkeys(instructions))
     known += sorted({clip.segment.instruction for clip in clips} - set(known))
     meta = {"source": f"augmentation buffer {buffer.path}"}
-    with DatasetWriter(path, known, meta, features=features) as writer:
+    with DatasetWriter(path, known, meta, features=features, domain=domain) as writer:
         for clip in clips:
             seg = clip.segment
             writer.add(

@@ -36,6 +36,7 @@ from playseg_core.data.features import (
     Feature,
     FeatureError,
     Features,
+    conform_episode,
     infer_features,
 )
 from playseg_core.data.splits import ANNOTATED_SPLITS, SPLITS
@@ -178,11 +179,11 @@ class DatasetWriter:
             raise ValueError(f"{name}: unknown split {split!r} (expected one of {SPLITS})")
         if episode.episode_id in self._ids:
             raise ValueError(f"{name}: episode_id already written to this dataset")
-        actions = episode.actions.astype(np.float32, copy=False)
         if self.features is None:
-            self.features = infer_features(episode.images, episode.state, actions)
-        episode = Episode(episode.episode_id, actions, episode.images, episode.state, episode.segments)
+            self.features = infer_features(episode)
+        episode = conform_episode(episode, self.features)
         self.features.check_episode(episode)
+        actions = episode.actions
         labels = []
         for seg in episode.segments:
             if seg.instruction == "":
@@ -478,11 +479,17 @@ def _features_of_version_1(root: Path, info: dict[str, Any]) -> tuple[Features, 
                 raise _fail(root / INFO_FILE, f"field arrays.{key} is missing")
             continue
         spec = arrays[key]
-        shape, dtype = tuple(int(n) for n in spec["shape"][1:]), str(np.dtype(spec["dtype"]))
-        kind = {"frames": "image", "states": "state", "actions": "action"}[key]
-        files[name] = str(spec["file"])
-        features.append(Feature(name, kind, dtype, shape))  # type: ignore[arg-type]
-    schema = Features.of(features)
+        try:
+            shape, dtype = tuple(int(n) for n in spec["shape"][1:]), str(np.dtype(spec["dtype"]))
+            kind = {"frames": "image", "states": "state", "actions": "action"}[key]
+            files[name] = str(spec["file"])
+            features.append(Feature(name, kind, dtype, shape))  # type: ignore[arg-type]
+        except (KeyError, TypeError, ValueError) as error:
+            raise _fail(root / INFO_FILE, f"field arrays.{key} is malformed ({error})") from None
+    try:
+        schema = Features.of(features)
+    except FeatureError as error:
+        raise _fail(root / INFO_FILE, str(error)) from None
     action = schema.action
     if action.shape == (1,):
         file = root / files[ACTION]

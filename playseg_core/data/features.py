@@ -23,6 +23,8 @@ from typing import Any, Literal, NotRequired, TypedDict
 
 import numpy as np
 
+from playseg_core.data.episode import Episode
+
 IMAGE_PREFIX = "observation.images."
 STATE = "observation.state"
 ACTION = "action"
@@ -121,6 +123,8 @@ class Feature:
 
     @classmethod
     def from_json(cls, name: str, raw: Mapping[str, Any]) -> Feature:
+        if not isinstance(raw, Mapping):
+            raise FeatureError(f"feature {name!r}: expected a mapping, got {type(raw).__name__}")
         try:
             discrete = raw.get("action_type") == "discrete"
             return cls(
@@ -212,6 +216,8 @@ class Features:
         if not isinstance(raw, Mapping) or not isinstance(raw.get("features"), Mapping):
             raise FeatureError("features: expected a mapping with a 'features' mapping")
         fps = raw.get("fps")
+        if fps is not None and (isinstance(fps, bool) or not isinstance(fps, int | float)):
+            raise FeatureError(f"features: fps must be a number, got {fps!r}")
         return cls(
             {str(name): Feature.from_json(str(name), spec) for name, spec in raw["features"].items()},
             None if fps is None else float(fps),
@@ -225,7 +231,7 @@ class Features:
         """The same features with ``camera`` added or replaced."""
         return replace(self, by_name={**self.by_name, camera.name: camera})
 
-    def check_episode(self, episode: Any) -> None:
+    def check_episode(self, episode: Episode) -> None:
         """FeatureError naming the episode and feature when ``episode`` does not have these features."""
         where = f"episode {episode.episode_id!r}"
         rows = episode.num_steps + 1
@@ -250,14 +256,23 @@ class Features:
     def check_compatible(self, other: Features, names: Iterable[str], what: str) -> None:
         """FeatureError naming the first of ``names`` that ``other`` lacks or declares differently.
 
-        ``self`` is what ``what`` (e.g. a checkpoint) expects; ``other`` what the data has. Bounds and
-        names may differ (they describe, they do not change what a model reads).
+        ``self`` is what ``what`` (e.g. a checkpoint) expects; ``other`` what the data has. Bounds, names
+        and dtypes may differ (they describe the data; readers cast). A model reading a discrete action
+        also accepts an undeclared one-value action (a source that declares no kind): every value is
+        checked as an index when read.
         """
         for name in names:
             mine = self[name]
             if name not in other:
                 raise FeatureError(f"{what} reads feature {name!r}, which the data lacks ({mine.describe()})")
             theirs = other[name]
+            if (
+                mine.is_discrete
+                and theirs.kind == "action"
+                and not theirs.is_discrete
+                and theirs.shape == (1,)
+            ):
+                continue
             if (mine.kind, mine.shape, mine.num_values) != (theirs.kind, theirs.shape, theirs.num_values):
                 raise FeatureError(f"{what} reads {mine.describe()}, but the data has {theirs.describe()}")
 
@@ -278,16 +293,25 @@ def check_discrete_actions(actions: np.ndarray, num_values: int, where: str) -> 
     return values.astype(np.int64)
 
 
-def infer_features(
-    images: Mapping[str, np.ndarray],
-    state: np.ndarray | None,
-    actions: np.ndarray,
-    action: Feature | None = None,
-    fps: float | None = None,
-) -> Features:
-    """The schema of one episode's arrays; the action is continuous unless ``action`` declares it."""
-    features = [Feature(name, "image", str(a.dtype), tuple(a.shape[1:])) for name, a in images.items()]
-    if state is not None:
-        features.append(Feature(STATE, "state", str(state.dtype), tuple(state.shape[1:])))
-    features.append(action or Feature(ACTION, "action", str(actions.dtype), tuple(actions.shape[1:])))
-    return Features.of(features, fps)
+def infer_features(episode: Episode) -> Features:
+    """The schema of one episode's arrays, with a continuous action (nothing says it is discrete)."""
+    features = [
+        Feature(name, "image", str(a.dtype), tuple(a.shape[1:])) for name, a in episode.images.items()
+    ]
+    if episode.state is not None:
+        features.append(Feature(STATE, "state", str(episode.state.dtype), tuple(episode.state.shape[1:])))
+    features.append(Feature(ACTION, "action", "float32", tuple(episode.actions.shape[1:])))
+    return Features.of(features)
+
+
+def conform_episode(episode: Episode, features: Features) -> Episode:
+    """``episode`` as ``features`` declare it: the state in its declared dtype, and a lone camera that its
+    source could not name (`DEFAULT_CAMERA`) under the one declared camera. Not checked (`check_episode`)."""
+    images = episode.images
+    if list(images) == [DEFAULT_CAMERA] and len(features.cameras) == 1:
+        images = {features.cameras[0]: images[DEFAULT_CAMERA]}
+    state = episode.state
+    if state is not None and features.state is not None:
+        state = state.astype(features.state.dtype, copy=False)
+    actions = episode.actions.astype(np.float32, copy=False)
+    return Episode(episode.episode_id, actions, images, state, episode.segments)

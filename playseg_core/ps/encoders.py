@@ -116,8 +116,8 @@ class DiscreteActionEncoder(PreviousActionEncoder):
         self.num_values = feature.num_values
         self.out_dim = int(config.get("dim", 16))
         self.embedding = nn.Embedding(self.num_values + 1, self.out_dim)
-        # Small at first: with unit-scale action vectors the trunk leant on the actions from the start and
-        # the observation encoders learnt far more slowly.
+        # Small at first, as the trunk's offset embedding: the trunk should not lean on the actions before
+        # the observation encoders have learnt anything (docs/segmentation.md "Reading the actions").
         nn.init.normal_(self.embedding.weight, std=0.02)
 
     def previous_action_rows(self, actions: np.ndarray, where: str) -> np.ndarray:
@@ -160,15 +160,33 @@ class StepEncoders(nn.Module):
         }
 
     def observation_inputs(self, observation: Mapping[str, np.ndarray], where: str) -> dict[str, np.ndarray]:
-        """One observation's input row (1, ...) for each observation encoder, by feature."""
+        """One observation's input row (1, ...) for each observation encoder, by feature; FeatureError
+        naming the feature when the observation lacks it or it has another shape (or, for a camera,
+        another dtype than uint8)."""
         inputs = {}
         for spec, encoder in zip(self.specs, self.encoders, strict=True):
-            if isinstance(encoder, PreviousActionEncoder):
+            if not isinstance(encoder, ObservationEncoder):
                 continue
             if spec.feature not in observation:
                 raise FeatureError(f"{where}: the model reads feature {spec.feature!r}, the step lacks it")
-            inputs[spec.feature] = np.asarray(observation[spec.feature])[None]
+            row = np.asarray(observation[spec.feature])[None]
+            feature = encoder.feature
+            if row.shape[1:] != feature.shape or (feature.kind == "image" and row.dtype != np.uint8):
+                raise FeatureError(
+                    f"{where}: feature {spec.feature!r} must be {list(feature.shape)} {feature.dtype}, "
+                    f"got {list(row.shape[1:])} {row.dtype}"
+                )
+            inputs[spec.feature] = row
         return inputs
+
+    @property
+    def cameras(self) -> list[str]:
+        """The camera features the encoders read."""
+        return [
+            e.feature.name
+            for e in self.encoders
+            if isinstance(e, ObservationEncoder) and e.feature.kind == "image"
+        ]
 
     def previous_action_inputs(self, action: np.ndarray | None, where: str) -> dict[str, np.ndarray]:
         """The action encoders' input row (1, ...) for the observation ``action`` led to (None: o_0)."""
@@ -202,7 +220,8 @@ def choose_encoders(features: Features, domain: str | None, read_actions: bool =
     """
     specs = []
     for camera in features.cameras:
-        spec = load_domain(domain).image_encoder(features[camera]) if domain else None
+        image_encoder = getattr(load_domain(domain), "image_encoder", None) if domain else None
+        spec = image_encoder(features[camera]) if image_encoder else None
         if spec is None:
             raise FeatureError(
                 f"no step encoder for camera feature {camera!r} ({features[camera].describe()}) "

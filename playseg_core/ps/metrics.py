@@ -98,7 +98,9 @@ def _check(segments: Sequence[Segment], argument: str, num_steps: int | None = N
     """Segments must be Segment objects, sorted, disjoint and (when num_steps is known) inside it."""
     for seg in segments:
         if not isinstance(seg, Segment):
-            raise TypeError(f"{argument}: expected data_model.Segment items, got {type(seg).__name__}")
+            raise TypeError(
+                f"{argument}: expected playseg_core.data.episode.Segment items, got {type(seg).__name__}"
+            )
     check_segments(segments, sys.maxsize if num_steps is None else num_steps, argument)
 
 

@@ -1,7 +1,7 @@
 """The networks of Play Segmentation: the start-causal trunk, the PS model and the labelling model.
 
 Step features: every observation o_t of an episode (T+1 of them) becomes one row of step features, the
-concatenation of the model's step encoders (ps/encoders.py: cameras, state, the previous action a_{t-1}),
+concatenation of the model's step encoders (ps/encoders.py: cameras, the previous action a_{t-1}, ...),
 each row encoded once (no temporal mixing); everything temporal happens on the (T+1, step_dim) sequence.
 
 The PS trunk is causal in time *from the segment start*: for a window starting at step i, position p
@@ -42,29 +42,30 @@ class ModelConfig:
 
     encoders: the step encoders, in the order their outputs are concatenated (observations first).
     features: the data features the model reads, as the data declared them when it was trained: a
-        dataset to segment or train on must declare the same (`check_features`).
+        dataset to segment or train on must declare the same (`check_features`). A checkpoint stores
+        them once, as its ``features`` (playseg_core/checkpoint.py), not in ``to_json``.
+    num_classes: the number of instructions.
     """
 
     encoders: list[EncoderSpec]
     features: Features
+    num_classes: int
     trunk: TrunkConfig = field(default_factory=TrunkConfig)
-    num_classes: int = 36
 
     def to_json(self) -> dict[str, Any]:
         return {
             "encoders": [spec.to_json() for spec in self.encoders],
-            "features": self.features.to_json(),
             "trunk": asdict(self.trunk),
             "num_classes": self.num_classes,
         }
 
     @staticmethod
-    def from_json(raw: dict[str, Any]) -> ModelConfig:
+    def from_json(raw: dict[str, Any], features: Features) -> ModelConfig:
         return ModelConfig(
             encoders=[EncoderSpec.from_json(spec) for spec in raw["encoders"]],
-            features=Features.from_json(raw["features"]),
-            trunk=TrunkConfig(**raw["trunk"]),
+            features=features,
             num_classes=int(raw["num_classes"]),
+            trunk=TrunkConfig(**raw["trunk"]),
         )
 
     @property
@@ -307,7 +308,7 @@ def load_model(
     """-> (model in eval mode with its .instructions, meta); CheckpointError naming the file if invalid."""
     checkpoint = read_checkpoint(path, kinds)
     try:
-        cfg = ModelConfig.from_json(checkpoint.config)
+        cfg = ModelConfig.from_json(checkpoint.config, checkpoint.features)
         model = _MODEL_KINDS[checkpoint.kind](cfg, [str(s) for s in checkpoint.config["instructions"]])
         model.load_state_dict(checkpoint.state_dict)
     except Exception as error:

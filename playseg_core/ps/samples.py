@@ -136,11 +136,12 @@ def make_batch(
     rows, starts_episode, targets, weights = [], [], [], []
     label_window, label_position, labels = [], [], []
     offset = 0
+    cameras = encoders.cameras
     for (ep, seg), (lo, hi) in zip(items, regions, strict=True):
         rotation, mirror = (int(rng.integers(4)), bool(rng.integers(2))) if augment else (0, False)
         for feature, array in encoders.episode_inputs(ep).items():
             clip = np.array(array[lo : hi + 1])
-            if augment and array.ndim == 4:  # camera frames (N, H, W, 3)
+            if augment and feature in cameras:
                 clip = np.rot90(clip, k=rotation, axes=(1, 2))
                 if mirror:
                     clip = clip[:, :, ::-1]

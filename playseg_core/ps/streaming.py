@@ -86,7 +86,7 @@ class StreamingSegmenter:
             hidden = self.model.trunk(window[None], torch.tensor([start == 0]))
             label_logits = self.model.label_head(hidden[0, -1])
             segments.append(labelled_segment(self.model, start, end, label_logits, scores[(start, end)]))
-        if decided:  # frames before the last decided start are never needed again
+        if decided:  # steps before the last decided end are never needed again
             keep_from = decided[-1][1] - self._offset
             self._features = self._features[keep_from:]
             self._offset += keep_from

@@ -28,8 +28,8 @@ from playseg_core.ps.samples import Batch, label_index, make_batch
 class TrainConfig:
     seed: int = 0
     epochs: int = 16
-    # Small datasets train for more epochs, up to at least this many optimizer steps: at the demo scale
-    # (100 steps per epoch) 1,600 steps often ended before the labels were learnt (docs/segmentation.md).
+    # Small datasets train for more epochs, up to at least this many optimizer steps: a fixed epoch count
+    # gives too few steps to learn the labels on small data (measured: docs/segmentation.md "Training").
     min_steps: int = 3200
     segments_per_batch: int = 16  # drawn from all annotated episodes; small batches = more steps
     lr: float = 3e-3
@@ -57,12 +57,8 @@ def model_config_for(
     encoders = choose_encoders(features, domain, read_actions)
     observed = [features[spec.feature] for spec in encoders if spec.feature != features.action.name]
     # The action is always recorded (what the model was trained on), read or not.
-    return ModelConfig(
-        encoders,
-        Features.of([*observed, features.action], features.fps),
-        TrunkConfig(max_len=max_len),
-        num_classes,
-    )
+    read = Features.of([*observed, features.action], features.fps)
+    return ModelConfig(encoders, read, num_classes, TrunkConfig(max_len=max_len))
 
 
 def _gather_windows(features: torch.Tensor, window_index: torch.Tensor) -> torch.Tensor:

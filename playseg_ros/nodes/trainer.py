@@ -28,7 +28,7 @@ from playseg_core.augment.retraining import (
 from playseg_ros import qos
 from playseg_ros.messages import clip_from_labelled
 from playseg_ros.nodes.common import declare, require, run_node
-from playseg_ros.play_bags import PlayBagInfo, load_annotated
+from playseg_ros.play_bags import DataInfo, load_annotated
 
 
 class TrainerNode(LifecycleNode):
@@ -62,7 +62,7 @@ class TrainerNode(LifecycleNode):
             "status_period_s": declare(self, "status_period_s", 2.0, "status republish period"),
         }
         self.trainer: AugmentationTrainer | None = None
-        self.base_info = PlayBagInfo()
+        self.base_info = DataInfo()
         self.state = "idle"
         self.message = ""
         self.last_eval = math.nan
@@ -147,11 +147,10 @@ class TrainerNode(LifecycleNode):
     # -- data ------------------------------------------------------------------------------------------
     def _on_segment(self, msg: LabelledSegment) -> None:
         try:
-            clip = clip_from_labelled(msg, self.base_info.camera)
+            due = self.trainer.add(clip_from_labelled(msg, self.base_info.camera))
         except ValueError as exc:
             self.get_logger().error(f"dropped LabelledSegment on {self.p['segments_topic']}: {exc}")
             return
-        due = self.trainer.add(clip)
         self.publish_status()
         if due:
             self._start_retraining()
@@ -203,8 +202,9 @@ class TrainerNode(LifecycleNode):
             response.success, response.message = False, "trainer is not configured"
             return response
         try:
+            info = self.base_info
             response.segments = export_buffer_dataset(
-                self.trainer.buffer, request.path, self.base_info.instructions, self.base_info.features
+                self.trainer.buffer, request.path, info.instructions, info.features, info.domain
             )
             response.success, response.path = True, request.path
         except Exception as exc:

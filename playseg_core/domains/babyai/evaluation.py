@@ -24,7 +24,7 @@ from playseg_core.domains.babyai.play import PlayConfig, encode_state, make_env,
 def make_goto_env(room_size: int = 8, num_objects: int = 7) -> GoToLocal:
     """BabyAI GoToLocal; (8, 7) is ``BabyAI-GoToLocalS8N7-v0`` (built directly: no gym wrappers).
 
-    The play generator's environment (`babyai.make_env`): its own step limit is disabled, so an episode
+    The play generator's environment (`play.make_env`): its own step limit is disabled, so an episode
     ends where the caller's ``max_steps`` says, not at the level's default limit (64 steps for 8x8).
     """
     return make_env(PlayConfig(num_objects=num_objects, room_size=room_size))

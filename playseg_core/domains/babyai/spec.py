@@ -20,7 +20,6 @@ INSTRUCTIONS: tuple[str, ...] = tuple(
 
 NUM_ACTIONS = 7
 """minigrid's discrete actions: left, right, forward, pickup, drop, toggle, done."""
-ACTION_NAMES: tuple[str, ...] = ("left", "right", "forward", "pickup", "drop", "toggle", "done")
 
 DOMAIN = "babyai"
 """The name datasets, bags and checkpoints give this domain."""
@@ -32,7 +31,6 @@ STEPS_PER_SECOND = 10.0
 """The step rate play bags are stamped at (BabyAI itself has no clock)."""
 
 __all__ = [
-    "ACTION_NAMES",
     "ARTICLES",
     "CAMERA",
     "COLOURS",
