@@ -88,7 +88,12 @@ def read_checkpoint(path: str | os.PathLike[str], kinds: Iterable[str] = KINDS) 
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # corrupt, truncated, or carrying objects weights_only refuses
-        raise CheckpointError(f"checkpoint {path}: cannot be read safely ({error})") from error
+        # torch's own message runs to many lines and suggests weights_only=False, which is not an option
+        # for an untrusted file: name the file and the kind of failure only.
+        raise CheckpointError(
+            f"checkpoint {path}: cannot be read safely (not a torch file, damaged, or holding objects "
+            f"other than tensors and plain data: {type(error).__name__})"
+        ) from error
     if not isinstance(payload, Mapping) or payload.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(
             f"checkpoint {path}: not a {CHECKPOINT_FORMAT} file (written by an older playseg? retrain it)"

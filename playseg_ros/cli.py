@@ -1,9 +1,28 @@
-"""The `playseg` command line: one entry point, one subcommand per job."""
+"""The `playseg` command line: one entry point, one subcommand per job.
+
+One error policy for every command: an expected failure (a missing, unreadable or unwritable path, the
+wrong kind of input, a damaged bag, dataset or checkpoint, a bad option value) prints one line naming
+the path, topic, field or option and exits with `EXIT_FAILED`; a traceback only with ``--debug`` or for a
+genuine bug. Inputs and outputs are checked before long work starts; SIGINT and SIGTERM remove partial
+outputs (the writers' ``with`` blocks abort) and exit with `EXIT_INTERRUPTED`.
+"""
 
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+
+EXIT_FAILED = 1
+"""The job could not be done (one line on stderr says why)."""
+EXIT_USAGE = 2
+"""The command line itself is wrong (argparse's usage message)."""
+EXIT_INTERRUPTED = 130
+"""Stopped by SIGINT or SIGTERM; partial outputs were removed."""
+
+EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError)
+"""What bad input or output raises: ValueError covers BagError, DatasetError, FeatureError and
+CheckpointError; OSError a missing, unreadable or unwritable path or a full disk."""
 
 DEFAULT_DOMAIN = "babyai"
 """The domain `playseg generate` plays in unless told otherwise (the sample bags' domain)."""
@@ -16,24 +35,16 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_bag_info(args: argparse.Namespace) -> int:
-    from playseg_ros.bag import BagError, bag_info_text
+    from playseg_ros.bag import bag_info_text
 
-    try:
-        print(bag_info_text(args.path))
-    except BagError as error:
-        print(f"playseg bag info: {error}", file=sys.stderr)
-        return 1
+    print(bag_info_text(args.path))
     return 0
 
 
 def _cmd_bag_recover(args: argparse.Namespace) -> int:
-    from playseg_ros.bag import BagError, recover_bag
+    from playseg_ros.bag import recover_bag
 
-    try:
-        report = recover_bag(args.path)
-    except BagError as error:
-        print(f"playseg bag recover: {error}", file=sys.stderr)
-        return 1
+    report = recover_bag(args.path)
     for item in report:
         action = f"rebuilt, {item.dropped_bytes} trailing bytes dropped" if item.rebuilt else "finished, kept"
         print(f"{item.path}: {item.messages} messages ({action})")
@@ -43,23 +54,23 @@ def _cmd_bag_recover(args: argparse.Namespace) -> int:
 def _cmd_generate(args: argparse.Namespace) -> int:
     from playseg_core.domains import load_domain
 
-    try:
-        domain = load_domain(args.domain)
-        presets = getattr(domain, "PRESET_NAMES", ())
-        if args.preset not in presets:
-            raise ValueError(f"domain {args.domain!r} has presets {list(presets)}, not {args.preset!r}")
-        summary = domain.generate_dataset(
-            args.out,
-            args.preset,
-            seed=args.seed,
-            workers=args.workers,
-            progress=not args.quiet,
-            overwrite=args.overwrite,
-            annotated_share=args.annotated_share,
-        )
-    except (FileExistsError, ValueError) as error:
-        print(f"playseg generate: {error}", file=sys.stderr)
-        return 1
+    domain = load_domain(args.domain)
+    presets = getattr(domain, "PRESET_NAMES", ())
+    if args.preset not in presets:
+        raise ValueError(f"--preset {args.preset!r}: domain {args.domain!r} has {', '.join(presets)}")
+    if args.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    if args.annotated_share is not None and not 0.0 < args.annotated_share <= 1.0:
+        raise ValueError(f"--annotated-share must be in (0, 1], got {args.annotated_share}")
+    summary = domain.generate_dataset(
+        args.out,
+        args.preset,
+        seed=args.seed,
+        workers=args.workers,
+        progress=not args.quiet,
+        overwrite=args.overwrite,
+        annotated_share=args.annotated_share,
+    )
     splits = ", ".join(
         f"{name} {summary.episodes_per_split[name]} episodes / {summary.segments_per_split[name]} segments"
         for name in summary.segments_per_split
@@ -70,15 +81,9 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         f"with {summary.workers} workers"
     )
     if args.bag:
-        from playseg_ros.bag import BagError
         from playseg_ros.play_bags import write_dataset_bags
 
-        bag_dir = summary.path / "bags"
-        try:
-            bags = write_dataset_bags(summary.path, bag_dir)
-        except (BagError, FileExistsError) as error:
-            print(f"playseg generate --bag: {error}", file=sys.stderr)
-            return 1
+        bags = write_dataset_bags(summary.path, summary.path / "bags")
         for name, bag in bags.items():
             size = sum(f.stat().st_size for f in bag.path.rglob("*") if f.is_file())
             print(f"{bag.path}: {name} bag, {bag.message_count} messages, {size / 1e6:.2f} MB")
@@ -103,7 +108,9 @@ def _add_generate_command(sub: argparse._SubParsersAction) -> argparse.ArgumentP
         default=None,
         help="share of the non-test segments that is annotated (0.1, 0.25, 0.5, 1.0); preset default if unset",
     )
-    generate.add_argument("--overwrite", action="store_true", help="replace an existing dataset at --out")
+    generate.add_argument(
+        "--overwrite", action="store_true", help="replace an existing --out (only a previous playseg dataset)"
+    )
     generate.add_argument("--quiet", action="store_true", help="no progress bar")
     generate.add_argument(
         "--bag",
@@ -130,11 +137,7 @@ def _add_bag_commands(sub: argparse._SubParsersAction) -> None:
 def _cmd_up(args: argparse.Namespace) -> int:
     from playseg_ros.launch import run_graph
 
-    try:
-        return run_graph(args.config)
-    except ValueError as error:
-        print(f"playseg up: {error}", file=sys.stderr)
-        return 2
+    return run_graph(args.config)
 
 
 def _add_up_command(sub: argparse._SubParsersAction) -> None:
@@ -148,40 +151,37 @@ def _add_up_command(sub: argparse._SubParsersAction) -> None:
 def _cmd_train(args: argparse.Namespace) -> int:
     from playseg_ros.offline import train
 
-    try:
-        return train(
-            args.data,
-            args.out,
-            args.epochs,
-            args.lr,
-            args.batch_segments,
-            args.seed,
-            args.labeller,
-            args.actions,
-        )
-    except ValueError as error:
-        print(f"playseg train: {error}", file=sys.stderr)
-        return 1
+    return train(
+        args.data,
+        args.out,
+        args.epochs,
+        args.lr,
+        args.batch_segments,
+        args.seed,
+        args.labeller,
+        args.actions,
+        args.overwrite,
+    )
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     from playseg_ros.offline import calibrate
 
-    try:
-        return calibrate(args.model, args.data, args.out)
-    except (ValueError, FileNotFoundError) as error:
-        print(f"playseg calibrate: {error}", file=sys.stderr)
-        return 1
+    return calibrate(args.model, args.data, args.out)
 
 
 def _cmd_segment(args: argparse.Namespace) -> int:
     from playseg_ros.offline import segment
 
-    try:
-        return segment(args.model, args.input, args.out, args.splits.split(","), args.min_len, args.overwrite)
-    except (ValueError, FileExistsError, FileNotFoundError) as error:
-        print(f"playseg segment: {error}", file=sys.stderr)
-        return 1
+    return segment(
+        args.model,
+        args.input,
+        args.out,
+        args.splits.split(","),
+        args.min_len,
+        args.overwrite,
+        args.keep_incomplete,
+    )
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
@@ -205,6 +205,9 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     train.add_argument("--seed", type=int, default=0)
     train.add_argument("--labeller", help="also train the stand-alone labelling model into this file")
     train.add_argument(
+        "--overwrite", action="store_true", help="replace an existing --out (and --labeller) checkpoint"
+    )
+    train.add_argument(
         "--actions",
         default="auto",
         help="how the model reads the previous action: 'auto' (default: the action the data declares, "
@@ -226,7 +229,15 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     )
     segment.add_argument("--splits", default="play,test", help="dataset splits to segment (comma-separated)")
     segment.add_argument("--min-len", type=int, default=1, help="shortest segment in steps")
-    segment.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    segment.add_argument(
+        "--overwrite", action="store_true", help="replace an existing --out (only a previous playseg dataset)"
+    )
+    segment.add_argument(
+        "--keep-incomplete",
+        action="store_true",
+        help="also segment an episode that a bag cuts off before its end (a recovered recording); by default "
+        "it is reported and skipped",
+    )
     segment.set_defaults(func=_cmd_segment)
     evaluate = sub.add_parser("evaluate", help="metrics of segmented play against the ground truth")
     evaluate.add_argument("--pred", required=True, help="output of `playseg segment`")
@@ -238,7 +249,13 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="playseg", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="playseg",
+        description="Play Segmentation for ROS 2 play recordings (see README.md).",
+        epilog=f"exit codes: 0 done, {EXIT_FAILED} failed (one line on stderr says why), {EXIT_USAGE} bad "
+        f"command line, {EXIT_INTERRUPTED} interrupted (partial outputs removed)",
+    )
+    parser.add_argument("--debug", action="store_true", help="print a traceback for every failure")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     demo = sub.add_parser("demo", help="run the main job on the sample bags in bags/")
     demo.set_defaults(func=_cmd_demo)
@@ -249,9 +266,33 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _terminate(signum: int, frame: object) -> None:
+    """SIGTERM unwinds like Ctrl-C, so every writer's ``with`` block removes its partial output."""
+    raise KeyboardInterrupt
+
+
+def _one_line(error: BaseException) -> str:
+    text = str(error) or type(error).__name__
+    return " ".join(text.split())
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return int(args.func(args) or 0)
+    command = " ".join(filter(None, ["playseg", args.command, getattr(args, "bag_command", None)]))
+    previous = signal.signal(signal.SIGTERM, _terminate) if args.command != "up" else None
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print(f"{command}: interrupted; partial outputs removed", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except EXPECTED_ERRORS as error:
+        if args.debug:
+            raise
+        print(f"{command}: {_one_line(error)}", file=sys.stderr)
+        return EXIT_FAILED
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -449,10 +449,16 @@ class EpisodeBuilder:
         self.finished = data.episode_end
         return data
 
-    def build(self, segments: Sequence[Segment] = ()) -> Episode:
-        """The Episode (steps renumbered from 0); StepError if it did not end or a segment does not fit."""
-        if not self.finished:
+    def build(self, segments: Sequence[Segment] = (), truncated: bool = False) -> Episode:
+        """The Episode (steps renumbered from 0); StepError if it did not end or a segment does not fit.
+
+        ``truncated``: the stream stopped before ``episode_end`` (a recovered recording); the episode ends
+        at the last observation received (its action, which led nowhere, is dropped).
+        """
+        if not self.finished and not truncated:
             raise StepError(self.episode_id, self.next_step - 1, "stream ends before episode_end")
+        if not self.finished:
+            self.actions = self.actions[: self.num_observations - 1]
         num_steps = len(self.actions)
         try:
             check_segments(segments, num_steps, f"episode {self.episode_id!r}")

@@ -6,16 +6,20 @@ No ROS graph is needed: datasets are read with playseg_core.data.dataset, bags w
 from __future__ import annotations
 
 import json
+import os
 import resource
-import sys
 import time
 from collections.abc import Iterator
 from dataclasses import asdict, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from playseg_core.data.episode import Episode, Segment, SegmentClip
 from playseg_core.data.features import ACTION, Feature, Features
 from playseg_ros.play_bags import DataInfo
+
+if TYPE_CHECKING:
+    from playseg_core.data.dataset import PlayDataset
 
 
 def _is_bag(path: Path) -> bool:
@@ -45,6 +49,21 @@ def _action_features(choice: str, features: Features) -> tuple[Features, bool]:
     return features.with_action(Feature(ACTION, "action", "float32", (1,), num_values=count)), True
 
 
+def _open_dataset(path: str, option: str = "--data") -> PlayDataset:
+    """The playseg dataset at ``path``; one clear line for a bag, a missing path or anything else."""
+    from playseg_core.data.dataset import PlayDataset
+
+    if _is_bag(Path(path)):
+        raise ValueError(
+            f"{option} {path}: a bag; this command reads a playseg dataset (written by `playseg generate`, "
+            "`playseg segment` and the trainer's SaveBuffer)"
+        )
+    if not (Path(path) / "meta" / "info.json").is_file():
+        what = "no such directory" if not Path(path).exists() else "not a playseg dataset (no meta/info.json)"
+        raise FileNotFoundError(f"{option} {path}: {what}")
+    return PlayDataset.open(path)
+
+
 def _print_calibration(calibrated: dict[str, dict]) -> None:
     bias, labels = calibrated["end_bias"], calibrated["calibration"]
     print(
@@ -60,12 +79,12 @@ def _print_calibration(calibrated: dict[str, dict]) -> None:
 
 def calibrate(model_path: str, data: str, out: str | None) -> int:
     """Re-calibrate a PS checkpoint's end bias and label threshold on a dataset's annotated val split."""
-    from playseg_core.data.dataset import PlayDataset
     from playseg_core.ps.calibration import calibrate_ps_model
     from playseg_core.ps.model import load_model, save_model
 
     model, extra = load_model(model_path, kinds=("ps",))
-    dataset = PlayDataset.open(data)
+    dataset = _open_dataset(data)
+    check_output_file(out or model_path, overwrite=True, option="--out")  # in place unless --out
     model.cfg.check_features(dataset.features, f"model {model_path}")
     val_eps = list(dataset.episodes("val"))
     if not any(episode.segments for episode in val_eps):
@@ -86,16 +105,24 @@ def train(
     seed: int,
     labeller: str | None,
     actions: str = "auto",
+    overwrite: bool = False,
 ) -> int:
-    """Train the PS model (and optionally the stand-alone labeller) on a dataset's train/val splits."""
-    from playseg_core.data.dataset import PlayDataset
+    """Train the PS model (and optionally the stand-alone labeller) on a dataset's train/val splits.
+
+    The outputs are checked before training starts (a model is never trained only to be lost).
+    """
     from playseg_core.ps.calibration import calibrate_ps_model
     from playseg_core.ps.model import save_model
     from playseg_core.ps.training import TrainConfig, model_config_for, train_labeller, train_ps
 
-    dataset = PlayDataset.open(data)
+    dataset = _open_dataset(data)
+    check_output_file(out, overwrite)
+    if labeller:
+        check_output_file(labeller, overwrite, "--labeller")
     train_eps = list(dataset.episodes("train"))
     val_eps = list(dataset.episodes("val"))
+    if not any(episode.segments for episode in train_eps):
+        raise ValueError(f"--data {data}: the train split has no annotated segments to learn from")
     given = {"epochs": epochs, "lr": lr, "segments_per_batch": batch_segments}
     cfg = TrainConfig(seed=seed, **{key: value for key, value in given.items() if value is not None})
     if epochs is not None:  # asked for exactly this many epochs
@@ -135,16 +162,29 @@ def train(
 
 
 def _input_episodes(
-    path: Path, splits: list[str], camera: str | None
+    path: Path, splits: list[str], camera: str | None, keep_incomplete: bool
 ) -> tuple[Iterator[Episode], DataInfo, str]:
     """Episodes to segment: a dataset's `splits` (annotations hidden), or every episode of a play bag
-    (its image as ``camera`` when the bag declares no features, as the live segmenter reads it)."""
+    (its image as ``camera`` when the bag declares no features, as the live segmenter reads it). An
+    episode a bag cuts off before its end is reported, and segmented too with ``keep_incomplete``."""
     if _is_bag(path):
         from playseg_ros.play_bags import iter_play_bag, read_play_bag_info
 
-        return iter_play_bag(path, camera=camera), read_play_bag_info(path), "bag"
-    from playseg_core.data.dataset import PlayDataset
+        def report(episode_id: str, last_step: int) -> None:
+            action = (
+                "segmenting the steps it has" if keep_incomplete else "skipped (--keep-incomplete keeps it)"
+            )
+            print(f"{path}: episode {episode_id!r} ends at step {last_step} without episode_end: {action}")
 
+        incomplete = "keep" if keep_incomplete else "drop"
+        episodes = iter_play_bag(path, camera=camera, incomplete=incomplete, on_incomplete=report)
+        return episodes, read_play_bag_info(path), "bag"
+    from playseg_core.data.dataset import PlayDataset
+    from playseg_core.data.splits import SPLITS
+
+    unknown = [split for split in splits if split not in SPLITS]
+    if unknown:
+        raise ValueError(f"--splits: unknown split {unknown[0]!r} (expected some of {', '.join(SPLITS)})")
     dataset = PlayDataset.open(path)
 
     def episodes() -> Iterator[Episode]:
@@ -154,18 +194,53 @@ def _input_episodes(
     return episodes(), DataInfo.of_dataset(dataset), "dataset"
 
 
+def check_output_file(path: str | Path, overwrite: bool, option: str = "--out") -> Path:
+    """Before long work: ``path`` can be written (its directory is created), and an existing file is only
+    replaced with ``--overwrite``. Checkpoints are then written atomically (playseg_core/checkpoint.py)."""
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{option} {path}: is a directory, expected a file")
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{option} {path}: exists (pass --overwrite to replace it)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not os.access(path.parent, os.W_OK):
+        raise PermissionError(f"{option} {path}: directory {path.parent} is not writable")
+    return path
+
+
+def _check_not_inside(out: Path, source: Path) -> None:
+    out, source = out.resolve(), source.resolve()
+    if out == source or source in out.parents or out in source.parents:
+        raise ValueError(f"--out {out}: overlaps the input {source}; choose another directory")
+
+
 def segment(
-    model_path: str, input_path: str, out: str, splits: list[str], min_len: int, overwrite: bool
+    model_path: str,
+    input_path: str,
+    out: str,
+    splits: list[str],
+    min_len: int,
+    overwrite: bool,
+    keep_incomplete: bool = False,
 ) -> int:
-    """Segment every episode of the input; write a dataset of labelled segments (and a bag for bags)."""
+    """Segment every episode of the input; write a dataset of labelled segments (and a bag for bags).
+
+    Streams: one episode in memory at a time, the segment bag written as the segments come.
+    """
     from playseg_core.data.dataset import DatasetWriter
     from playseg_core.ps.model import load_model
     from playseg_core.ps.segmentation import segment_episode
 
-    model, extra = load_model(model_path, kinds=("ps",))
+    if min_len < 1:
+        raise ValueError(f"--min-len must be >= 1, got {min_len}")
     source = Path(input_path)
+    if not source.exists():
+        raise FileNotFoundError(f"--input {source}: no such bag or dataset")
+    _check_not_inside(Path(out), source)
+    model, extra = load_model(model_path, kinds=("ps",))
     cameras = model.cfg.features.cameras
-    episodes, info, kind = _input_episodes(source, splits, cameras[0] if len(cameras) == 1 else None)
+    camera = cameras[0] if len(cameras) == 1 else None
+    episodes, info, kind = _input_episodes(source, splits, camera, keep_incomplete)
     if info.features is not None:
         model.cfg.check_features(info.features, f"model {model_path}")
     threshold = float(extra.get("calibration", {}).get("threshold", 0.0))
@@ -176,46 +251,53 @@ def segment(
         raise ValueError(
             f"{source}: model {model_path} labels instructions the data does not list: {unknown[:3]}"
         )
-    started, steps, count, results = time.perf_counter(), 0, 0, []
+    model_id = Path(model_path).name
+    started, steps, count = time.perf_counter(), 0, 0
     with DatasetWriter(
         out, instructions, meta, overwrite=overwrite, features=info.features, domain=info.domain
     ) as writer:
-        for episode in episodes:
-            segments = segment_episode(model, episode, min_len=min_len)
-            labelled = episode.with_segments(segments)
-            writer.add(labelled, "play", extra={"source": kind})
-            steps += episode.num_steps
-            count += len(segments)
-            if kind == "bag":
-                results.append((labelled, segments))
+        for stale in writer.removed_stale:
+            print(f"{stale}: removed (left behind by a killed run)")
+
+        def confident_clips() -> Iterator[SegmentClip]:
+            """Segment episode by episode, writing each to the dataset; yield the confident clips."""
+            nonlocal steps, count
+            for episode in episodes:
+                segments = segment_episode(model, episode, min_len=min_len)
+                writer.add(episode.with_segments(segments), "play", extra={"source": kind})
+                steps += episode.num_steps
+                count += len(segments)
+                yield from (
+                    SegmentClip.from_episode(episode, s, model_id)
+                    for s in segments
+                    if s.confidence >= threshold
+                )
+
+        if kind == "bag":
+            from playseg_ros.play_bags import write_segment_bag
+
+            # Inside the dataset's staging directory: it appears with the dataset or not at all.
+            bag = write_segment_bag(writer.staging_dir / "segments_bag", confident_clips(), info=info)
+        else:
+            for _ in confident_clips():
+                pass
     seconds = time.perf_counter() - started
     print(
         f"{out}: {count} segments from {writer.num_episodes} episodes ({steps} steps) in {seconds:.1f} s "
         f"({steps / max(seconds, 1e-9):.0f} steps/s)"
     )
     if kind == "bag":
-        from playseg_ros.play_bags import write_segment_bag
-
-        model_id = Path(model_path).name
-        clips = (
-            SegmentClip.from_episode(ep, seg, model_id)
-            for ep, segs in results
-            for seg in segs
-            if seg.confidence >= threshold
-        )
-        bag = write_segment_bag(Path(out) / "segments_bag", clips, info=info)
         print(f"{Path(out) / 'segments_bag'}: {bag.message_count} LabelledSegment messages")
     return 0
 
 
 def evaluate(pred: str, truth: str, out_json: str | None, plot: str | None, num_plot: int) -> int:
     """Compare a segmented dataset with the ground truth of the dataset it came from."""
-    from playseg_core.data.dataset import PlayDataset
     from playseg_core.ps.metrics import evaluate as evaluate_metrics
     from playseg_core.ps.metrics import format_metrics_table
 
-    predicted = PlayDataset.open(pred)
-    reference = PlayDataset.open(truth)
+    predicted = _open_dataset(pred, "--pred")
+    reference = _open_dataset(truth, "--truth")
     pred_by_id: dict[str, list[Segment]] = {}
     for index, record in enumerate(predicted.records):
         pred_by_id[record.episode_id] = predicted.segments(index, truth=True)
@@ -228,8 +310,7 @@ def evaluate(pred: str, truth: str, out_json: str | None, plot: str | None, num_
         if len(plotted) < num_plot:
             plotted.append(reference.episode(index, truth=True))
     if not truth_by_id:
-        print(f"playseg evaluate: no episode of {pred} is in {truth}", file=sys.stderr)
-        return 1
+        raise ValueError(f"--pred {pred}: none of its episodes is in --truth {truth}")
     results = evaluate_metrics(pred_by_id, truth_by_id, steps_by_id)
     print(format_metrics_table(results))
     json_path = Path(out_json) if out_json else Path(pred) / "metrics.json"

@@ -15,7 +15,7 @@ action. Readers validate as they go and raise `BagError` naming the bag, topic, 
 from __future__ import annotations
 
 import json
-from collections.abc import Collection, Iterable, Iterator
+from collections.abc import Callable, Collection, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -250,8 +250,16 @@ def _fit_segments(
     return sorted(segments)
 
 
+INCOMPLETE_EPISODES = ("error", "drop", "keep")
+"""What `iter_play_bag` does with an episode the bag cuts off before its ``episode_end``."""
+
+
 def iter_play_bag(
-    path: Path | str, truth: bool = False, drop_incomplete: bool = False, camera: str | None = None
+    path: Path | str,
+    truth: bool = False,
+    incomplete: str = "error",
+    camera: str | None = None,
+    on_incomplete: Callable[[str, int], None] | None = None,
 ) -> Iterator[Episode]:
     """Episodes of a play bag, each as soon as its last step is read.
 
@@ -260,8 +268,12 @@ def iter_play_bag(
 
     Segments come from /play/annotations (episodes without annotations get none) or, with ``truth``,
     from /play/ground_truth. An episode whose stream stops before ``episode_end`` (e.g. a recovered
-    recording) is an error unless ``drop_incomplete``.
+    recording) is a BagError with ``incomplete="error"``; with "drop" it is skipped, with "keep" it ends at
+    its last observation (segments that end later are dropped); either way ``on_incomplete(episode_id,
+    last_step)`` is told.
     """
+    if incomplete not in INCOMPLETE_EPISODES:
+        raise ValueError(f"incomplete must be one of {INCOMPLETE_EPISODES}, got {incomplete!r}")
     segment_topic = GROUND_TRUTH_TOPIC if truth else ANNOTATIONS_TOPIC
     with BagReader(path) as reader:
         info = DataInfo.of_bag(reader)
@@ -298,15 +310,26 @@ def iter_play_bag(
                 except StepError as error:
                     raise _located(reader, STEPS_TOPIC, error) from None
                 yield info.conform(episode, reader.path)
-        if open_episodes and not drop_incomplete:
+        if open_episodes and incomplete == "error":
             episode_id, builder = next(iter(open_episodes.items()))
             raise BagError(
                 reader.path,
-                "the bag ends before this episode's episode_end (pass drop_incomplete=True to skip it)",
+                "the bag ends before this episode's episode_end (a recovered recording? skip or keep it: "
+                "incomplete='drop'/'keep', `playseg segment --keep-incomplete`)",
                 STEPS_TOPIC,
                 episode_id,
                 builder.next_step - 1,
             )
+        for episode_id, builder in open_episodes.items():
+            if on_incomplete is not None:
+                on_incomplete(episode_id, builder.next_step - 1)
+            if incomplete == "keep" and builder.num_observations > 1:
+                last = builder.num_observations - 1
+                kept = [s for s in segments.get(episode_id, []) if s.end <= last]
+                episode = builder.build(
+                    _fit_segments(reader, segment_topic, episode_id, kept, last), truncated=True
+                )
+                yield info.conform(episode, reader.path)
         for episode_id, orphans in segments.items():
             if episode_id not in open_episodes:
                 raise BagError(
@@ -318,9 +341,9 @@ def iter_play_bag(
                 )
 
 
-def read_play_bag(path: Path | str, truth: bool = False, drop_incomplete: bool = False) -> list[Episode]:
+def read_play_bag(path: Path | str, truth: bool = False, incomplete: str = "error") -> list[Episode]:
     """All episodes of a play bag (see `iter_play_bag`)."""
-    return list(iter_play_bag(path, truth=truth, drop_incomplete=drop_incomplete))
+    return list(iter_play_bag(path, truth=truth, incomplete=incomplete))
 
 
 def write_segment_bag(

@@ -133,3 +133,20 @@ def test_export_follows_the_declared_features(tmp_path, episodes):
     assert exported.state.dtype == np.uint8 and list(exported.images) == [CAMERA]
     np.testing.assert_array_equal(exported.state, clip.state)
     trainer.close()
+
+
+def test_a_segment_received_again_is_stored_once(tmp_path, episodes):
+    """A replayed episode or a second segmenter sends the same segments again: one copy is kept."""
+    trainer = AugmentationTrainer(_config(tmp_path), _learner())
+    seg = episodes[0].segments[0]
+    clip = SegmentClip.from_episode(episodes[0], seg, "ps")
+    trainer.add(clip)
+    trainer.add(clip)
+    other_model = SegmentClip.from_episode(episodes[0], seg, "ps-2")  # another model's: kept
+    trainer.add(other_model)
+    assert len(trainer.buffer) == 2 and trainer.duplicates == 1
+    trainer.close()
+    reopened = AugmentationTrainer(_config(tmp_path), _learner())  # the rule survives a restart
+    reopened.add(clip)
+    assert len(reopened.buffer) == 2 and reopened.duplicates == 1
+    reopened.close()

@@ -37,6 +37,7 @@ from playseg_ros.play_bags import (
     GROUND_TRUTH_TOPIC,
     STEPS_TOPIC,
     DataInfo,
+    iter_play_bag,
     read_play_bag,
     read_play_bag_info,
     read_segment_bag,
@@ -521,8 +522,52 @@ def test_cli_bag_info_and_recover(tmp_path: Path, capsys: pytest.CaptureFixture[
     writer.add_topic(topic_info(STEPS_TOPIC, PLAY_STEP))
     for msg in episode_messages(make_episode(1, 3), [1, 2, 3, 4]):
         writer.write(STEPS_TOPIC, playseg_typestore().serialize_cdr(msg, PLAY_STEP), stamp_ns(msg.header))
+    writer.abandon()  # the writer dies here (its lock would refuse the recovery while it lives)
     assert cli_main(["bag", "recover", str(tmp_path / "crashed")]) == 0
     assert "4 messages" in capsys.readouterr().out
     assert len(read_play_bag(tmp_path / "crashed")) == 1
     assert cli_main(["bag", "info", str(tmp_path / "missing")]) == 1
     assert "no metadata.yaml" in capsys.readouterr().err
+
+
+def _bag_cut_inside_the_last_episode(path: Path, episodes: list[Episode], keep_steps: int) -> None:
+    """A play bag whose last episode stops after ``keep_steps`` observations, as a recovered recording."""
+    with BagWriter(path) as writer:
+        writer.add_topic(topic_info(STEPS_TOPIC, PLAY_STEP))
+        writer.add_topic(topic_info(GROUND_TRUTH_TOPIC, ANNOTATION))
+        store, stamp = playseg_typestore(), 0
+        for index, episode in enumerate(episodes):
+            messages = list(episode_messages(episode, list(range(stamp, stamp + episode.num_steps + 1))))
+            if index == len(episodes) - 1:
+                messages = messages[:keep_steps]
+            for msg in messages:
+                writer.write(STEPS_TOPIC, store.serialize_cdr(msg, PLAY_STEP), stamp)
+                stamp += 1
+            for segment in episode.segments:
+                note = annotation_message(episode.episode_id, segment, stamp)
+                writer.write(GROUND_TRUTH_TOPIC, store.serialize_cdr(note, ANNOTATION), stamp)
+
+
+def test_an_episode_cut_off_by_the_end_of_the_bag_is_an_error_skipped_or_kept(
+    tmp_path: Path, episodes: list[Episode]
+) -> None:
+    last = episodes[2]  # 12 steps, segments ending inside and after the cut
+    _bag_cut_inside_the_last_episode(tmp_path / "cut", episodes, keep_steps=8)
+    with pytest.raises(
+        BagError, match="episode 'ep-002', step 7: the bag ends before this episode's episode_end"
+    ):
+        read_play_bag(tmp_path / "cut", truth=True)
+    told = []
+    dropped = list(
+        iter_play_bag(
+            tmp_path / "cut", truth=True, incomplete="drop", on_incomplete=lambda *a: told.append(a)
+        )
+    )
+    assert [e.episode_id for e in dropped] == ["ep-000", "ep-001"] and told == [("ep-002", 7)]
+    kept = read_play_bag(tmp_path / "cut", truth=True, incomplete="keep")
+    assert [e.episode_id for e in kept] == ["ep-000", "ep-001", "ep-002"]
+    cut = kept[-1]
+    assert cut.num_steps == 7  # ends at its last observation, o_7; a_7 led nowhere
+    np.testing.assert_array_equal(cut.images[DEFAULT_CAMERA], last.images[DEFAULT_CAMERA][:8])
+    np.testing.assert_array_equal(cut.actions, last.actions[:7])
+    assert cut.segments == [s for s in last.segments if s.end <= 7]

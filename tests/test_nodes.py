@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from mcap.reader import make_reader
 from node_procs import Processes, RosPeer, descendants, node_env, stop, wait_for_log
 from playseg_msgs.msg import LabelledSegment, PlayStep, TrainerStatus
 from playseg_msgs.srv import Retrain
@@ -21,6 +22,7 @@ from rclpy.duration import Duration
 from rclpy.serialization import serialize_message
 from rosbags.highlevel import AnyReader
 from sensor_msgs.msg import Image
+from std_msgs.msg import String
 
 from playseg_core.augment.buffer import AugmentationBuffer
 from playseg_core.data.episode import Episode
@@ -29,6 +31,7 @@ from playseg_core.domains.babyai.play import PlayConfig, generate_episode
 from playseg_core.domains.babyai.spec import CAMERA
 from playseg_ros import qos
 from playseg_ros.bag import BagReader, BagWriter, topic_info
+from playseg_ros.bag.lock import LOCK_FILE
 from playseg_ros.messages import RCLPY, episode_step_message, labelled_segment_of_steps
 from playseg_ros.play_bags import read_play_bag, write_play_bag
 from playseg_ros.typestore import playseg_typestore
@@ -360,3 +363,101 @@ def test_playseg_up_sigint_stops_every_node_and_finishes_the_bag(procs: Processe
             counts[message.topic] += 1
     assert counts["/play/steps"] >= 50, counts
     assert counts["/play/ground_truth"] >= 1, counts
+
+
+# -- write failures and damaged bags: exit codes -------------------------------------------------------
+
+
+def test_bag_recover_refuses_a_live_recording_which_then_finishes_normally(
+    procs: Processes, tmp_path: Path
+) -> None:
+    out = tmp_path / "live"
+    recorder, log = procs.node("recorder", "recorder", output=out, topics=["/chatter"], flush_period_s=0.1)
+    wait_for_log(log, r"recording", 30, recorder)  # the bag is open (and locked) from configure on
+    result = subprocess.run(
+        [sys.executable, "-m", "playseg_ros.cli", "bag", "recover", str(out)],
+        env=node_env(), capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert result.returncode == 1
+    assert f"is still being written by process {recorder.pid} " in result.stderr, result.stderr
+    assert stop(recorder) == 0, log.read_text()[-3000:]
+    assert (out / "metadata.yaml").is_file() and not (tmp_path / "live.partial").exists()
+    with BagReader(out) as reader:
+        assert reader.message_count == 0
+
+
+def test_recorder_exits_1_when_it_cannot_finish_its_bag(procs: Processes, tmp_path: Path) -> None:
+    """Its file lands on a full device (/dev/full): logged, exit 1, and the bag stays in `.partial`."""
+    out = tmp_path / "full"
+    recorder, log = procs.node("recorder", "recorder", output=out, topics=["/nothing_published"])
+    wait_for_log(log, r"recording", 30, recorder)
+    (tmp_path / "full.partial" / "full_0.mcap").symlink_to("/dev/full")  # created at close: no message
+    assert stop(recorder) == 1, log.read_text()[-3000:]
+    text = log.read_text()
+    assert re.search(r"finishing \S*full failed: .*No space left on device; .*playseg bag recover", text), (
+        text
+    )
+    assert "cleanup at shutdown failed" in text
+    assert (tmp_path / "full.partial").is_dir() and not out.exists()
+    assert not (tmp_path / "full.partial" / LOCK_FILE).exists()  # released: recovery is not refused
+
+
+def test_recorder_exits_1_by_itself_when_the_disk_fills_while_recording(
+    procs: Processes, peer: RosPeer, tmp_path: Path
+) -> None:
+    out = tmp_path / "full"
+    pub = peer.node.create_publisher(String, "/chatter", qos.PLAY_STEPS)
+    recorder, log = procs.node("recorder", "recorder", output=out, topics=["/chatter"], flush_period_s=0.1)
+    wait_for_log(log, r"recording", 30, recorder)
+    (tmp_path / "full.partial" / "full_0.mcap").symlink_to("/dev/full")  # created at the first message
+    assert peer.spin_until(lambda: pub.get_subscription_count() > 0, 60), log.read_text()
+    for i in range(20):
+        pub.publish(String(data=f"message {i}"))
+    assert recorder.wait(timeout=30) == 1, log.read_text()[-3000:]
+    assert re.search(r"flushing \S*full failed: .*No space left on device", log.read_text())
+
+
+def _damaged_play_bag(path: Path) -> None:
+    """A play bag with 64 bytes of garbage inside a middle chunk (framing intact, CRC wrong)."""
+    write_play_bag(path, _episodes(3), annotated=True, chunk_bytes=20_000)
+    file = path / f"{path.name}_0.mcap"
+    with file.open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    offsets = sorted(index.chunk_start_offset for index in summary.chunk_indexes)
+    assert len(offsets) >= 3
+    data = bytearray(file.read_bytes())
+    at = offsets[len(offsets) // 2] + 200
+    data[at : at + 64] = b"\xa5" * 64
+    file.write_bytes(data)
+
+
+def test_playseg_up_exits_1_when_its_bag_player_cannot_play_the_whole_bag(
+    procs: Processes, tmp_path: Path
+) -> None:
+    bag = tmp_path / "play"
+    _damaged_play_bag(bag)
+    config = {"nodes": [{"name": "player", "node": "bag_player", "parameters": {"bag": str(bag), "rate": 0.0},
+                         "exit_ends_graph": True}]}  # fmt: skip
+    (tmp_path / "graph.yaml").write_text(yaml.safe_dump(config))
+    launcher, log = procs.start(
+        [sys.executable, "-m", "playseg_ros.cli", "up", str(tmp_path / "graph.yaml")], "up"
+    )
+    assert launcher.wait(timeout=60) == 1, log.read_text()[-3000:]
+    text = log.read_text()
+    assert re.search(
+        rf"playback of {bag} failed after [1-9]\d* messages: bag '{bag}', file 'play_0.mcap'(, topic '/play/\w+')?: damaged chunk",
+        text,
+    ), text
+    assert "[up] player exited with code 1" in text
+
+
+def test_bag_player_refuses_a_truncated_bag_naming_the_file(procs: Processes, tmp_path: Path) -> None:
+    bag = tmp_path / "play"
+    write_play_bag(bag, _episodes(1), annotated=True)
+    file = bag / "play_0.mcap"
+    file.write_bytes(file.read_bytes()[: file.stat().st_size // 2])
+    player, log = procs.node("bag_player", "player", bag=bag, rate=0.0)
+    assert player.wait(timeout=30) == 2, log.read_text()
+    assert re.search(
+        r"file 'play_0.mcap': the file is truncated or unfinished .*playseg bag recover", log.read_text()
+    )

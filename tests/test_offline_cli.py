@@ -3,6 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -20,6 +25,11 @@ def tiny_data(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("data") / "tiny"
     assert cli_main(["generate", "--preset", "tiny", "--seed", "3", "--out", str(out), "--quiet"]) == 0
     return out
+
+
+def segment_argv(model: Path, data: Path, out: Path) -> list[str]:
+    """`playseg segment` of the test split of ``data``, ending with ``--out OUT``."""
+    return ["segment", "--model", str(model), "--input", str(data), "--splits", "test", "--out", str(out)]
 
 
 def test_train_calibrate_segment_evaluate(tiny_data: Path, tmp_path: Path, capsys) -> None:
@@ -46,22 +56,7 @@ def test_train_calibrate_segment_evaluate(tiny_data: Path, tmp_path: Path, capsy
     assert again["meta"]["calibrated_on"] == str(tiny_data.resolve())
 
     pred = tmp_path / "pred"
-    assert (
-        cli_main(
-            [
-                "segment",
-                "--model",
-                str(model),
-                "--input",
-                str(tiny_data),
-                "--splits",
-                "test",
-                "--out",
-                str(pred),
-            ]
-        )
-        == 0
-    )
+    assert cli_main(segment_argv(model, tiny_data, pred)) == 0
     segmented = PlayDataset.open(pred)
     assert len(segmented) == len(PlayDataset.open(tiny_data).episode_indices("test"))
     assert cli_main(["evaluate", "--pred", str(pred), "--truth", str(tiny_data), "--plot-episodes", "0"]) == 0
@@ -128,3 +123,133 @@ def test_segment_refuses_data_with_other_features(tiny_data: Path, tmp_path: Pat
     )
     assert code == 1
     assert f"reads feature '{CAMERA}', which the data lacks" in capsys.readouterr().err
+
+
+def _fails(capsys, argv: list[str], *fragments: str) -> str:
+    """The command exits with 1 and prints one line on stderr holding every fragment."""
+    capsys.readouterr()
+    assert cli_main(argv) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    for fragment in fragments:
+        assert fragment in err, (fragment, err)
+    return err
+
+
+def test_expected_failures_are_one_named_line(tiny_data: Path, tmp_path: Path, capsys) -> None:
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"\x00 not a model")
+    foreign = tmp_path / "notes"
+    foreign.mkdir()
+    (foreign / "keep.txt").write_text("mine")
+    bag = Path(__file__).resolve().parent.parent / "bags" / "test"
+    cases = [
+        (
+            ["train", "--data", str(tmp_path / "missing"), "--out", str(tmp_path / "m.pt")],
+            "missing",
+            "no such",
+        ),
+        (
+            ["train", "--data", str(foreign), "--out", str(tmp_path / "m.pt")],
+            "notes",
+            "not a playseg dataset",
+        ),
+        (["train", "--data", str(bag), "--out", str(tmp_path / "m.pt")], "a bag"),
+        (["evaluate", "--pred", str(tmp_path / "nothing"), "--truth", str(tiny_data)], "--pred", "nothing"),
+        (
+            ["segment", "--model", str(garbage), "--input", str(tiny_data), "--out", str(tmp_path / "o")],
+            "garbage.pt",
+            "cannot be read safely",
+        ),
+        (
+            ["segment", "--model", str(garbage), "--input", str(tiny_data), "--out", str(tiny_data / "x")],
+            "overlaps the input",
+        ),
+        (
+            [
+                "segment",
+                "--model",
+                str(garbage),
+                "--input",
+                str(tmp_path / "gone"),
+                "--out",
+                str(tmp_path / "o"),
+            ],
+            "--input",
+            "gone",
+        ),
+        (["generate", "--preset", "tiny", "--workers", "0", "--out", str(tmp_path / "g")], "--workers"),
+        (
+            ["generate", "--preset", "tiny", "--annotated-share", "0", "--out", str(tmp_path / "g")],
+            "--annotated-share",
+        ),
+        (["generate", "--preset", "huge", "--out", str(tmp_path / "g")], "--preset 'huge'"),
+        (
+            ["generate", "--preset", "tiny", "--out", str(foreign), "--overwrite", "--quiet"],
+            "notes",
+            "not a playseg dataset; refusing to replace it",
+        ),
+    ]
+    for argv, *fragments in cases:
+        _fails(capsys, argv, *fragments)
+    assert (foreign / "keep.txt").read_text() == "mine"  # --overwrite never replaces a foreign directory
+    assert not (tmp_path / "g").exists()
+
+
+def test_outputs_are_checked_before_training(tiny_data: Path, tmp_path: Path, capsys) -> None:
+    existing = tmp_path / "ps.pt"
+    existing.write_bytes(b"an earlier model")
+    _fails(capsys, ["train", "--data", str(tiny_data), "--out", str(existing)], "ps.pt", "--overwrite")
+    assert existing.read_bytes() == b"an earlier model"
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        if not os.access(locked, os.W_OK):  # root may write anywhere: nothing to check then
+            _fails(capsys, ["train", "--data", str(tiny_data), "--out", str(locked / "m.pt")], "not writable")
+    finally:
+        locked.chmod(0o700)
+    captured = capsys.readouterr()
+    assert "epoch" not in captured.err  # refused before any training
+
+
+def test_segment_replaces_only_its_own_output_and_never_the_input(
+    tiny_data: Path, tmp_path: Path, capsys
+) -> None:
+    model = tmp_path / "ps.pt"
+    assert cli_main(["train", "--data", str(tiny_data), "--out", str(model), "--epochs", "1"]) == 0
+    out = tmp_path / "seg"
+    argv = segment_argv(model, tiny_data, out)
+    assert cli_main(argv) == 0
+    _fails(capsys, argv, "seg", "--overwrite")
+    assert cli_main([*argv, "--overwrite"]) == 0  # a previous playseg dataset: replaced
+    _fails(capsys, [*argv[:-2], "--out", str(tiny_data), "--overwrite"], "overlaps the input")
+    assert PlayDataset.open(tiny_data).splits == ("train", "val", "play", "test")  # the input is intact
+    _fails(capsys, [*argv[:-4], "--splits", "dev", "--out", str(tmp_path / "x")], "--splits", "'dev'")
+
+
+def test_sigterm_removes_partial_outputs(tmp_path: Path) -> None:
+    out = tmp_path / "big"
+    command = [sys.executable, "-m", "playseg_ros.cli", "generate", "--preset", "paper", "--out", str(out)]
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not list(tmp_path.glob(".big.partial-*")) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert list(tmp_path.glob(".big.partial-*")), "the writer never started"
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "interrupted; partial outputs removed" in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_stale_staging_directory_of_a_killed_run_is_removed(tiny_data: Path, tmp_path: Path) -> None:
+    from playseg_core.data.dataset import DatasetWriter
+
+    stale = tmp_path / ".ds.partial-999999999"  # no such process
+    (stale / "data").mkdir(parents=True)
+    dataset = PlayDataset.open(tiny_data)
+    with DatasetWriter(tmp_path / "ds", dataset.instructions, features=dataset.features) as writer:
+        writer.add(dataset.episode(0), "train")
+    assert writer.removed_stale == [stale] and not stale.exists()

@@ -40,6 +40,7 @@ class AugmentationBuffer:
         self.directory.mkdir(parents=True, exist_ok=True)
         self.path = self.directory / LOG_NAME
         self._offsets: list[int] = []
+        self._keys: set[tuple[str, int, int, str]] = set()
         self._steps = 0
         self.recovered_bytes = self._scan_and_repair()
         self._file = open(self.path, "ab")  # noqa: SIM115 (kept open for the buffer's lifetime)
@@ -51,6 +52,10 @@ class AugmentationBuffer:
     def num_steps(self) -> int:
         """Total actions over all buffered segments."""
         return self._steps
+
+    def __contains__(self, clip: object) -> bool:
+        """Whether a segment with the same episode, start, end and source is stored already."""
+        return isinstance(clip, SegmentClip) and _key(clip) in self._keys
 
     def append(self, clip: SegmentClip) -> int:
         """Write one segment durably; returns its index once it is on disk."""
@@ -83,6 +88,7 @@ class AugmentationBuffer:
         self._file.flush()
         os.fsync(self._file.fileno())
         self._offsets.append(offset)
+        self._keys.add(_key(clip))
         self._steps += seg.length
         return len(self._offsets) - 1
 
@@ -120,12 +126,17 @@ class AugmentationBuffer:
                 except _TornRecord:
                     break
                 self._offsets.append(good_end)
+                self._keys.add(_key(clip))
                 self._steps += clip.segment.length
                 good_end = next_offset
         if good_end < size:
             with open(self.path, "r+b") as f:
                 f.truncate(good_end)
         return size - good_end
+
+
+def _key(clip: SegmentClip) -> tuple[str, int, int, str]:
+    return clip.episode_id, clip.segment.start, clip.segment.end, clip.source
 
 
 class _TornRecord(Exception):

@@ -73,6 +73,7 @@ class AugmentationTrainer:
         self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()
         self._since_retrain = 0
+        self.duplicates = 0  # segments received again and not stored
         self.latest: PolicyVersion | None = self._read_latest()
 
     @property
@@ -82,11 +83,16 @@ class AugmentationTrainer:
     def add(self, clip: SegmentClip) -> bool:
         """Store a segment durably. Returns True when a periodic retraining is due.
 
-        ValueError naming the segment and feature, and nothing stored, when the clip lacks what the
-        policy reads (one such clip in the buffer would fail every later retraining).
+        A segment stored already (same episode, start, end and labelling model: a replayed episode, a
+        second segmenter) is not stored again. ValueError naming the segment and feature, and nothing
+        stored, when the clip lacks what the policy reads (one such clip in the buffer would fail every
+        later retraining).
         """
         _check_clip(clip, self.learner.features, f"policy {self.learner.name}")
         with self._lock:
+            if clip in self.buffer:
+                self.duplicates += 1
+                return False
             self.buffer.append(clip)
             self._since_retrain += 1
             return self.config.retrain_every > 0 and self._since_retrain >= self.config.retrain_every

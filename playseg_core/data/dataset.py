@@ -52,6 +52,34 @@ VERSION_1_FILES = {"frames": DEFAULT_CAMERA, "states": STATE, "actions": ACTION}
 """Version 1 array names -> the feature each one is."""
 
 
+def is_dataset(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` holds a playseg dataset (any format version): its meta/info.json says so."""
+    try:
+        info = json.loads((Path(path) / INFO_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(info, dict) and info.get("format") == FORMAT_NAME
+
+
+def _remove_stale_staging(path: Path) -> list[Path]:
+    """Remove ``.NAME.partial-PID`` siblings of ``path`` whose writing process no longer exists."""
+    removed = []
+    for staging in path.parent.glob(f".{path.name}.partial-*"):
+        pid = staging.name.rsplit("-", 1)[-1]
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+            continue  # still running: another writer's
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            continue  # a live process of another user
+        shutil.rmtree(staging, ignore_errors=True)
+        removed.append(staging)
+    return removed
+
+
 def array_file(feature: str) -> str:
     """Where a feature's flat array lies inside a dataset directory."""
     return f"data/{feature}.bin"
@@ -110,6 +138,10 @@ class DatasetWriter:
     ``features`` is the schema every episode must follow (FeatureError naming the episode and feature
     otherwise); when None it is taken from the first episode, with a continuous action. ``domain`` names
     the world the data comes from when it is a known one (its step encoders and policy may be used).
+
+    ``overwrite`` replaces only a previous playseg dataset, never another directory. Staging directories
+    left by a killed writer of the same dataset (their process is gone) are removed on start
+    (`removed_stale` lists them).
     """
 
     def __init__(
@@ -122,10 +154,13 @@ class DatasetWriter:
         domain: str | None = None,
     ) -> None:
         self.path = Path(path)
-        if self.path.exists() and not overwrite:
-            raise FileExistsError(
-                f"{self.path}: dataset directory exists (pass overwrite=True to replace it)"
-            )
+        if self.path.exists():
+            if not overwrite:
+                raise FileExistsError(f"{self.path}: exists; replace it only with overwrite (--overwrite)")
+            if not is_dataset(self.path):
+                raise FileExistsError(
+                    f"{self.path}: exists and is not a playseg dataset; refusing to replace it"
+                )
         self.instructions = tuple(instructions)
         if len(set(self.instructions)) != len(self.instructions):
             raise ValueError("DatasetWriter: instructions contain duplicates")
@@ -134,6 +169,7 @@ class DatasetWriter:
         self.features = features
         self.domain = domain
         self.overwrite = overwrite
+        self.removed_stale = _remove_stale_staging(self.path)
         self._tmp = self.path.with_name(f".{self.path.name}.partial-{os.getpid()}")
         if self._tmp.exists():
             shutil.rmtree(self._tmp)
@@ -160,6 +196,12 @@ class DatasetWriter:
     @property
     def num_episodes(self) -> int:
         return len(self._ids)
+
+    @property
+    def staging_dir(self) -> Path:
+        """Where the dataset is written until ``close`` renames it into place: files a caller adds here
+        (e.g. a bag of the same run) appear with the dataset, or not at all."""
+        return self._tmp
 
     @property
     def split_counts(self) -> dict[str, dict[str, int]]:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 from mcap.reader import make_reader
 
+from playseg_ros.bag.errors import BagError
 from playseg_ros.bag.reader import BagReader
 
 
@@ -24,7 +25,7 @@ def bag_info_text(path: Path | str) -> str:
         ]
         for file in reader.files:
             size = file.stat().st_size if file.exists() else 0
-            lines.append(f"  {file.name}  {size / 1e6:.2f} MB{_chunk_compression(file)}")
+            lines.append(f"  {file.name}  {size / 1e6:.2f} MB{_chunk_compression(reader.path, file)}")
         lines.append("topics:")
         for entry in meta["topics_with_message_count"]:
             topic = entry["topic_metadata"]
@@ -32,11 +33,16 @@ def bag_info_text(path: Path | str) -> str:
     return "\n".join(lines)
 
 
-def _chunk_compression(file: Path) -> str:
+def _chunk_compression(bag: Path, file: Path) -> str:
     if file.suffix != ".mcap":
         return ""
-    with file.open("rb") as stream:
-        summary = make_reader(stream).get_summary()
+    try:
+        with file.open("rb") as stream:
+            summary = make_reader(stream).get_summary()
+    except Exception as error:  # noqa: BLE001 -- a damaged summary can make the mcap reader raise anything
+        raise BagError(
+            bag, f"cannot read its summary: {type(error).__name__}: {error}", file=file.name
+        ) from None
     if summary is None:
         return ""
     kinds = sorted({index.compression or "none" for index in summary.chunk_indexes})

@@ -1,23 +1,30 @@
-"""Recovery of a bag whose writer died (SIGKILL, power loss): every message up to the last complete chunk.
+"""Recovery of a bag whose writing did not finish (SIGKILL, power loss, a full disk) or whose files were cut
+short later (an interrupted copy): every complete message is kept.
 
-A writer killed mid-way leaves ``<path>.partial`` behind; `recover_bag` turns it into a finished bag.
+`recover_bag` accepts ``<path>.partial`` (a writer died) and a finished-looking ``<path>`` whose .mcap
+files are truncated or whose metadata.yaml is missing or does not match its files. Finished files are
+kept; an unfinished one is rebuilt from its complete records (mcap_scan.py), so whatever offset a file
+was cut at, recovery keeps every message before the cut and never fails on the cut itself. metadata.yaml
+is written last, keeping the bag's custom_data from its old metadata.yaml or, failing that, from a
+metadata record inside one of its files. A bag whose writer is still alive (its lock is held) is refused.
 """
 
 from __future__ import annotations
 
+import contextlib
 import re
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from mcap.exceptions import McapError
+import yaml
 from mcap.reader import make_reader
-from mcap.records import Channel, Footer, Message, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, DataEnd, Message, Metadata, Schema
 from mcap.writer import CompressionType
 
 from playseg_ros.bag.errors import BagError
+from playseg_ros.bag.lock import BagLock
+from playseg_ros.bag.mcap_scan import RecordScan
 from playseg_ros.bag.schema import (
     METADATA_FILE,
     PARTIAL_SUFFIX,
@@ -26,7 +33,9 @@ from playseg_ros.bag.schema import (
     TopicInfo,
     topic_from_channel,
 )
-from playseg_ros.bag.writer import McapFile, partial_path
+from playseg_ros.bag.writer import CUSTOM_DATA_RECORD, McapFile, partial_path
+
+TEMP_SUFFIX = ".recovered"
 
 
 @dataclass
@@ -39,107 +48,236 @@ class RecoveredFile:
     dropped_bytes: int  # bytes after the last complete record (the open chunk at the crash)
 
 
-def _file_is_finished(path: Path) -> bool:
-    try:
-        with path.open("rb") as stream:
-            return make_reader(stream).get_summary() is not None
-    except (McapError, ValueError, OSError, EOFError):
-        return False
-
-
-def _stats_of_finished(path: Path, topics: dict[str, TopicInfo]) -> FileStats:
-    with path.open("rb") as stream:
-        summary = make_reader(stream).get_summary()
-    assert summary is not None and summary.statistics is not None
-    for channel in summary.channels.values():
-        topics.setdefault(channel.topic, topic_from_channel(channel, summary.schemas.get(channel.schema_id)))
-    stats = summary.statistics
-    return FileStats(
-        path=path.name,
-        message_count=stats.message_count,
-        start_ns=stats.message_start_time,
-        end_ns=stats.message_end_time,
-        topic_counts={
-            summary.channels[cid].topic: count for cid, count in stats.channel_message_counts.items()
-        },
-    )
-
-
-def _complete_records(path: Path) -> Iterator[tuple[int, Any]]:
-    """(end offset of the complete record it came from, record) of an unfinished file, until it breaks."""
-    with path.open("rb") as stream:
-        reader = StreamReader(stream, skip_magic=False)
-        try:
-            for record in reader.records:
-                yield stream.tell(), record
-                if isinstance(record, Footer):
-                    return
-        except (McapError, EOFError, ValueError, OSError):
-            return  # truncated inside a record: everything before it was yielded
-
-
-def _rebuild_file(source: Path, target: Path, topics: dict[str, TopicInfo]) -> tuple[FileStats, int]:
-    """Copy every complete message of an unfinished ``source`` into a finished ``target``."""
-    schemas: dict[int, Schema] = {}
-    channel_topics: dict[int, str] = {}
-    out = McapFile(target, CompressionType.ZSTD, chunk_bytes=1 << 20)
-    stats = FileStats(source.name)
-    last_good = 8  # after the magic
-    for end, record in _complete_records(source):
-        if isinstance(record, Schema):
-            schemas[record.id] = record
-        elif isinstance(record, Channel):
-            info = topic_from_channel(record, schemas.get(record.schema_id))
-            topics.setdefault(info.name, info)
-            channel_topics[record.id] = record.topic
-            if record.topic not in out.channel_ids:
-                out.add_topic(topics[info.name])
-        elif isinstance(record, Message):
-            topic = channel_topics[record.channel_id]
-            out.add_message(topic, record.data, record.log_time, record.publish_time, record.sequence)
-            stats.add(topic, record.log_time)
-        last_good = end
-    summary = BagSummary(target, [stats], {t: topics[t] for t in out.channel_ids})
-    out.finish(summary)
-    return stats, source.stat().st_size - last_good
-
-
 def recover_bag(path: Path | str) -> list[RecoveredFile]:
-    """Turn the unfinished bag at ``path`` (or ``path.partial``) into a finished bag at ``path``.
-
-    Finished .mcap files are kept; an unfinished one (no summary/footer, e.g. after SIGKILL) is rebuilt
-    from every message up to its last complete chunk. metadata.yaml is written last.
-    """
+    """Turn the unfinished or truncated bag at ``path`` (or ``path.partial``) into a finished bag at
+    ``path``; a BagError when there is nothing to recover, when the bag is still being written, or when
+    a rebuilt file cannot be written (then nothing is changed and no temporary file is left)."""
     path = Path(path)
     if path.name.endswith(PARTIAL_SUFFIX):
         path = path.with_name(path.name[: -len(PARTIAL_SUFFIX)])
     directory = partial_path(path)
-    if not directory.is_dir():
-        if (path / METADATA_FILE).is_file():
-            raise BagError(path, "already a finished bag (it has metadata.yaml); nothing to recover")
-        if not path.is_dir():
-            raise BagError(path, f"neither {path} nor {directory} is a bag directory")
-        directory = path  # a bag directory that lost its metadata.yaml
-    files = sorted(directory.glob("*.mcap"), key=lambda p: _file_index(p))
+    if directory.is_dir():
+        if path.exists():
+            raise BagError(path, f"both {path} and {directory} exist: move one of them away first")
+    elif path.is_dir():
+        directory = path  # a finished-looking bag: recover it in place if its files need it
+    else:
+        raise BagError(path, f"neither {path} nor {directory} is a bag directory")
+    lock = BagLock.acquire(path, directory)
+    try:
+        return _recover_locked(path, directory)
+    except OSError as error:  # e.g. metadata.yaml or the rename on a full or read-only disk
+        raise BagError(path, f"cannot recover: {error.strerror}: {error.filename}") from None
+    finally:
+        with contextlib.suppress(OSError):
+            lock.moved_to(path if not directory.exists() else directory)
+            lock.release()
+
+
+def _recover_locked(path: Path, directory: Path) -> list[RecoveredFile]:
+    for stale in directory.glob(f"*{TEMP_SUFFIX}"):  # left by a recovery that was killed half-way
+        stale.unlink()
+    files = sorted(directory.glob("*.mcap"), key=_file_index)
+    old = _old_metadata(directory)
     if not files:
-        raise BagError(path, f"no .mcap files in {directory}")
+        storage = (old or {}).get("storage_identifier", "")
+        kind = (
+            f" (storage {storage!r}; only MCAP bags can be recovered)" if storage not in ("", "mcap") else ""
+        )
+        raise BagError(path, f"no .mcap files in {directory}{kind}")
+    finished = {file: _finished_stats(file) for file in files}
+    if directory == path and old is not None and _metadata_matches(old, finished):
+        raise BagError(
+            path, "already a finished bag (its files and metadata.yaml are complete); nothing to recover"
+        )
     topics: dict[str, TopicInfo] = {}
+    custom_data = _custom_data_of(old)
     all_stats: list[FileStats] = []
     report: list[RecoveredFile] = []
     for file in files:
-        if _file_is_finished(file):
-            stats = _stats_of_finished(file, topics)
+        stats = finished[file]
+        if stats is not None:
+            _collect_finished(file, topics)
             report.append(RecoveredFile(file.name, stats.message_count, False, 0))
+            custom_data = custom_data if custom_data is not None else _custom_data_in_summary(file)
         else:
-            rebuilt = file.with_name(file.name + ".recovered")
-            stats, dropped = _rebuild_file(file, rebuilt, topics)
-            rebuilt.replace(file)
+            stats, dropped, found = _rebuild(path, file, topics, custom_data)
             report.append(RecoveredFile(file.name, stats.message_count, True, dropped))
+            custom_data = custom_data if custom_data is not None else found
         all_stats.append(stats)
-    BagSummary(path, all_stats, topics).write_metadata(directory)
+    BagSummary(path, all_stats, topics, custom_data or {}).write_metadata(directory)
     if directory != path:
         directory.rename(path)
     return report
+
+
+# --- finished files -----------------------------------------------------------------------------------
+
+
+def _finished_stats(path: Path) -> FileStats | None:
+    """The statistics of a finished file (summary and statistics readable), None for an unfinished one."""
+    try:
+        with path.open("rb") as stream:
+            summary = make_reader(stream).get_summary()
+        if summary is None or summary.statistics is None:
+            return None
+        stats = summary.statistics
+        return FileStats(
+            path=path.name,
+            message_count=stats.message_count,
+            start_ns=stats.message_start_time,
+            end_ns=stats.message_end_time,
+            topic_counts={
+                summary.channels[cid].topic: count for cid, count in stats.channel_message_counts.items()
+            },
+        )
+    except Exception:  # noqa: BLE001 -- an unreadable summary (any parser error) means: rebuild the file
+        return None
+
+
+def _collect_finished(path: Path, topics: dict[str, TopicInfo]) -> None:
+    with path.open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None  # checked by _finished_stats
+    for channel in summary.channels.values():
+        topics.setdefault(channel.topic, topic_from_channel(channel, summary.schemas.get(channel.schema_id)))
+
+
+def _custom_data_in_summary(path: Path) -> dict[str, str] | None:
+    """custom_data from a finished file's metadata records (ours, or rosbag2's serialized metadata)."""
+    with contextlib.suppress(Exception), path.open("rb") as stream:
+        found = [_custom_data_of_record(r) for r in make_reader(stream).iter_metadata()]
+        return next((c for c in found if c is not None), None)
+    return None
+
+
+# --- unfinished files ---------------------------------------------------------------------------------
+
+
+def _rebuild(
+    bag: Path, source: Path, topics: dict[str, TopicInfo], custom_data: dict[str, str] | None
+) -> tuple[FileStats, int, dict[str, str] | None]:
+    """Copy every complete message of an unfinished ``source`` into a finished file that replaces it.
+
+    Returns its statistics, the bytes dropped after the last complete record and the custom_data found
+    in its metadata records (None if none). The new file carries ``custom_data`` (what is known of the
+    bag so far; when None, what the file itself holds). The copy goes to a temporary file first: if
+    writing fails (a full disk), the source is untouched and the temporary file removed.
+    """
+    target = source.with_name(source.name + TEMP_SUFFIX)
+    try:
+        result = _copy_complete(source, target, topics, custom_data)
+        target.replace(source)
+    except OSError as error:
+        raise BagError(bag, f"cannot write the recovered file: {error}", file=source.name) from None
+    finally:
+        target.unlink(missing_ok=True)
+    return result
+
+
+def _copy_complete(
+    source: Path, target: Path, topics: dict[str, TopicInfo], known: dict[str, str] | None
+) -> tuple[FileStats, int, dict[str, str] | None]:
+    schemas: dict[int, Schema] = {}
+    channel_topics: dict[int, str] = {}
+    found: dict[str, str] | None = None
+    stats = FileStats(source.name)
+    scan = RecordScan(source)
+    out: McapFile | None = None
+    data_complete = False
+
+    def opened() -> McapFile:
+        # Opened at the first schema, after the leading metadata record, so that it can carry custom_data.
+        nonlocal out
+        if out is None:
+            out = McapFile(target, CompressionType.ZSTD, 1 << 20, known if known is not None else found)
+        return out
+
+    try:
+        for _, record in scan:
+            if isinstance(record, DataEnd):
+                data_complete = True  # what follows (the summary) repeats what came before
+                break
+            if isinstance(record, Metadata):
+                found = found if found is not None else _custom_data_of_record(record)
+            elif isinstance(record, Schema):
+                schemas.setdefault(record.id, record)
+            elif isinstance(record, Channel) and record.id not in channel_topics:
+                info = _topic_of(record, schemas.get(record.schema_id))
+                if info is None:
+                    continue  # its schema was lost or its metadata is unreadable: its messages cannot be typed
+                topics.setdefault(info.name, info)
+                channel_topics[record.id] = info.name
+                if info.name not in opened().channel_ids:
+                    opened().add_topic(topics[info.name])
+            elif isinstance(record, Message) and record.channel_id in channel_topics:
+                topic = channel_topics[record.channel_id]
+                opened().add_message(
+                    topic, record.data, record.log_time, record.publish_time, record.sequence
+                )
+                stats.add(topic, record.log_time)
+        custom_data = known if known is not None else found
+        file = opened()
+        file.finish(BagSummary(target, [stats], {t: topics[t] for t in file.channel_ids}, custom_data or {}))
+    except BaseException:
+        if out is not None:
+            out.close_unfinished()
+        raise
+    dropped = 0 if data_complete or scan.problem is None else source.stat().st_size - scan.end
+    return stats, dropped, found
+
+
+def _topic_of(channel: Channel, schema: Schema | None) -> TopicInfo | None:
+    """The channel's topic, None when it cannot be typed (no schema; channel metadata not readable)."""
+    try:
+        info = topic_from_channel(channel, schema)
+    except (yaml.YAMLError, ValueError, TypeError, AttributeError):  # metadata outside a CRC'd chunk
+        return None
+    return info if info.type else None
+
+
+# --- metadata -----------------------------------------------------------------------------------------
+
+
+def _old_metadata(directory: Path) -> dict[str, Any] | None:
+    """The bag's metadata.yaml as a mapping, None when missing or unreadable."""
+    try:
+        info = yaml.safe_load((directory / METADATA_FILE).read_text())["rosbag2_bagfile_information"]
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return None
+    return info if isinstance(info, dict) else None
+
+
+def _metadata_matches(old: dict[str, Any], finished: dict[Path, FileStats | None]) -> bool:
+    """Whether metadata.yaml describes exactly these files, all finished, with their message counts."""
+    if any(stats is None for stats in finished.values()):
+        return False
+    try:
+        listed = sorted(Path(p).name for p in old["relative_file_paths"])
+        count = int(old["message_count"])
+    except (KeyError, TypeError, ValueError):
+        return False
+    present = sorted(file.name for file in finished)
+    return listed == present and count == sum(s.message_count for s in finished.values() if s is not None)
+
+
+def _custom_data_of(old: dict[str, Any] | None) -> dict[str, str] | None:
+    if old is None or not isinstance(old.get("custom_data"), dict):
+        return None
+    return {str(k): str(v) for k, v in old["custom_data"].items()}
+
+
+def _custom_data_of_record(record: Metadata) -> dict[str, str] | None:
+    """custom_data carried by a metadata record: ours at a file's start, or rosbag2's at its end."""
+    if record.name == CUSTOM_DATA_RECORD:
+        return dict(record.metadata)
+    if record.name == "rosbag2" and "serialized_metadata" in record.metadata:
+        with contextlib.suppress(yaml.YAMLError, KeyError, TypeError, AttributeError):
+            info = yaml.safe_load(record.metadata["serialized_metadata"])
+            info = info.get("rosbag2_bagfile_information", info)
+            if isinstance(info.get("custom_data"), dict):
+                return {str(k): str(v) for k, v in info["custom_data"].items()}
+    return None
 
 
 def _file_index(path: Path) -> tuple[int, str]:

@@ -7,10 +7,14 @@ zstd-compressed chunks.
 
 While a bag is being written it lives in ``<path>.partial`` and is renamed to ``<path>`` when closed, so
 an interrupted write never leaves something that looks like a finished bag (recovery.py finishes one).
+The writer holds the directory's lock (lock.py) until then, so recovery cannot finish a bag still being
+written. A bag with ``custom_data`` also carries it in a ``playseg.custom_data`` metadata record at the
+start of every file, so that recovery can restore it from any file that survived.
 """
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 from pathlib import Path
 from types import TracebackType
@@ -19,12 +23,17 @@ import yaml
 from mcap.writer import CompressionType, Writer
 
 from playseg_ros.bag.errors import BagError
+from playseg_ros.bag.lock import BagLock, holder, is_locked
 from playseg_ros.bag.schema import PARTIAL_SUFFIX, ROS_DISTRO, BagSummary, FileStats, TopicInfo
 
 
 def _add_rosbag2_metadata_record(writer: Writer, summary: BagSummary) -> None:
     serialized = yaml.safe_dump(summary.bagfile_information(), sort_keys=False)
     writer.add_metadata("rosbag2", {"serialized_metadata": serialized, "ros_distro": ROS_DISTRO})
+
+
+CUSTOM_DATA_RECORD = "playseg.custom_data"
+"""Name of the MCAP metadata record that repeats metadata.yaml's custom_data at the start of each file."""
 
 
 def partial_path(path: Path) -> Path:
@@ -35,12 +44,20 @@ def partial_path(path: Path) -> Path:
 class McapFile:
     """One open .mcap file of a bag."""
 
-    def __init__(self, path: Path, compression: CompressionType, chunk_bytes: int) -> None:
+    def __init__(
+        self,
+        path: Path,
+        compression: CompressionType,
+        chunk_bytes: int,
+        custom_data: dict[str, str] | None = None,
+    ) -> None:
         self.stream = path.open("wb")
         # We close chunks ourselves (see add_message), so the library never closes one on its own.
         self.writer = Writer(self.stream, chunk_size=2**62, compression=compression)
         self.chunk_bytes = chunk_bytes
         self.writer.start(profile="ros2", library="playseg bag_io")
+        if custom_data:
+            self.writer.add_metadata(CUSTOM_DATA_RECORD, dict(custom_data))
         self.schema_ids: dict[str, int] = {}
         self.channel_ids: dict[str, int] = {}
         self.open_chunk_bytes = 0
@@ -80,6 +97,11 @@ class McapFile:
         self.writer.finish()
         self.stream.close()
 
+    def close_unfinished(self) -> None:
+        """Close the stream without finishing the file (what was flushed stays recoverable)."""
+        with contextlib.suppress(OSError):  # flushing the buffer fails again on a full disk
+            self.stream.close()
+
 
 class BagWriter:
     """Writes a rosbag2 MCAP bag from serialized messages.
@@ -87,7 +109,8 @@ class BagWriter:
     ``max_file_bytes`` / ``max_file_duration_ns`` (0: no limit) start a new .mcap file when the current
     one would grow past them. ``chunk_bytes`` bounds a chunk (and what a crash can lose).
     ``custom_data`` goes to metadata.yaml's ``custom_data`` (strings only, as rosbag2 stores it). Use as
-    a context manager: leaving it by an exception removes everything written.
+    a context manager: leaving it by an exception (or a failing close) removes everything written.
+    While open, the writer holds the bag directory's lock; `close`, `abort` and `abandon` release it.
     """
 
     def __init__(
@@ -106,15 +129,9 @@ class BagWriter:
         self.directory = partial_path(self.path)
         for existing in (self.path, self.directory):
             if existing.exists():
-                raise FileExistsError(
-                    f"bag {str(self.path)!r}: {existing} already exists"
-                    + (
-                        " (an unfinished bag: run `playseg bag recover`)"
-                        if existing == self.directory
-                        else ""
-                    )
-                )
+                raise FileExistsError(f"bag {str(self.path)!r}: {existing} already exists{_why(existing)}")
         self.directory.mkdir(parents=True)
+        self._lock = BagLock.acquire(self.path, self.directory)
         self.max_file_bytes = max_file_bytes
         self.max_file_duration_ns = max_file_duration_ns
         self.chunk_bytes = chunk_bytes
@@ -176,13 +193,19 @@ class BagWriter:
         if self._file is not None:
             self._file.finish(self._summary)
         name = f"{self.path.name}_{len(self._summary.files)}.mcap"
-        self._file = McapFile(self.directory / name, self._compression, self.chunk_bytes)
+        self._file = McapFile(
+            self.directory / name, self._compression, self.chunk_bytes, self._summary.custom_data
+        )
         self._summary.files.append(FileStats(name))
         for topic in self._summary.topics.values():
             self._file.add_topic(topic)
 
     def close(self) -> BagSummary:
-        """Finish the last file, write metadata.yaml and move the bag to its final path."""
+        """Finish the last file, write metadata.yaml and move the bag to its final path.
+
+        If this fails (a full disk), the bag stays in ``<path>.partial`` and the writer stays open: call
+        `abandon` to keep what was flushed for `recover_bag`, or `abort` to delete it.
+        """
         if self._closed:
             return self._summary
         if self._file is None:
@@ -190,15 +213,26 @@ class BagWriter:
         assert self._file is not None
         self._file.finish(self._summary)
         self._summary.write_metadata(self.directory)
+        # Renamed while still locked: recovery never sees an unlocked half-finished directory.
         self.directory.rename(self.path)
+        self._lock.moved_to(self.path)
         self._closed = True
+        self._lock.release()
         return self._summary
+
+    def abandon(self) -> None:
+        """Stop writing, keep everything flushed so far in ``<path>.partial`` for `recover_bag`."""
+        if self._file is not None:
+            self._file.close_unfinished()
+        self._closed = True
+        self._lock.release()
 
     def abort(self) -> None:
         """Stop writing and delete everything written so far."""
         if self._file is not None:
-            self._file.stream.close()
+            self._file.close_unfinished()
         self._closed = True
+        self._lock.release()
         shutil.rmtree(self.directory, ignore_errors=True)
 
     def __enter__(self) -> BagWriter:
@@ -207,7 +241,20 @@ class BagWriter:
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
-        if exc_type is None:
-            self.close()
-        else:
+        if exc_type is not None:
             self.abort()
+            return
+        try:
+            self.close()
+        except BaseException:
+            self.abort()  # a conversion that could not finish leaves nothing half-written behind
+            raise
+
+
+def _why(existing: Path) -> str:
+    """Why an existing ``<path>.partial`` is there, for the refusal to write over it."""
+    if not existing.name.endswith(PARTIAL_SUFFIX):
+        return ""
+    if is_locked(existing):
+        return f" (a bag being written by {holder(existing) or 'another process'})"
+    return " (an unfinished bag: run `playseg bag recover`)"

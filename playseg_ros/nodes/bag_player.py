@@ -6,6 +6,10 @@ reliable KEEP_ALL on both sides, so nothing is dropped: a subscriber slower than
 backlog in its reader (benchmarks/bench_live.py measures the resulting latency).
 `wait_for_subscribers` delays the start until each of `wait_topics` (default: the PlayStep topics) has that
 many subscribers (volatile topics have no history for late joiners). Annotation topics are published transient-local.
+
+A bag that cannot be read to its end (a damaged or truncated file) ends the node with exit code 1 after
+what could be read was published (and delivered), so `playseg up` reports it instead of a silent
+partial playback; a bag that cannot even be opened is a bad parameter (exit code 2).
 """
 
 from __future__ import annotations
@@ -56,6 +60,8 @@ class BagPlayerNode(Node):
         unknown = sorted(set(self.wait_topics) - set(self.topic_types))
         require(not unknown, self, f"wait_topics {unknown} are not played")
         self.published = 0
+        self.exit_code = 0  # 1 when the bag could not be played to its end (run_node exits with it)
+        self._closing = False
         self.done = threading.Event()
         threading.Thread(target=self._play, daemon=True).start()
 
@@ -73,13 +79,19 @@ class BagPlayerNode(Node):
                 self.publishers_by_topic[message.topic].publish(message.data)
                 self.published += 1
             self.get_logger().info(f"played {self.published} messages from {self.bag}")
-        except Exception as exc:  # reported, then the node ends like after a normal playback
-            self.get_logger().error(f"playback of {self.bag} failed: {exc}")
+        except Exception as exc:  # noqa: BLE001 -- reported, then the node ends with exit code 1
+            if self._closing:  # stopped from outside: the reader was closed under the playback
+                return
+            self.get_logger().error(f"playback of {self.bag} failed after {self.published} messages: {exc}")
+            failed = True
+        else:
+            failed = False
         finally:
             self.done.set()
-            if self.exit_when_done:
-                self._wait_until_delivered()
-                rclpy.try_shutdown()
+        if self.exit_when_done or failed:
+            self._wait_until_delivered()  # what was published before the damage still reaches everyone
+            self.exit_code = int(failed)
+            rclpy.try_shutdown()
 
     def _wait_until_delivered(self) -> None:
         """Reliable messages not yet acknowledged die with the process: wait until every subscriber's
@@ -99,6 +111,7 @@ class BagPlayerNode(Node):
             time.sleep(0.05)
 
     def close(self) -> None:
+        self._closing = True
         self.reader.close()
 
 

@@ -47,6 +47,11 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threa
     A LifecycleNode with parameter ``autostart`` true (the default) configures and activates itself;
     with ``autostart:=false`` an external manager drives its transitions. SIGINT/SIGTERM end the spin;
     lifecycle nodes are then deactivated and cleaned up so their files are closed.
+
+    Exit code: 0; 2 for a bad parameter; 1 when configure fails, when a shutdown transition fails (a
+    recorder that could not finish its bag) or when the node sets a non-zero ``exit_code`` attribute (a
+    node that cannot go on, e.g. a bag player that could not play its whole bag), which also ends the
+    spin.
     """
     # Our own SIGINT/SIGTERM handling: the context stays valid while the node shuts down, so lifecycle
     # transitions (which close files) can still run.
@@ -78,7 +83,8 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threa
         # One thread runs each callback to completion inside spin_once: nothing is in flight at a stop.
         executor = SingleThreadedExecutor() if threads == 1 else MultiThreadedExecutor(num_threads=threads)
         executor.add_node(node)
-        while rclpy.ok() and not stop.is_set():  # short waits, so the stop request is seen promptly
+        # Short waits, so a stop request (or a node giving up) is seen promptly.
+        while rclpy.ok() and not stop.is_set() and not _exit_code(node):
             executor.spin_once(timeout_sec=0.2)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -89,7 +95,9 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threa
         if executor is not None:
             _stop_executor(executor)
         if node is not None:
-            _shut_down(node)
+            if not _shut_down(node):
+                code = code or 1
+            code = code or _exit_code(node)
             node.destroy_node()
         rclpy.try_shutdown()
     return code
@@ -103,14 +111,35 @@ def _stop_executor(executor: SingleThreadedExecutor | MultiThreadedExecutor) -> 
         pass
 
 
-def _shut_down(node: Node) -> None:
-    """Run the lifecycle transitions down to unconfigured so that files are flushed and closed."""
-    if isinstance(node, LifecycleNode):
-        state = node._state_machine.current_state[1]  # rclpy exposes no public getter
-        if state == "active":
-            node.trigger_deactivate()
-            state = "inactive"
-        if state == "inactive":
-            node.trigger_cleanup()
-    elif hasattr(node, "close"):
-        node.close()
+def _exit_code(node: Node) -> int:
+    """The exit code a node asked for by setting ``exit_code`` (0 when it did not)."""
+    return int(getattr(node, "exit_code", 0) or 0)
+
+
+def _lifecycle_state(node: LifecycleNode) -> str:
+    return node._state_machine.current_state[1]  # rclpy exposes no public getter
+
+
+def _shut_down(node: Node) -> bool:
+    """Run the lifecycle transitions down to unconfigured so that files are flushed and closed.
+
+    False when a transition did not succeed: rclpy turns an exception in a transition callback into
+    ERROR without a word, so the failure is logged here and becomes the exit code (a recorder whose bag
+    could not be finished must not exit 0).
+    """
+    if not isinstance(node, LifecycleNode):
+        if hasattr(node, "close"):
+            node.close()
+        return True
+    ok = True
+    for state, name, trigger in (
+        ("active", "deactivate", node.trigger_deactivate),
+        ("inactive", "cleanup", node.trigger_cleanup),
+    ):
+        if _lifecycle_state(node) != state:
+            continue
+        result = trigger()
+        if result != TransitionCallbackReturn.SUCCESS:
+            node.get_logger().error(f"{name} at shutdown failed ({result.to_label()}): exiting with code 1")
+            ok = False
+    return ok

@@ -7,6 +7,9 @@ compressed and flushed every `flush_period_s`, so a crash loses at most the open
 `playseg bag recover <output>` restores the rest (each flush that wrote something logs, at debug level,
 how many messages are on disk: `--ros-args --log-level recorder:=debug`).
 
+A write error (a full disk) while recording or finishing the bag is logged, the bag is left in
+`<output>.partial/` with everything flushed so far (for `playseg bag recover`) and the process exits 1.
+
 QoS: KEEP_ALL history, `reliability` as configured. A topic whose publishers all offer TRANSIENT_LOCAL
 (e.g. /play/annotations) is subscribed TRANSIENT_LOCAL, so what they published before the recorder
 subscribed is recorded too.
@@ -14,12 +17,14 @@ subscribed is recorded too.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.qos import DurabilityPolicy
 from rclpy.subscription import Subscription
 
 from playseg_ros import qos
-from playseg_ros.bag import BagWriter, QosProfile, topic_info
+from playseg_ros.bag import BagError, BagWriter, QosProfile, partial_path, topic_info
 from playseg_ros.nodes.common import declare, require, run_node
 from playseg_ros.ros_types import message_class
 
@@ -55,6 +60,7 @@ class RecorderNode(LifecycleNode):
             self, "flush_period_s", 1.0, "close the open chunk this often (bounds crash loss)"
         )
         self.writer: BagWriter | None = None
+        self.exit_code = 0  # 1 once the bag could not be written: run_node then ends the process with it
         self.received: dict[str, int] = {}
         self._flushed_count = 0
         self._subs: dict[str, Subscription | None] = {}
@@ -93,7 +99,7 @@ class RecorderNode(LifecycleNode):
     def _subscribe_discovered(self) -> None:
         """Subscribe to each configured topic once a publisher reveals its type."""
         missing = [t for t in self.topics if t not in self._subs]
-        if not missing:
+        if not missing or self.writer is None:  # nothing to add, or writing failed: on the way out
             return
         types = dict(self.get_topic_names_and_types())
         for topic in missing:
@@ -123,12 +129,35 @@ class RecorderNode(LifecycleNode):
             self.get_logger().info(f"subscribed to {topic} ({type_name}){durability}")
 
     def _on_message(self, topic: str, data: bytes) -> None:
-        self.writer.write(topic, data, self.get_clock().now().nanoseconds)
+        if self.writer is None:  # writing failed earlier; the node is on its way out
+            return
+        try:
+            self.writer.write(topic, data, self.get_clock().now().nanoseconds)
+        except (OSError, BagError) as exc:
+            self._give_up("recording", exc)
+            return
         self.received[topic] += 1
+
+    def _give_up(self, what: str, exc: Exception) -> None:
+        """Stop writing after a write error, keeping what is on disk recoverable, and exit non-zero."""
+        self.get_logger().error(
+            f"{what} {self.output} failed: {exc}; everything flushed before is in "
+            f"{partial_path(Path(self.output))}: `playseg bag recover {self.output}` restores it"
+        )
+        if self.writer is not None:
+            self.writer.abandon()
+            self.writer = None
+        self.exit_code = 1
 
     def _flush(self) -> None:
         """Close the open chunk; everything received so far then survives a crash."""
-        self.writer.flush()
+        if self.writer is None:
+            return
+        try:
+            self.writer.flush()
+        except (OSError, BagError) as exc:
+            self._give_up("flushing", exc)
+            return
         total = sum(self.received.values())
         if total != self._flushed_count:
             self._flushed_count = total
@@ -148,19 +177,26 @@ class RecorderNode(LifecycleNode):
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         for timer in self._timers:
             self.destroy_timer(timer)
+        writing = self.writer is not None
         for topic, sub in self._subs.items():
             if sub is not None:
-                drained = self._drain(topic, sub)
+                drained = self._drain(topic, sub) if self.writer is not None else 0
                 if drained:
                     self.get_logger().info(f"{topic}: recorded {drained} messages still queued at stop")
                 self.destroy_subscription(sub)
         self._subs.clear()
         self._flush()
+        if writing and self.writer is None:  # a write failed during this transition (logged)
+            return TransitionCallbackReturn.ERROR
         return super().on_deactivate(state)
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         if self.writer is not None:
-            self.writer.close()
+            try:
+                self.writer.close()
+            except Exception as exc:  # noqa: BLE001 -- rclpy would swallow it: log it, keep the bag
+                self._give_up("finishing", exc)
+                return TransitionCallbackReturn.ERROR
             self.get_logger().info(f"closed {self.output}: {self.received}")
             self.writer = None
         return TransitionCallbackReturn.SUCCESS

@@ -115,6 +115,8 @@ class SegmenterNode(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def _on_step(self, msg: PlayStep) -> None:
+        if msg.episode_id in self.finished and msg.step != 0:
+            return  # the rest of an ended or dropped episode: its one log line was written already
         try:
             self._segment_step(msg)
         except Exception as exc:  # a bad step or a failure on one episode must not take the node down
@@ -131,8 +133,8 @@ class SegmenterNode(LifecycleNode):
         data = step_from_message(msg, self._frame_shape)
         episode = self.episodes.get(data.episode_id)
         if episode is None:
-            if data.episode_id in self.finished:
-                raise StepError(data.episode_id, data.step, "the episode already ended")
+            # Step 0 of an id seen before starts that episode anew (a replayed bag): documented rule.
+            self.finished.discard(data.episode_id)
             check_step_number(data.episode_id, data.step, 0)
             episode = self.episodes[data.episode_id] = _OpenEpisode(
                 StreamingSegmenter(self.model, self.min_len)
