@@ -161,6 +161,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         args.labeller,
         args.actions,
         args.overwrite,
+        {"min_len": args.min_len, "max_len": args.max_len, "k_max": args.k_max},
+        args.encoder,
     )
 
 
@@ -210,8 +212,22 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     train.add_argument(
         "--actions",
         default="auto",
-        help="how the model reads the previous action: 'auto' (default: the action the data declares, "
-        "if discrete), 'none' (observations only), or a count N (discrete indices 0..N-1)",
+        help="how the model reads the previous action: 'auto' (default: as the data declares it, discrete "
+        "or continuous), 'none' (observations only), or a count N (discrete indices 0..N-1)",
+    )
+    train.add_argument(
+        "--max-len", type=int, help="L_max, the longest segment in steps (default: from the data)"
+    )
+    train.add_argument(
+        "--min-len", type=int, help="L_min, the shortest segment in steps (default: from the data)"
+    )
+    train.add_argument("--k-max", type=int, help="negatives shift by 1..k_max steps (default: from the data)")
+    train.add_argument(
+        "--encoder",
+        action="append",
+        metavar="FEATURE=KIND",
+        help="step encoder of a feature instead of the default: image_cnn, state_mlp, discrete_action, "
+        "continuous_action, a domain's kind (e.g. babyai.grid_tiles), or none (not read); repeatable",
     )
     train.set_defaults(func=_cmd_train)
     calibrate = sub.add_parser(
@@ -228,7 +244,7 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
         "--out", required=True, help="output dataset directory (plus OUT/segments_bag for bags)"
     )
     segment.add_argument("--splits", default="play,test", help="dataset splits to segment (comma-separated)")
-    segment.add_argument("--min-len", type=int, default=1, help="shortest segment in steps")
+    segment.add_argument("--min-len", type=int, help="shortest segment in steps (default: the model's L_min)")
     segment.add_argument(
         "--overwrite", action="store_true", help="replace an existing --out (only a previous playseg dataset)"
     )

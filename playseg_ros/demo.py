@@ -45,7 +45,7 @@ def ensure_ps_model(annotated_bag: Path, cache_dir: Path) -> Path:
     """Train the PS model on the annotated bag unless a model for this exact bag is cached."""
     from playseg_core.ps.calibration import calibrate_ps_model
     from playseg_core.ps.model import save_model
-    from playseg_core.ps.training import TrainConfig, model_config_for, train_ps
+    from playseg_core.ps.training import TrainConfig, model_config_for, segment_bounds, train_ps
     from playseg_ros.play_bags import load_annotated
 
     model_path = cache_dir / f"ps-{_cache_key(annotated_bag)}.pt"
@@ -62,8 +62,17 @@ def ensure_ps_model(annotated_bag: Path, cache_dir: Path) -> Path:
         f"training the PS model on {len(train)} annotated episodes ({sum(len(e.segments) for e in train)} segments), "
         f"validating on {len(val)} ..."
     )
-    model_cfg = model_config_for(info.features, info.domain, len(info.instructions))
-    result = train_ps(train, val, info.instructions, TrainConfig(progress=sys.stderr.isatty()), model_cfg)
+    bounds = segment_bounds(train, info.domain)
+    model_cfg = model_config_for(
+        info.features,
+        info.domain,
+        len(info.instructions),
+        max_len=bounds.max_len,
+        episodes=train,
+        min_len=bounds.min_len,
+    )
+    config = TrainConfig(k_max=bounds.k_max, progress=sys.stderr.isatty())
+    result = train_ps(train, val, info.instructions, config, model_cfg)
     calibrated = calibrate_ps_model(result.model, val)
     cache_dir.mkdir(parents=True, exist_ok=True)
     save_model(model_path, result.model, {"trained_on": str(annotated_bag), **calibrated})

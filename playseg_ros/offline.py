@@ -30,16 +30,32 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
 
 
+def _encoder_overrides(items: list[str]) -> dict[str, str]:
+    """`--encoder FEATURE=KIND` options -> {feature: kind}."""
+    from playseg_core.ps.encoders import ENCODER_CHOICES
+
+    overrides = {}
+    for item in items:
+        feature, sep, kind = item.partition("=")
+        if not sep or not feature or (kind not in ENCODER_CHOICES and "." not in kind):
+            raise ValueError(
+                f"--encoder {item!r}: expected FEATURE=KIND, KIND one of {', '.join(ENCODER_CHOICES)}"
+            )
+        overrides[feature] = kind
+    return overrides
+
+
 def _action_features(choice: str, features: Features) -> tuple[Features, bool]:
-    """`playseg train --actions`: "auto" (read the action the data declares, if it is discrete), "none"
-    (observations only), or a count N (the actions are discrete indices 0..N-1, checked on every step).
+    """`playseg train --actions`: "auto" (read the action as the data declares it, discrete or
+    continuous), "none" (observations only), or a count N (the actions are discrete indices 0..N-1,
+    checked on every step).
 
     Returns the features to build the model for and whether it reads the action.
     """
     if choice == "none":
         return features, False
     if choice == "auto":
-        return features, features.action.is_discrete
+        return features, True
     try:
         count = int(choice)
     except ValueError:
@@ -106,14 +122,25 @@ def train(
     labeller: str | None,
     actions: str = "auto",
     overwrite: bool = False,
+    bounds: dict[str, int | None] | None = None,
+    encoders: list[str] | None = None,
 ) -> int:
     """Train the PS model (and optionally the stand-alone labeller) on a dataset's train/val splits.
+
+    ``bounds`` (min_len, max_len, k_max; None = derived, see `segment_bounds`) and ``encoders``
+    (``FEATURE=KIND`` overrides of the step encoders) come from the command line.
 
     The outputs are checked before training starts (a model is never trained only to be lost).
     """
     from playseg_core.ps.calibration import calibrate_ps_model
     from playseg_core.ps.model import save_model
-    from playseg_core.ps.training import TrainConfig, model_config_for, train_labeller, train_ps
+    from playseg_core.ps.training import (
+        TrainConfig,
+        model_config_for,
+        segment_bounds,
+        train_labeller,
+        train_ps,
+    )
 
     dataset = _open_dataset(data)
     check_output_file(out, overwrite)
@@ -123,17 +150,31 @@ def train(
     val_eps = list(dataset.episodes("val"))
     if not any(episode.segments for episode in train_eps):
         raise ValueError(f"--data {data}: the train split has no annotated segments to learn from")
+    chosen = segment_bounds(train_eps, dataset.domain, **(bounds or {}))
     given = {"epochs": epochs, "lr": lr, "segments_per_batch": batch_segments}
-    cfg = TrainConfig(seed=seed, **{key: value for key, value in given.items() if value is not None})
+    cfg = TrainConfig(
+        seed=seed, k_max=chosen.k_max, **{key: value for key, value in given.items() if value is not None}
+    )
     if epochs is not None:  # asked for exactly this many epochs
         cfg = replace(cfg, min_steps=0)
     features, read_actions = _action_features(actions, dataset.features)
     model_cfg = model_config_for(
-        features, dataset.domain, len(dataset.instructions), read_actions=read_actions
+        features,
+        dataset.domain,
+        len(dataset.instructions),
+        max_len=chosen.max_len,
+        read_actions=read_actions,
+        episodes=train_eps,
+        overrides=_encoder_overrides(encoders or []),
+        min_len=chosen.min_len,
     )
     read = ", ".join(f"{spec.feature} ({spec.kind})" for spec in model_cfg.encoders)
-    unread = "" if read_actions else f"; not the action ({features.action.describe()})"
-    print(f"model reads {read}{unread}", flush=True)
+    unread = (
+        ""
+        if any(s.feature == ACTION for s in model_cfg.encoders)
+        else f"; not the action ({features.action.describe()})"
+    )
+    print(f"model reads {read}{unread}; {chosen.describe()}", flush=True)
     result = train_ps(train_eps, val_eps, dataset.instructions, cfg, model_cfg)
     calibrated = calibrate_ps_model(result.model, val_eps, 0.95) if val_eps else {}
     extra = {
@@ -219,7 +260,7 @@ def segment(
     input_path: str,
     out: str,
     splits: list[str],
-    min_len: int,
+    min_len: int | None,
     overwrite: bool,
     keep_incomplete: bool = False,
 ) -> int:
@@ -231,13 +272,14 @@ def segment(
     from playseg_core.ps.model import load_model
     from playseg_core.ps.segmentation import segment_episode
 
-    if min_len < 1:
+    if min_len is not None and min_len < 1:
         raise ValueError(f"--min-len must be >= 1, got {min_len}")
     source = Path(input_path)
     if not source.exists():
         raise FileNotFoundError(f"--input {source}: no such bag or dataset")
     _check_not_inside(Path(out), source)
     model, extra = load_model(model_path, kinds=("ps",))
+    min_len = min_len or model.cfg.min_len
     cameras = model.cfg.features.cameras
     camera = cameras[0] if len(cameras) == 1 else None
     episodes, info, kind = _input_episodes(source, splits, camera, keep_incomplete)

@@ -76,7 +76,7 @@ def test_actions_option(tiny_data: Path) -> None:
     three, reads = _action_features("3", features)
     assert reads and three.action.num_values == 3
     continuous = features.with_action(Feature(ACTION, "action", "float32", (1,)))
-    assert _action_features("auto", continuous) == (continuous, False)  # declared continuous: not read
+    assert _action_features("auto", continuous) == (continuous, True)  # declared continuous: read as such
     with pytest.raises(ValueError, match="--actions must be a count"):
         _action_features("many", features)
 

@@ -4,7 +4,10 @@ The generic machinery (data/, ps/, augment/) never imports a domain package; it 
 the name a dataset, bag or checkpoint records (`load_domain`). On import, a domain package registers its
 step encoders (ps/encoders.py) and exposes:
 
-- ``image_encoder(feature) -> EncoderSpec | None``: the step encoder for one of its camera features;
+- optionally ``step_encoders(features) -> {feature name: EncoderSpec | None}``: its own step encoders
+  for some features (None: not read); the others get the generic ones (ps/encoders.py);
+- optionally ``SEGMENT_BOUNDS`` (``min_len``, ``max_len``, ``k_max``): its measured segment-length
+  bounds, used instead of the ones derived from the annotated segments (ps/training.py);
 - ``POLICIES``: policy name -> factory of an `augment.policy.PolicyLearner` (config dict -> learner);
 - optionally ``PRESET_NAMES`` and ``generate_dataset(out, preset, seed, workers, progress, overwrite,
   annotated_share)`` when it can generate play (`playseg generate --domain <name>`).

@@ -76,7 +76,9 @@ def calibrate_end_bias(
         counts = BoundaryCounts(0, 0, 0)
         for logits, ends in zip(raw_logits, true_ends, strict=True):
             max_len = min(model.max_len, logits.shape[0])
-            pred = [end for _, end in decode_segments(logits[:, :max_len] + bias, max_len=max_len).segments]
+            min_len = min(model.cfg.min_len, max_len)  # segmenting cuts with the model's L_min too
+            decoded = decode_segments(logits[:, :max_len] + bias, min_len=min_len, max_len=max_len)
+            pred = [end for _, end in decoded.segments]
             counts += BoundaryCounts(match_boundaries(pred, ends), len(pred), len(ends))
         scores[bias] = counts
     best_f1 = max(scores[b].f1 for b in allowed)

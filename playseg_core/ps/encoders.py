@@ -14,7 +14,7 @@ own under ``<domain>.<name>``, registered when its package (playseg_core.domains
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -128,6 +128,94 @@ class DiscreteActionEncoder(PreviousActionEncoder):
         return self.embedding(rows.long())
 
 
+def _normaliser(config: dict[str, Any], size: int, name: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """The (mean, std) a state or continuous-action encoder standardises with (from the training data)."""
+    mean = torch.tensor(config.get("mean", [0.0] * size), dtype=torch.float32)
+    std = torch.tensor(config.get("std", [1.0] * size), dtype=torch.float32)
+    if mean.shape != (size,) or std.shape != (size,) or bool((std <= 0).any()):
+        raise ValueError(f"step encoder of {name!r}: mean/std must be {size} values (std > 0)")
+    return mean, std
+
+
+@register_encoder("image_cnn")
+class ImageEncoder(ObservationEncoder):
+    """A small CNN for a camera of any size, trained from scratch (no download).
+
+    Strided convolutions, then an adaptive average pool to a fixed grid (``pool`` x ``pool``) so any frame
+    size gives the same width; the grid keeps coarse "where" (what is left or right, near or far), which a
+    global pool would lose. One per camera: each camera's features are its own columns of the step row.
+    """
+
+    def __init__(self, feature: Feature, config: dict[str, Any]) -> None:
+        super().__init__(feature)
+        channels = [int(c) for c in config.get("channels", (16, 32, 64))]
+        pool = int(config.get("pool", 4))
+        self.out_dim = int(config.get("dim", 128))
+        layers: list[nn.Module] = []
+        previous = 3
+        for index, width in enumerate(channels):
+            kernel = 5 if index == 0 else 3
+            layers += [nn.Conv2d(previous, width, kernel, stride=2, padding=kernel // 2), nn.GELU()]
+            previous = width
+        self.convs = nn.Sequential(*layers, nn.AdaptiveAvgPool2d(pool))
+        self.proj = nn.Sequential(nn.Flatten(), nn.Linear(previous * pool * pool, self.out_dim), nn.GELU())
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        """(N, H, W, 3) uint8 -> (N, dim)."""
+        return self.proj(self.convs(frames.permute(0, 3, 1, 2).float() / 255.0))
+
+
+@register_encoder("state_mlp")
+class StateEncoder(ObservationEncoder):
+    """An MLP over the (flattened) state vector, standardised with the training data's mean and std."""
+
+    def __init__(self, feature: Feature, config: dict[str, Any]) -> None:
+        super().__init__(feature)
+        self.out_dim = int(config.get("dim", 64))
+        mean, std = _normaliser(config, feature.size, feature.name)
+        self.register_buffer("mean", mean)
+        self.register_buffer("std", std)
+        hidden = int(config.get("hidden", 128))
+        self.mlp = nn.Sequential(nn.Linear(feature.size, hidden), nn.GELU(), nn.Linear(hidden, self.out_dim))
+
+    def forward(self, rows: torch.Tensor) -> torch.Tensor:
+        return self.mlp((rows.reshape(rows.shape[0], -1).float() - self.mean) / self.std)
+
+
+@register_encoder("continuous_action")
+class ContinuousActionEncoder(PreviousActionEncoder):
+    """A linear embedding of a continuous a_{t-1}, standardised with the training data's mean and std,
+    plus a "no action yet" flag for o_0."""
+
+    def __init__(self, feature: Feature, config: dict[str, Any]) -> None:
+        super().__init__()
+        if feature.is_discrete:
+            raise FeatureError(f"continuous_action encoder: feature {feature.name!r} is discrete")
+        self.size = feature.size
+        self.out_dim = int(config.get("dim", 16))
+        mean, std = _normaliser(config, self.size, feature.name)
+        self.register_buffer("mean", mean)
+        self.register_buffer("std", std)
+        self.embed = nn.Linear(self.size + 1, self.out_dim)
+        nn.init.normal_(self.embed.weight, std=0.02)  # small at first, as discrete_action's
+        nn.init.zeros_(self.embed.bias)
+
+    def previous_action_rows(self, actions: np.ndarray, where: str) -> np.ndarray:
+        values = np.asarray(actions, np.float32).reshape(len(actions), -1)
+        if values.shape[1] != self.size:
+            raise FeatureError(f"{where}: actions of {values.shape[1]} values, the model reads {self.size}")
+        if not np.isfinite(values).all():
+            step = int(np.flatnonzero(~np.isfinite(values).all(axis=1))[0])
+            raise FeatureError(f"{where}[{step}]: NaN or inf in a continuous action")
+        rows = np.zeros((len(values) + 1, self.size + 1), np.float32)
+        rows[0, -1] = 1.0  # o_0: no action led here
+        rows[1:, :-1] = (values - self.mean.numpy()) / self.std.numpy()
+        return rows
+
+    def forward(self, rows: torch.Tensor) -> torch.Tensor:
+        return self.embed(rows.float())
+
+
 class StepEncoders(nn.Module):
     """The step encoders of a model, in order; ``forward`` concatenates their outputs per row."""
 
@@ -211,25 +299,89 @@ def as_tensors(inputs: Mapping[str, np.ndarray], rows: slice = slice(None)) -> d
     return {name: torch.from_numpy(np.array(array[rows])) for name, array in inputs.items()}
 
 
-def choose_encoders(features: Features, domain: str | None, read_actions: bool = True) -> list[EncoderSpec]:
-    """Step encoders for data with ``features``: every camera (by the domain's encoder for it), then the
-    previous action when ``read_actions`` and the action is discrete.
+def feature_statistics(
+    episodes: Iterable[Episode], names: Iterable[str]
+) -> dict[str, dict[str, list[float]]]:
+    """Mean and std of each of ``names`` (the state, a continuous action) over ``episodes``, per value;
+    std floored (a constant value standardises to 0, not to inf)."""
+    names = list(names)
+    sums: dict[str, np.ndarray] = {}
+    squares: dict[str, np.ndarray] = {}
+    counts = dict.fromkeys(names, 0)
+    for episode in episodes:
+        for name in names:
+            rows = episode.actions if name == ACTION else episode.state
+            if rows is None or len(rows) == 0:
+                continue
+            values = np.asarray(rows, np.float64).reshape(len(rows), -1)
+            sums[name] = sums.get(name, 0.0) + values.sum(0)
+            squares[name] = squares.get(name, 0.0) + np.square(values).sum(0)
+            counts[name] += len(values)
+    stats = {}
+    for name in names:
+        if not counts[name]:
+            raise ValueError(f"statistics of feature {name!r}: no values in the training episodes")
+        mean = sums[name] / counts[name]
+        std = np.sqrt(np.maximum(squares[name] / counts[name] - np.square(mean), 0.0))
+        stats[name] = {"mean": mean.tolist(), "std": np.where(std > 1e-6, std, 1.0).tolist()}
+    return stats
 
-    Observation encoders come first: the auxiliary frame-label loss reads their columns. FeatureError
-    naming the feature when no encoder can read a camera.
+
+ENCODER_CHOICES = ("image_cnn", "state_mlp", "discrete_action", "continuous_action", "none")
+"""What ``--encoder FEATURE=KIND`` may ask for (and a domain's own kinds, ``<domain>.<name>``)."""
+
+
+def _default_spec(kind: str, feature: Feature, statistics: dict[str, dict[str, list[float]]]) -> EncoderSpec:
+    config: dict[str, Any] = {}
+    if kind in ("state_mlp", "continuous_action"):
+        if feature.name not in statistics:
+            raise ValueError(f"step encoder {kind} of {feature.name!r} needs the training data's statistics")
+        config.update(statistics[feature.name])
+    return EncoderSpec(kind, feature.name, config)
+
+
+def choose_encoders(
+    features: Features,
+    domain: str | None,
+    statistics: dict[str, dict[str, list[float]]] | None = None,
+    read_actions: bool = True,
+    overrides: dict[str, str] | None = None,
+) -> list[EncoderSpec]:
+    """Step encoders for data with ``features``, in order: every camera, the state, then the previous
+    action (observation encoders first: the auxiliary frame-label loss reads their columns).
+
+    Each feature gets, in this order of preference: ``overrides[name]`` (a kind, or "none" to leave it
+    unread), the domain's choice (its ``step_encoders(features)``: a spec, or None for "not read"), the
+    generic default (``image_cnn`` per camera, ``state_mlp``, ``discrete_action`` or
+    ``continuous_action``). ``read_actions`` False leaves the action unread. ``statistics``
+    (`feature_statistics`) standardise the state and a continuous action. FeatureError when nothing
+    would be read, or an override names a feature the data lacks.
     """
+    overrides = dict(overrides or {})
+    statistics = statistics or {}
+    for name in overrides:
+        features[name]  # FeatureError naming a feature the data lacks
+    choice = getattr(load_domain(domain), "step_encoders", None) if domain else None
+    chosen = choice(features) if choice else {}
+    action = features.action
+    defaults = {name: "image_cnn" for name in features.cameras}
+    if features.state is not None:
+        defaults[features.state.name] = "state_mlp"
+    if read_actions:
+        defaults[action.name] = "discrete_action" if action.is_discrete else "continuous_action"
     specs = []
-    for camera in features.cameras:
-        image_encoder = getattr(load_domain(domain), "image_encoder", None) if domain else None
-        spec = image_encoder(features[camera]) if image_encoder else None
-        if spec is None:
-            raise FeatureError(
-                f"no step encoder for camera feature {camera!r} ({features[camera].describe()}) "
-                f"in domain {domain!r}"
-            )
-        specs.append(spec)
-    if not specs:
-        raise FeatureError(f"the data has no camera feature ({', '.join(features.by_name)}): nothing to read")
-    if read_actions and features.action.is_discrete:
-        specs.append(EncoderSpec("discrete_action", ACTION, {"dim": 16}))
+    for name in [*features.cameras, *([features.state.name] if features.state else []), action.name]:
+        if name in overrides:
+            kind = overrides[name]
+            if kind != "none":
+                specs.append(_default_spec(kind, features[name], statistics))
+        elif name in chosen:
+            if chosen[name] is not None:
+                specs.append(chosen[name])
+        elif name in defaults:
+            specs.append(_default_spec(defaults[name], features[name], statistics))
+    if not any(spec.feature != action.name for spec in specs):
+        raise FeatureError(
+            f"no observation feature would be read (the data has {', '.join(features.by_name)})"
+        )
     return specs

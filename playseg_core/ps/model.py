@@ -45,18 +45,21 @@ class ModelConfig:
         dataset to segment or train on must declare the same (`check_features`). A checkpoint stores
         them once, as its ``features`` (playseg_core/checkpoint.py), not in ``to_json``.
     num_classes: the number of instructions.
+    min_len: L_min, the shortest segment (in actions) segmenting cuts by default; L_max is the trunk's.
     """
 
     encoders: list[EncoderSpec]
     features: Features
     num_classes: int
     trunk: TrunkConfig = field(default_factory=TrunkConfig)
+    min_len: int = 1
 
     def to_json(self) -> dict[str, Any]:
         return {
             "encoders": [spec.to_json() for spec in self.encoders],
             "trunk": asdict(self.trunk),
             "num_classes": self.num_classes,
+            "min_len": self.min_len,
         }
 
     @staticmethod
@@ -66,6 +69,7 @@ class ModelConfig:
             features=features,
             num_classes=int(raw["num_classes"]),
             trunk=TrunkConfig(**raw["trunk"]),
+            min_len=int(raw.get("min_len", 1)),
         )
 
     @property

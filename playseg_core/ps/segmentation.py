@@ -36,6 +36,7 @@ def segment_episode(model: PSModel, episode: Episode, min_len: int = 1) -> list[
     hidden = model.window_hidden(features)
     end_logits = model.end_logits_from_hidden(hidden).double().numpy()
     max_len = min(model.max_len, episode.num_steps)
+    min_len = min(min_len, max_len)  # an episode shorter than L_min is one segment
     decoded = decode_segments(end_logits[:, :max_len], min_len=min_len, max_len=max_len)
     segments = []
     for (start, end), log_prob in zip(decoded.segments, decoded.segment_log_scores, strict=True):

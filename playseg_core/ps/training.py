@@ -9,7 +9,7 @@ from __future__ import annotations
 import copy
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -19,7 +19,8 @@ from tqdm import tqdm
 
 from playseg_core.data.episode import Episode
 from playseg_core.data.features import Features
-from playseg_core.ps.encoders import choose_encoders
+from playseg_core.domains import load_domain
+from playseg_core.ps.encoders import choose_encoders, feature_statistics
 from playseg_core.ps.model import LabelModel, ModelConfig, PSModel, TrunkConfig
 from playseg_core.ps.samples import Batch, label_index, make_batch
 
@@ -46,19 +47,78 @@ class TrainConfig:
     log_epochs: bool = True  # one line per epoch and split
 
 
+@dataclass(frozen=True)
+class SegmentBounds:
+    """L_min and L_max (segment lengths in actions) and k_max (the negatives' shift range), and where
+    they come from: the domain's measured setting, the annotated segments, or the command line."""
+
+    min_len: int
+    max_len: int
+    k_max: int
+    source: str
+
+    def describe(self) -> str:
+        return f"L_min {self.min_len}, L_max {self.max_len}, k_max {self.k_max} ({self.source})"
+
+
+def segment_bounds(
+    episodes: Iterable[Episode],
+    domain: str | None = None,
+    min_len: int | None = None,
+    max_len: int | None = None,
+    k_max: int | None = None,
+) -> SegmentBounds:
+    """The segment-length bounds for training on ``episodes``' annotated segments.
+
+    A domain's ``SEGMENT_BOUNDS`` if it has them; else derived from the annotated lengths: L_max = the
+    longest x 1.25 (segments a bit longer than any annotated one can still be cut), L_min = half the
+    shortest, k_max = a quarter of the median length (negatives move a boundary by up to a quarter
+    segment: by a few steps for short tasks, by more for long ones). Each given value wins.
+    """
+    measured = dict(getattr(load_domain(domain), "SEGMENT_BOUNDS", {}) if domain else {})
+    source = f"domain {domain}" if measured else "annotated segments"
+    if not measured:
+        lengths = np.array([seg.length for ep in episodes for seg in ep.segments])
+        if lengths.size == 0:
+            raise ValueError("segment bounds: the training episodes have no annotated segments")
+        measured = {
+            "min_len": max(1, int(lengths.min()) // 2),
+            "max_len": max(2, int(np.ceil(1.25 * lengths.max()))),
+            "k_max": max(1, int(round(0.25 * float(np.median(lengths))))),
+        }
+    given = {"min_len": min_len, "max_len": max_len, "k_max": k_max}
+    bounds = {key: int(given[key] if given[key] is not None else measured[key]) for key in given}
+    if any(given[key] is not None for key in given):
+        source += ", command line"
+    if not 1 <= bounds["min_len"] <= bounds["max_len"] or bounds["k_max"] < 1:
+        raise ValueError(f"segment bounds need 1 <= min_len <= max_len and k_max >= 1, got {bounds}")
+    return SegmentBounds(**bounds, source=source)
+
+
 def model_config_for(
     features: Features,
     domain: str | None,
     num_classes: int,
     max_len: int = 25,
     read_actions: bool = True,
+    episodes: Iterable[Episode] = (),
+    overrides: dict[str, str] | None = None,
+    min_len: int = 1,
 ) -> ModelConfig:
-    """The default model for data with ``features`` (step encoders by `choose_encoders`)."""
-    encoders = choose_encoders(features, domain, read_actions)
+    """The default model for data with ``features`` (step encoders by `choose_encoders`; the state and a
+    continuous action standardised with ``episodes``' statistics, computed only when read)."""
+    needs = [
+        name
+        for name in (features.state.name if features.state else None, features.action.name)
+        if name and (name != features.action.name or not features.action.is_discrete)
+    ]
+    episodes = list(episodes)
+    statistics = feature_statistics(episodes, needs) if episodes and needs else {}
+    encoders = choose_encoders(features, domain, statistics, read_actions, overrides)
     observed = [features[spec.feature] for spec in encoders if spec.feature != features.action.name]
     # The action is always recorded (what the model was trained on), read or not.
     read = Features.of([*observed, features.action], features.fps)
-    return ModelConfig(encoders, read, num_classes, TrunkConfig(max_len=max_len))
+    return ModelConfig(encoders, read, num_classes, TrunkConfig(max_len=max_len), min_len=min_len)
 
 
 def _gather_windows(features: torch.Tensor, window_index: torch.Tensor) -> torch.Tensor:

@@ -57,7 +57,7 @@ class SegmenterNode(LifecycleNode):
         self.min_confidence = declare(
             self, "min_confidence", 0.0, "publish only segments with label confidence >= this"
         )
-        self.min_len = declare(self, "min_len", 1, "minimum segment length in steps")
+        self.min_len = declare(self, "min_len", 0, "minimum segment length in steps (0 = the model's L_min)")
         self.episode_timeout_s = declare(
             self, "episode_timeout_s", 60.0, "drop an episode silent for this long"
         )
@@ -76,11 +76,12 @@ class SegmenterNode(LifecycleNode):
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:
             require(bool(self.model_path), self, "model must be set")
-            require(self.min_len >= 1, self, "min_len must be >= 1")
+            require(self.min_len >= 0, self, "min_len must be >= 0")
             require(self.episode_timeout_s > 0, self, "episode_timeout_s must be > 0")
             require(self.threads >= 1, self, "torch_threads must be >= 1")
             torch.set_num_threads(self.threads)
             self.model, _ = load_model(self.model_path, kinds=("ps",))
+            self.min_len = self.min_len or self.model.cfg.min_len
             cameras = self.model.cfg.features.cameras
             require(len(cameras) <= 1, self, f"the model reads {cameras}; a PlayStep carries one camera")
             self.camera = cameras[0] if cameras else DEFAULT_CAMERA

@@ -10,15 +10,23 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from playseg_core.data.features import Feature
+from playseg_core.data.features import STATE, Features
 from playseg_core.domains.babyai.encoder import frames_are_tiled, grid_tile_spec
 from playseg_core.domains.babyai.spec import CAMERA, DOMAIN
 from playseg_core.ps.encoders import EncoderSpec
 
+SEGMENT_BOUNDS = {"min_len": 1, "max_len": 25, "k_max": 5}
+"""The measured setting for BabyAI play (tasks of 1-21 steps, mostly ~5): L_min, L_max and the negatives'
+shift range k_max, used instead of the values derived from the annotated segments."""
 
-def image_encoder(feature: Feature) -> EncoderSpec | None:
-    """The grid-tile encoder for BabyAI's tile-rendered camera."""
-    return grid_tile_spec(feature) if feature.name == CAMERA and frames_are_tiled(feature.shape) else None
+
+def step_encoders(features: Features) -> dict[str, EncoderSpec | None]:
+    """BabyAI's choice of step encoders (see ps/encoders.py `choose_encoders`): the grid-tile encoder for
+    its tile-rendered camera, and not the symbolic grid state (the camera frame shows the same grid)."""
+    chosen: dict[str, EncoderSpec | None] = {STATE: None}
+    if CAMERA in features and frames_are_tiled(features[CAMERA].shape):
+        chosen[CAMERA] = grid_tile_spec(features[CAMERA])
+    return chosen
 
 
 def _film_policy(config: dict[str, Any]) -> Any:
@@ -50,4 +58,4 @@ def generate_dataset(
     return generate.generate_dataset(out, chosen, seed, workers, progress, overwrite)
 
 
-__all__ = ["DOMAIN", "POLICIES", "PRESET_NAMES", "generate_dataset", "image_encoder"]
+__all__ = ["DOMAIN", "POLICIES", "PRESET_NAMES", "SEGMENT_BOUNDS", "generate_dataset", "step_encoders"]
