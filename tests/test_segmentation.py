@@ -151,3 +151,19 @@ def test_calibrate_ps_model_sets_the_end_bias_and_records_both_calibrations() ->
     record = calibrate_ps_model(model, episodes, target_accuracy=0.5)
     assert model.end_bias.item() == record["end_bias"]["bias"]
     assert record["calibration"]["num_segments"] == 12 and record["calibration"]["target_accuracy"] == 0.5
+
+
+def test_scoring_in_chunks_equals_scoring_at_once() -> None:
+    """Long episodes are scored a chunk of windows at a time (bounded memory); the result is the same."""
+    model = tiny_ps_model(max_len=5, seed=6, num_actions=3)
+    episode = synthetic_episode(11, num_segments=12, max_seg_len=5)
+    features = model.encode_episode(episode)
+    torch.testing.assert_close(model.encode_episode(episode, chunk=4), features)
+    whole = model.end_logits(features, chunk=episode.num_steps)
+    for chunk in (1, 3, 7):
+        torch.testing.assert_close(model.end_logits(features, chunk=chunk), whole, rtol=1e-5, atol=1e-5)
+    spans = [(s.start, s.end) for s in episode.segments]
+    one_by_one = torch.stack([model.label_logits(features, start, end) for start, end in spans])
+    torch.testing.assert_close(
+        model.segment_label_logits(features, spans, chunk=5), one_by_one, rtol=1e-5, atol=1e-5
+    )

@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -153,6 +154,14 @@ def _class_names(instructions: list[str] | None, num_classes: int) -> list[str]:
     return names
 
 
+ENCODE_PIXELS = 512 * 64 * 64
+"""Camera pixels per encoder pass when encoding an episode (512 frames of 64x64; fewer larger ones)."""
+
+SCORE_ROWS = 2048 * 26
+"""Window rows (windows x positions) per trunk pass when scoring an episode: bounds memory on long
+episodes and with long windows (2,048 windows of 26 positions; fewer, longer ones for a larger L_max)."""
+
+
 def episode_windows(features: torch.Tensor, window_len: int) -> torch.Tensor:
     """(T+1, d) -> (T, window_len, d): the window starting at every step, zero-padded past the end."""
     num_steps = features.shape[0] - 1
@@ -186,10 +195,14 @@ class StepModel(nn.Module):
         return self.encoders(inputs)
 
     @torch.no_grad()
-    def encode_episode(self, episode: Episode, chunk: int = 2048) -> torch.Tensor:
-        """(T+1, step_dim) step features of ``episode``, ``chunk`` rows at a time (bounds memory)."""
+    def encode_episode(self, episode: Episode, chunk: int | None = None) -> torch.Tensor:
+        """(T+1, step_dim) step features of ``episode``, ``chunk`` rows at a time (default: about
+        `ENCODE_PIXELS` camera pixels per pass, which bounds the encoders' activations)."""
         inputs = self.encoders.episode_inputs(episode)
         rows = episode.num_steps + 1
+        if chunk is None:
+            pixels = sum(int(np.prod(inputs[name].shape[1:3])) for name in self.encoders.cameras)
+            chunk = max(1, ENCODE_PIXELS // max(1, pixels))
         return torch.cat(
             [self.encode_steps(as_tensors(inputs, slice(c, c + chunk))) for c in range(0, rows, chunk)]
         )
@@ -218,21 +231,42 @@ class PSModel(StepModel):
         """(..., hidden) -> (...): logit that the segment ends at that position, end bias included."""
         return self.end_head(hidden).squeeze(-1) + self.end_bias
 
-    def window_hidden(self, features: torch.Tensor) -> torch.Tensor:
-        """(T+1, d) -> (T, L_max+1, hidden): trunk states of the window starting at every step."""
-        starts_episode = torch.arange(features.shape[0] - 1) == 0
-        return self.trunk(episode_windows(features, self.max_len + 1), starts_episode)
-
-    def end_logits_from_hidden(self, hidden: torch.Tensor) -> torch.Tensor:
-        """(T, L_max+1, hidden) -> (T, L_max); position 0 (an empty segment) is dropped."""
-        return self.end_logit(hidden[:, 1:])
-
-    def end_logits(self, features: torch.Tensor) -> torch.Tensor:
+    def end_logits(self, features: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
         """(T+1, d) -> (T, L_max): [i, k] = logit that the segment [i, i+k+1) ends at i+k+1.
 
-        Entries with i+k+1 > T are computed on zero padding and must be ignored (decoding.py does).
+        The windows go through the trunk ``chunk`` starts at a time (default: `SCORE_ROWS` rows), so
+        memory is bounded by the chunk, not the episode (an episode of 100,000 steps needs only its
+        (T, L_max) logits). Entries with i+k+1 > T are computed on zero padding and must be ignored
+        (decoding.py does).
         """
-        return self.end_logits_from_hidden(self.window_hidden(features))
+        chunk = chunk or max(1, SCORE_ROWS // (self.max_len + 1))
+        num_steps = features.shape[0] - 1
+        parts = []
+        for lo in range(0, num_steps, chunk):
+            hi = min(num_steps, lo + chunk)
+            # Rows lo .. hi + L_max: every window starting in [lo, hi) lies inside (zero-padded at the end).
+            windows = episode_windows(features[lo : hi + self.max_len + 1], self.max_len + 1)[: hi - lo]
+            hidden = self.trunk(windows, torch.arange(lo, hi) == 0)
+            parts.append(self.end_logit(hidden[:, 1:]))  # position 0 (an empty segment) is dropped
+        return torch.cat(parts) if parts else features.new_zeros(0, self.max_len)
+
+    def segment_label_logits(
+        self, features: torch.Tensor, spans: list[tuple[int, int]], chunk: int | None = None
+    ) -> torch.Tensor:
+        """(T+1, d) features, segments [start, end) -> (len(spans), num_classes) label logits at their ends,
+        ``chunk`` segments per trunk pass (each read from the window of its start, as `label_logits`)."""
+        chunk = chunk or max(1, SCORE_ROWS // (self.max_len + 1))
+        rows = []
+        for lo in range(0, len(spans), chunk):
+            batch = spans[lo : lo + chunk]
+            width = max(end - start for start, end in batch) + 1
+            windows = features.new_zeros(len(batch), width, features.shape[1])
+            for row, (start, end) in enumerate(batch):
+                windows[row, : end - start + 1] = features[start : end + 1]
+            hidden = self.trunk(windows, torch.tensor([start == 0 for start, _ in batch]))
+            ends = torch.tensor([end - start for start, end in batch])
+            rows.append(self.label_head(hidden[torch.arange(len(batch)), ends]))
+        return torch.cat(rows) if rows else features.new_zeros(0, self.cfg.num_classes)
 
     def end_column(self, features_window: torch.Tensor, starts_episode: bool) -> torch.Tensor:
         """Features of o_{t-n+1} .. o_t (n <= L_max+1 rows) -> (L_max,) for the online decoder.

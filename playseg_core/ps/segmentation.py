@@ -1,7 +1,7 @@
 """End-to-end Play Segmentation of an episode: encode steps once, score all windows, decode, label.
 
-`segment_episode`: T step encodings, one batched trunk pass over the T windows, the exact O(T * L_max)
-decoder of decoding.py, then the label head at each chosen end. (The reference's cost model, for
+`segment_episode`: T step encodings, batched trunk passes over the T windows (in chunks: time and memory
+linear in T), the exact O(T * L_max) decoder of decoding.py, then the label head at each chosen end. (The reference's cost model, for
 comparison, is in benchmarks/reference_style.py.)
 """
 
@@ -33,13 +33,14 @@ def segment_episode(model: PSModel, episode: Episode, min_len: int = 1) -> list[
     if episode.num_steps == 0:
         return []
     features = model.encode_episode(episode)
-    hidden = model.window_hidden(features)
-    end_logits = model.end_logits_from_hidden(hidden).double().numpy()
+    end_logits = model.end_logits(features).double().numpy()
     max_len = min(model.max_len, episode.num_steps)
     min_len = min(min_len, max_len)  # an episode shorter than L_min is one segment
     decoded = decode_segments(end_logits[:, :max_len], min_len=min_len, max_len=max_len)
-    segments = []
-    for (start, end), log_prob in zip(decoded.segments, decoded.segment_log_scores, strict=True):
-        label_logits = model.label_head(hidden[start, end - start])
-        segments.append(labelled_segment(model, start, end, label_logits, log_prob))
-    return segments
+    label_logits = model.segment_label_logits(features, decoded.segments)
+    return [
+        labelled_segment(model, start, end, logits, log_prob)
+        for (start, end), logits, log_prob in zip(
+            decoded.segments, label_logits, decoded.segment_log_scores, strict=True
+        )
+    ]
