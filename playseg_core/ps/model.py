@@ -155,7 +155,7 @@ def _class_names(instructions: list[str] | None, num_classes: int) -> list[str]:
 
 
 ENCODE_PIXELS = 512 * 64 * 64
-"""Camera pixels per encoder pass when encoding an episode (512 frames of 64x64; fewer larger ones)."""
+"""Camera pixels per encoder pass when encoding an episode (about 2 million: more small frames, fewer large)."""
 
 SCORE_ROWS = 2048 * 26
 """Window rows (windows x positions) per trunk pass when scoring an episode: bounds memory on long
