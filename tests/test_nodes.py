@@ -14,10 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState
 from mcap.reader import make_reader
 from node_procs import Processes, RosPeer, descendants, node_env, stop, wait_for_log
 from playseg_msgs.msg import LabelledSegment, PlayStep, TrainerStatus
-from playseg_msgs.srv import Retrain
+from playseg_msgs.srv import EvaluatePolicy, Retrain, SaveBuffer
 from rclpy.duration import Duration
 from rclpy.serialization import serialize_message
 from rosbags.highlevel import AnyReader
@@ -282,6 +284,66 @@ def test_trainer_retrain_service_writes_policy_version_1(
     assert [c.name for c in checkpoints] == ["policy-v0001.pt"]
     assert client.peer.spin_until(lambda: client.statuses[-1].policy_version == 1, 10)
     assert stop(trainer) == 0
+
+
+def test_trainer_services_exist_only_while_configured_and_configure_can_be_retried(
+    procs: Processes, peer: RosPeer, tmp_path: Path
+) -> None:
+    """Services come with configure and go with cleanup; a failed configure leaves nothing behind."""
+    services = {"/trainer/retrain", "/trainer/save_buffer", "/trainer/evaluate"}
+    (tmp_path / "buffer").write_text("a file where the buffer directory should be")  # configure fails
+    trainer, log = _trainer(procs, tmp_path, "trainer", autostart=False)
+    change_state = peer.node.create_client(ChangeState, "/trainer/change_state")
+    assert change_state.wait_for_service(timeout_sec=30), log.read_text()
+    peer.spin_until(lambda: False, 1.0)  # discovery: the lifecycle services are seen, ours would be too
+
+    def transition(transition_id: int) -> bool:
+        future = change_state.call_async(ChangeState.Request(transition=Transition(id=transition_id)))
+        assert peer.spin_until(future.done, 30), f"no answer to transition {transition_id}"
+        return future.result().success
+
+    def offered() -> set[str]:
+        return services & {name for name, _ in peer.node.get_service_names_and_types()}
+
+    def wait_offered(expected: set[str]) -> None:
+        ok = peer.spin_until(lambda: offered() == expected, 15)
+        assert ok, f"services {offered()}, expected {expected}:\n{log.read_text()[-3000:]}"
+
+    def evaluate() -> EvaluatePolicy.Response:
+        client = peer.node.create_client(EvaluatePolicy, "/trainer/evaluate")
+        try:
+            assert client.wait_for_service(timeout_sec=15)
+            future = client.call_async(EvaluatePolicy.Request(episodes=1))
+            assert peer.spin_until(future.done, 30), "no answer from ~/evaluate"
+            return future.result()
+        finally:
+            peer.node.destroy_client(client)
+
+    assert offered() == set()
+    assert not transition(Transition.TRANSITION_CONFIGURE)
+    wait_for_log(log, r"configure failed: FileExistsError", 10, trainer)
+    peer.spin_until(lambda: False, 0.5)
+    assert offered() == set() and trainer.poll() is None
+
+    (tmp_path / "buffer").unlink()
+    (tmp_path / "not_a_dir").write_text("")  # ~/save_buffer into it: an error answer
+    for _ in range(2):  # configure -> cleanup -> configure: nothing left over from the round before
+        assert transition(Transition.TRANSITION_CONFIGURE), log.read_text()[-3000:]
+        wait_offered(services)
+        answer = evaluate()  # no policy trained yet: an error answer, the node keeps running
+        assert not answer.success and answer.message == "no policy trained yet"
+        save = peer.node.create_client(SaveBuffer, "/trainer/save_buffer")
+        assert save.wait_for_service(timeout_sec=15)
+        future = save.call_async(SaveBuffer.Request(path=str(tmp_path / "not_a_dir" / "dataset")))
+        assert peer.spin_until(future.done, 30) and not future.result().success
+        peer.node.destroy_client(save)
+        assert transition(Transition.TRANSITION_CLEANUP)
+        wait_offered(set())
+        assert trainer.poll() is None
+    assert transition(Transition.TRANSITION_CONFIGURE)
+    wait_offered(services)
+    assert stop(trainer) == 0, log.read_text()[-3000:]  # from inactive: cleanup at shutdown
+    assert "Traceback" not in log.read_text()
 
 
 # -- bag_player ----------------------------------------------------------------------------------------

@@ -1,8 +1,10 @@
 """recorder: records topics through serialized (raw) subscriptions into a rosbag2-compatible MCAP bag.
 
-Lifecycle: configure opens the bag (`<output>.partial/` until it is closed); activate subscribes to every
-configured topic as soon as its type is known on the graph; deactivate unsubscribes and flushes; cleanup
-finishes the bag (metadata.yaml, rename to `<output>`). Files split by size or duration; chunks are zstd
+Lifecycle: configure opens the bag (`<output>.partial/` until it is closed) and creates the discovery and
+flush timers (stopped); activate starts them and subscribes to every configured topic as soon as its type
+is known on the graph; deactivate stops them, unsubscribes and flushes; cleanup finishes the bag
+(metadata.yaml, rename to `<output>`) and destroys the timers. Shutdown from active or inactive does what
+deactivate and cleanup do. Files split by size or duration; chunks are zstd
 compressed and flushed every `flush_period_s`, so a crash loses at most the open chunk and
 `playseg bag recover <output>` restores the rest (each flush that wrote something logs, at debug level,
 how many messages are on disk: `--ros-args --log-level recorder:=debug`).
@@ -64,7 +66,7 @@ class RecorderNode(LifecycleNode):
         self.received: dict[str, int] = {}
         self._flushed_count = 0
         self._subs: dict[str, Subscription | None] = {}
-        self._timers = []
+        self._own_timers = []  # created (stopped) in on_configure, run while active, destroyed in on_cleanup
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:
@@ -76,6 +78,10 @@ class RecorderNode(LifecycleNode):
             require(self.compression in ("zstd", "none"), self, "compression: zstd | none")
             require(self.max_file_mb >= 0 and self.max_file_s >= 0, self, "max_file_* must be >= 0")
             require(self.flush_period_s > 0, self, "flush_period_s must be > 0")
+            self._own_timers = [
+                self.create_timer(0.1, self._subscribe_discovered, autostart=False),
+                self.create_timer(self.flush_period_s, self._flush, autostart=False),
+            ]
             self.writer = BagWriter(
                 self.output,
                 max_file_bytes=int(self.max_file_mb * 1e6),
@@ -84,15 +90,14 @@ class RecorderNode(LifecycleNode):
             )
         except (ValueError, OSError) as exc:
             self.get_logger().error(str(exc))
+            self._destroy_timers()  # stay unconfigured, ready for another configure
             return TransitionCallbackReturn.FAILURE
         self.get_logger().info(f"recording {', '.join(self.topics)} to {self.output}")
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._timers = [
-            self.create_timer(0.1, self._subscribe_discovered),
-            self.create_timer(self.flush_period_s, self._flush),
-        ]
+        for timer in self._own_timers:
+            timer.reset()  # (re)start
         self._subscribe_discovered()
         return super().on_activate(state)
 
@@ -175,8 +180,8 @@ class RecorderNode(LifecycleNode):
             count += 1
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        for timer in self._timers:
-            self.destroy_timer(timer)
+        for timer in self._own_timers:
+            timer.cancel()
         writing = self.writer is not None
         for topic, sub in self._subs.items():
             if sub is not None:
@@ -191,6 +196,7 @@ class RecorderNode(LifecycleNode):
         return super().on_deactivate(state)
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._destroy_timers()
         if self.writer is not None:
             try:
                 self.writer.close()
@@ -200,6 +206,31 @@ class RecorderNode(LifecycleNode):
             self.get_logger().info(f"closed {self.output}: {self.received}")
             self.writer = None
         return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Shutdown from active or inactive finishes the bag as deactivate and cleanup do."""
+        result = TransitionCallbackReturn.SUCCESS
+        if state.label == "active":
+            result = self.on_deactivate(state)
+        if state.label in ("active", "inactive"):
+            cleaned = self.on_cleanup(state)
+            if result == TransitionCallbackReturn.SUCCESS:
+                result = cleaned
+        return result
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Error processing ends in unconfigured: release everything so configure can start afresh."""
+        for sub in self._subs.values():
+            if sub is not None:
+                self.destroy_subscription(sub)
+        self._subs.clear()
+        self.on_cleanup(state)  # a failure is logged and sets exit_code
+        return TransitionCallbackReturn.SUCCESS
+
+    def _destroy_timers(self) -> None:
+        for timer in self._own_timers:
+            self.destroy_timer(timer)
+        self._own_timers = []
 
 
 def main(args: list[str] | None = None) -> int:

@@ -6,8 +6,9 @@ the online decoder decides it, carrying its PlaySteps so consumers need no other
 and end that episode's segmentation (a gap cannot be segmented across); the node keeps running. An
 episode whose steps stop arriving without `episode_end` is dropped after `episode_timeout_s`.
 
-Lifecycle: configure loads the model; activate subscribes; deactivate unsubscribes (open episodes are
-kept); cleanup drops open episodes and the model.
+Lifecycle: configure loads the model and creates the segment publisher and the silent-episode timer;
+activate subscribes; deactivate unsubscribes (open episodes are kept); cleanup drops open episodes and the
+model and destroys the publisher and the timer (shutdown and error processing release the same).
 """
 
 from __future__ import annotations
@@ -70,7 +71,8 @@ class SegmenterNode(LifecycleNode):
         self.finished: set[str] = set()
         self.published = 0
         self._sub = None
-        self._pub = self.create_publisher(LabelledSegment, self.segments_topic, qos.SEGMENTS)
+        self._pub = None  # created in on_configure, destroyed in on_cleanup, as the timer
+        self._timer = None
         self._frame_shape = None
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -86,11 +88,13 @@ class SegmenterNode(LifecycleNode):
             require(len(cameras) <= 1, self, f"the model reads {cameras}; a PlayStep carries one camera")
             self.camera = cameras[0] if cameras else DEFAULT_CAMERA
             self._frame_shape = self.model.cfg.features[cameras[0]].shape if cameras else None
-        except ValueError as exc:
-            self.get_logger().error(str(exc))
+            self._pub = self.create_publisher(LabelledSegment, self.segments_topic, qos.SEGMENTS)
+            self._timer = self.create_timer(min(5.0, self.episode_timeout_s / 2), self._drop_silent_episodes)
+        except Exception as exc:  # any configuration problem: report it, stay unconfigured (retryable)
+            self.get_logger().error(str(exc) if isinstance(exc, ValueError) else f"configure failed: {exc!r}")
+            self._release()
             return TransitionCallbackReturn.FAILURE
         self.model_id = self.model_id or self.model_path.rsplit("/", 1)[-1]
-        self.create_timer(min(5.0, self.episode_timeout_s / 2), self._drop_silent_episodes)
         self.get_logger().info(
             f"model {self.model_path} (L_max {self.model.max_len}); {self.steps_topic} -> {self.segments_topic}"
         )
@@ -107,13 +111,34 @@ class SegmenterNode(LifecycleNode):
         return super().on_deactivate(state)
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()  # error processing ends in unconfigured: configure must be able to start afresh
+        return TransitionCallbackReturn.SUCCESS
+
+    def _release(self) -> None:
+        """Undo configure and activate, whatever got done of them; safe to call again."""
+        if self._sub is not None:
+            self.destroy_subscription(self._sub)
+            self._sub = None
+        if self._timer is not None:
+            self.destroy_timer(self._timer)
+            self._timer = None
+        if self._pub is not None:
+            self.destroy_publisher(self._pub)
+            self._pub = None
         if self.episodes:
             self.get_logger().warning(
                 f"dropping {len(self.episodes)} unfinished episodes: {sorted(self.episodes)}"
             )
         self.episodes.clear()
         self.model = None
-        return TransitionCallbackReturn.SUCCESS
 
     def _on_step(self, msg: PlayStep) -> None:
         if msg.episode_id in self.finished and msg.step != 0:

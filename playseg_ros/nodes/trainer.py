@@ -1,9 +1,11 @@
 """trainer: LabelledSegment in -> persistent augmentation buffer -> retrained policy, TrainerStatus out.
 
-Lifecycle: configure opens the buffer and loads the annotated base data; activate starts listening;
-deactivate stops listening; cleanup closes the buffer. Every received segment is fsync'ed to the buffer
-before it counts (TrainerStatus.buffer_segments is the acknowledged count), so a crash loses nothing
-that was acknowledged. Retraining runs in a background thread every `retrain_every` segments and on the
+Lifecycle: configure opens the buffer, loads the annotated base data and creates the status publisher,
+its timer and the services; activate starts listening; deactivate stops listening; cleanup closes the
+buffer and destroys the publisher, the timer and the services (shutdown and error processing release the
+same: a failed configure can be retried). Every received segment is fsync'ed to the buffer before it
+counts (TrainerStatus.buffer_segments is the acknowledged count), so a crash loses nothing that was
+acknowledged. Retraining runs in a background thread every `retrain_every` segments and on the
 `~/retrain` service; each run writes `policy-vNNNN.pt` and evaluates it on fixed seeded episodes of the
 policy's simulator (the `policy` parameter names it: ``<domain>.<policy>``, see playseg_core.augment.policy).
 """
@@ -29,6 +31,8 @@ from playseg_ros import qos
 from playseg_ros.messages import clip_from_labelled
 from playseg_ros.nodes.common import declare, require, run_node
 from playseg_ros.play_bags import DataInfo, load_annotated
+
+NOT_CONFIGURED = "trainer is not configured"
 
 
 class TrainerNode(LifecycleNode):
@@ -70,13 +74,12 @@ class TrainerNode(LifecycleNode):
         self.last_loss = math.nan
         self._training = threading.Lock()
         self._sub = None
-        self._status_pub = self.create_publisher(TrainerStatus, self.p["status_topic"], qos.STATUS)
-        # Services may run for minutes (retrain with wait=true): their own group keeps segments flowing.
-        slow = MutuallyExclusiveCallbackGroup()
-        self.create_service(Retrain, "~/retrain", self._on_retrain, callback_group=slow)
-        self.create_service(SaveBuffer, "~/save_buffer", self._on_save_buffer, callback_group=slow)
-        self.create_service(EvaluatePolicy, "~/evaluate", self._on_evaluate, callback_group=slow)
-        self.create_timer(self.p["status_period_s"], self.publish_status)
+        # Created in on_configure, destroyed in on_cleanup. The status publisher is also used from the
+        # retraining thread: `_status_lock` keeps it from being destroyed under a publish.
+        self._status_lock = threading.Lock()
+        self._status_pub = None
+        self._status_timer = None
+        self._own_services = []
 
     # -- lifecycle -------------------------------------------------------------------------------------
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -113,8 +116,10 @@ class TrainerNode(LifecycleNode):
                 eval_episodes=p["eval_episodes"],
             )
             self.trainer = AugmentationTrainer(config, learner, base)
-        except Exception as exc:  # any configuration problem: report it, stay unconfigured
+            self._create_entities()
+        except Exception as exc:  # any configuration problem: report it, stay unconfigured (retryable)
             self.get_logger().error(f"configure failed: {exc!r}")
+            self._release()
             return TransitionCallbackReturn.FAILURE
         if self.trainer.buffer.recovered_bytes:
             self.get_logger().warning(f"cut a torn record of {self.trainer.buffer.recovered_bytes} bytes")
@@ -124,6 +129,18 @@ class TrainerNode(LifecycleNode):
         )
         self.publish_status()
         return TransitionCallbackReturn.SUCCESS
+
+    def _create_entities(self) -> None:
+        with self._status_lock:
+            self._status_pub = self.create_publisher(TrainerStatus, self.p["status_topic"], qos.STATUS)
+        self._status_timer = self.create_timer(self.p["status_period_s"], self.publish_status)
+        # Services may run for minutes (retrain with wait=true): their own group keeps segments flowing.
+        slow = MutuallyExclusiveCallbackGroup()
+        self._own_services = [
+            self.create_service(Retrain, "~/retrain", self._on_retrain, callback_group=slow),
+            self.create_service(SaveBuffer, "~/save_buffer", self._on_save_buffer, callback_group=slow),
+            self.create_service(EvaluatePolicy, "~/evaluate", self._on_evaluate, callback_group=slow),
+        ]
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._sub = self.create_subscription(
@@ -138,11 +155,37 @@ class TrainerNode(LifecycleNode):
         return super().on_deactivate(state)
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()  # error processing ends in unconfigured: configure must be able to start afresh
+        return TransitionCallbackReturn.SUCCESS
+
+    def _release(self) -> None:
+        """Undo configure and activate, whatever got done of them; safe to call again."""
+        if self._sub is not None:
+            self.destroy_subscription(self._sub)
+            self._sub = None
+        for service in self._own_services:
+            self.destroy_service(service)
+        self._own_services = []
+        if self._status_timer is not None:
+            self.destroy_timer(self._status_timer)
+            self._status_timer = None
         with self._training:  # let a running retraining finish writing its checkpoint
             if self.trainer is not None:
                 self.trainer.close()
                 self.trainer = None
-        return TransitionCallbackReturn.SUCCESS
+        with self._status_lock:
+            if self._status_pub is not None:
+                self.destroy_publisher(self._status_pub)
+                self._status_pub = None
+        self.base_info = DataInfo()
 
     # -- data ------------------------------------------------------------------------------------------
     def _on_segment(self, msg: LabelledSegment) -> None:
@@ -162,10 +205,14 @@ class TrainerNode(LifecycleNode):
         return True
 
     def _retrain_locked(self) -> None:
+        trainer = self.trainer
+        if trainer is None:  # cleaned up while this request waited for the lock
+            self._training.release()
+            return
         try:
             self.state = "training"
             self.publish_status()
-            version = self.trainer.retrain()
+            version = trainer.retrain()
             self.last_eval, self.last_eval_episodes = version.success_rate, version.eval_episodes
             self.last_loss = version.train_loss
             self.message = f"policy v{version.version}: success {version.success_rate:.3f}"
@@ -180,31 +227,41 @@ class TrainerNode(LifecycleNode):
 
     # -- services --------------------------------------------------------------------------------------
     def _on_retrain(self, request: Retrain.Request, response: Retrain.Response) -> Retrain.Response:
-        if self.trainer is None:
-            response.accepted, response.message = False, "trainer is not configured"
-            return response
-        if request.wait:
-            self._training.acquire()  # waits for a running retraining, then runs a fresh one
-            self._retrain_locked()
-            response.accepted = self.state != "error"
-            response.eval_success_rate = self.last_eval
-        else:
-            response.accepted = self._start_retraining()
-            response.eval_success_rate = math.nan
-        response.policy_version = self.trainer.policy_version + (0 if request.wait else 1)
-        response.message = self.message if request.wait else ("started" if response.accepted else "busy")
+        try:
+            if self.trainer is None:
+                response.accepted, response.message = False, NOT_CONFIGURED
+                return response
+            if request.wait:
+                self._training.acquire()  # waits for a running retraining, then runs a fresh one
+                trainer = self.trainer
+                self._retrain_locked()
+                if trainer is None:
+                    response.accepted, response.message = False, NOT_CONFIGURED
+                    return response
+                response.accepted = self.state != "error"
+                response.eval_success_rate = self.last_eval
+            else:
+                trainer = self.trainer
+                response.accepted = self._start_retraining()
+                response.eval_success_rate = math.nan
+            response.policy_version = trainer.policy_version + (0 if request.wait else 1)
+            response.message = self.message if request.wait else ("started" if response.accepted else "busy")
+        except Exception as exc:  # a service must answer, never take the node down
+            self.get_logger().error(f"~/retrain failed: {exc!r}")
+            response.accepted, response.message = False, f"retrain failed: {exc}"
         return response
 
     def _on_save_buffer(
         self, request: SaveBuffer.Request, response: SaveBuffer.Response
     ) -> SaveBuffer.Response:
-        if self.trainer is None:
-            response.success, response.message = False, "trainer is not configured"
+        trainer = self.trainer
+        if trainer is None:
+            response.success, response.message = False, NOT_CONFIGURED
             return response
         try:
             info = self.base_info
             response.segments = export_buffer_dataset(
-                self.trainer.buffer, request.path, info.instructions, info.features, info.domain
+                trainer.buffer, request.path, info.instructions, info.features, info.domain
             )
             response.success, response.path = True, request.path
         except Exception as exc:
@@ -214,37 +271,46 @@ class TrainerNode(LifecycleNode):
     def _on_evaluate(
         self, request: EvaluatePolicy.Request, response: EvaluatePolicy.Response
     ) -> EvaluatePolicy.Response:
-        if self.trainer is None:
-            response.success, response.message = False, "trainer is not configured"
+        trainer = self.trainer
+        if trainer is None:
+            response.success, response.message = False, NOT_CONFIGURED
             return response
         try:
-            result = self.trainer.evaluate(episodes=request.episodes or None)
+            result = trainer.evaluate(episodes=request.episodes or None)
             if result is None:
                 raise ValueError(f"policy {self.p['policy']} has no simulator to evaluate in")
             response.success, response.success_rate = True, result.success_rate
-            response.episodes, response.policy_version = result.num_episodes, self.trainer.policy_version
+            response.episodes, response.policy_version = result.num_episodes, trainer.policy_version
         except ValueError as exc:
             response.success, response.message = False, str(exc)
+        except Exception as exc:  # a service must answer, never take the node down
+            self.get_logger().error(f"~/evaluate failed: {exc!r}")
+            response.success, response.message = False, f"evaluation failed: {exc}"
         return response
 
     def publish_status(self) -> None:
-        msg = TrainerStatus()
-        msg.header.stamp = self.get_clock().now().to_msg()
-        msg.state = self.state
-        if self.trainer is not None:
-            msg.buffer_segments = len(self.trainer.buffer)
-            msg.buffer_steps = self.trainer.buffer.num_steps
-            msg.policy_version = self.trainer.policy_version
-            if self.trainer.latest:
-                msg.checkpoint_path = self.trainer.latest.checkpoint
-                if math.isnan(self.last_eval):
-                    self.last_eval = self.trainer.latest.success_rate
-                    self.last_eval_episodes = self.trainer.latest.eval_episodes
-        msg.last_eval_success_rate = float(self.last_eval)
-        msg.last_eval_episodes = self.last_eval_episodes
-        msg.last_train_loss = float(self.last_loss)
-        msg.message = self.message
-        self._status_pub.publish(msg)
+        """Publish the TrainerStatus (timer, every change; a no-op while unconfigured)."""
+        with self._status_lock:
+            if self._status_pub is None:
+                return
+            msg = TrainerStatus()
+            msg.header.stamp = self.get_clock().now().to_msg()
+            msg.state = self.state
+            trainer = self.trainer
+            if trainer is not None:
+                msg.buffer_segments = len(trainer.buffer)
+                msg.buffer_steps = trainer.buffer.num_steps
+                msg.policy_version = trainer.policy_version
+                if trainer.latest:
+                    msg.checkpoint_path = trainer.latest.checkpoint
+                    if math.isnan(self.last_eval):
+                        self.last_eval = trainer.latest.success_rate
+                        self.last_eval_episodes = trainer.latest.eval_episodes
+            msg.last_eval_success_rate = float(self.last_eval)
+            msg.last_eval_episodes = self.last_eval_episodes
+            msg.last_train_loss = float(self.last_loss)
+            msg.message = self.message
+            self._status_pub.publish(msg)
 
 
 def main(args: list[str] | None = None) -> int:
