@@ -12,9 +12,29 @@ import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import InvalidParameterTypeException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
-from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
+
+
+class ReleasingLifecycleNode(LifecycleNode):
+    """A lifecycle node whose cleanup, shutdown and error processing all undo configure and activate by
+    one `release` (safe to call again), so a failed or errored node can be configured afresh."""
+
+    def release(self) -> None:
+        raise NotImplementedError
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.release()  # error processing ends in unconfigured: configure must be able to start afresh
+        return TransitionCallbackReturn.SUCCESS
 
 
 def declare(node: Node, name: str, default: Any, description: str) -> Any:

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import torch
 from playseg_msgs.msg import LabelledSegment, PlayStep
-from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 
 from playseg_core.data.features import DEFAULT_CAMERA
 from playseg_core.ps.model import load_model
@@ -31,7 +31,7 @@ from playseg_ros.messages import (
     labelled_segment_of_steps,
     step_from_message,
 )
-from playseg_ros.nodes.common import declare, require, run_node
+from playseg_ros.nodes.common import ReleasingLifecycleNode, declare, require, run_node
 
 
 @dataclass
@@ -46,7 +46,7 @@ class _OpenEpisode:
         return self.first_step + len(self.steps)
 
 
-class SegmenterNode(LifecycleNode):
+class SegmenterNode(ReleasingLifecycleNode):
     def __init__(self) -> None:
         super().__init__("segmenter")
         self.model_path = declare(self, "model", "", "PS checkpoint (playseg train)")
@@ -92,7 +92,7 @@ class SegmenterNode(LifecycleNode):
             self._timer = self.create_timer(min(5.0, self.episode_timeout_s / 2), self._drop_silent_episodes)
         except Exception as exc:  # any configuration problem: report it, stay unconfigured (retryable)
             self.get_logger().error(str(exc) if isinstance(exc, ValueError) else f"configure failed: {exc!r}")
-            self._release()
+            self.release()
             return TransitionCallbackReturn.FAILURE
         self.model_id = self.model_id or self.model_path.rsplit("/", 1)[-1]
         self.get_logger().info(
@@ -110,19 +110,7 @@ class SegmenterNode(LifecycleNode):
             self._sub = None
         return super().on_deactivate(state)
 
-    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._release()
-        return TransitionCallbackReturn.SUCCESS
-
-    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._release()
-        return TransitionCallbackReturn.SUCCESS
-
-    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._release()  # error processing ends in unconfigured: configure must be able to start afresh
-        return TransitionCallbackReturn.SUCCESS
-
-    def _release(self) -> None:
+    def release(self) -> None:
         """Undo configure and activate, whatever got done of them; safe to call again."""
         if self._sub is not None:
             self.destroy_subscription(self._sub)

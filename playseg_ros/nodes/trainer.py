@@ -18,7 +18,7 @@ import threading
 from playseg_msgs.msg import LabelledSegment, TrainerStatus
 from playseg_msgs.srv import EvaluatePolicy, Retrain, SaveBuffer
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 
 from playseg_core.augment.policy import load_policy_learner
 from playseg_core.augment.retraining import (
@@ -29,13 +29,13 @@ from playseg_core.augment.retraining import (
 )
 from playseg_ros import qos
 from playseg_ros.messages import clip_from_labelled
-from playseg_ros.nodes.common import declare, require, run_node
+from playseg_ros.nodes.common import ReleasingLifecycleNode, declare, require, run_node
 from playseg_ros.play_bags import DataInfo, load_annotated
 
 NOT_CONFIGURED = "trainer is not configured"
 
 
-class TrainerNode(LifecycleNode):
+class TrainerNode(ReleasingLifecycleNode):
     def __init__(self) -> None:
         super().__init__("trainer")
         self.p = {
@@ -119,7 +119,7 @@ class TrainerNode(LifecycleNode):
             self._create_entities()
         except Exception as exc:  # any configuration problem: report it, stay unconfigured (retryable)
             self.get_logger().error(f"configure failed: {exc!r}")
-            self._release()
+            self.release()
             return TransitionCallbackReturn.FAILURE
         if self.trainer.buffer.recovered_bytes:
             self.get_logger().warning(f"cut a torn record of {self.trainer.buffer.recovered_bytes} bytes")
@@ -154,19 +154,7 @@ class TrainerNode(LifecycleNode):
             self._sub = None
         return super().on_deactivate(state)
 
-    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._release()
-        return TransitionCallbackReturn.SUCCESS
-
-    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._release()
-        return TransitionCallbackReturn.SUCCESS
-
-    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._release()  # error processing ends in unconfigured: configure must be able to start afresh
-        return TransitionCallbackReturn.SUCCESS
-
-    def _release(self) -> None:
+    def release(self) -> None:
         """Undo configure and activate, whatever got done of them; safe to call again."""
         if self._sub is not None:
             self.destroy_subscription(self._sub)
