@@ -1,13 +1,14 @@
 """The policy interface augmentation trains through: train on segment clips, act, evaluate, save, load.
 
-A `PolicyLearner` is one policy family of one domain (a domain package lists its own in ``POLICIES``);
-the trainer node and `AugmentationTrainer` know only this interface and find a learner by its name,
-``<domain>.<policy>`` (`load_policy_learner`). A learner without a simulator returns no evaluation.
+A `PolicyLearner` is one policy family: a generic one for any domain's data (``GENERIC_POLICIES``, named
+without a dot, e.g. ``bc``) or one of a domain (a domain package lists its own in ``POLICIES``, named
+``<domain>.<policy>``). The trainer node and `AugmentationTrainer` know only this interface and find a
+learner by its name (`load_policy_learner`). A learner without a simulator returns no evaluation.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -28,6 +29,12 @@ class PolicyTrainReport:
     num_segments: int
     final_loss: float
     losses: list[tuple[int, float]] = field(default_factory=list)  # (step, mean loss since the last entry)
+    # On held-out clips, when the learner holds some out (None otherwise): its loss, its accuracy (a
+    # discrete action), and the loss of predicting the training clips' mean action (marginal frequencies).
+    num_val_segments: int = 0
+    val_loss: float | None = None
+    val_accuracy: float | None = None
+    baseline_val_loss: float | None = None
 
 
 @dataclass
@@ -71,11 +78,29 @@ class PolicyLearner(Protocol):
     def load(self, path: Path) -> tuple[Any, dict[str, Any]]: ...
 
 
-def load_policy_learner(name: str, config: Mapping[str, Any] | None = None) -> PolicyLearner:
-    """The learner ``<domain>.<policy>`` built from ``config``; ValueError naming what is unknown."""
+def _bc_policy(config: dict[str, Any], features: Features | None) -> PolicyLearner:
+    from playseg_core.augment.bc_policy import BCPolicyLearner  # imports this module
+
+    return BCPolicyLearner.from_config(config, features)
+
+
+GENERIC_POLICIES: dict[str, Callable[[dict[str, Any], Features | None], PolicyLearner]] = {"bc": _bc_policy}
+"""Policies for any domain's data, by name: factory (config, the data's features) -> learner."""
+
+
+def load_policy_learner(
+    name: str, config: Mapping[str, Any] | None = None, features: Features | None = None
+) -> PolicyLearner:
+    """The learner ``name`` built from ``config``: a generic policy (a name without a dot, built for data
+    with ``features``) or ``<domain>.<policy>`` (a domain's policy, which knows its own features and
+    ignores ``features``); ValueError naming what is unknown."""
     domain, _, policy = name.partition(".")
     if not policy:
-        raise ValueError(f"policy {name!r}: expected <domain>.<policy>")
+        if name not in GENERIC_POLICIES:
+            raise ValueError(
+                f"policy {name!r}: not a generic policy ({sorted(GENERIC_POLICIES)}) nor <domain>.<policy>"
+            )
+        return GENERIC_POLICIES[name](dict(config or {}), features)
     policies = getattr(load_domain(domain), "POLICIES", {})
     if policy not in policies:
         raise ValueError(f"policy {name!r}: domain {domain!r} has {sorted(policies) or 'no policies'}")

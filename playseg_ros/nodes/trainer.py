@@ -56,7 +56,9 @@ class TrainerNode(ReleasingLifecycleNode):
             "min_confidence": declare(
                 self, "min_confidence", 0.0, "train only on segments at this confidence+"
             ),
-            "policy": declare(self, "policy", "babyai.film", "the policy to train: <domain>.<policy>"),
+            "policy": declare(
+                self, "policy", "babyai.film", "the policy to train: <domain>.<policy>, or a generic one (bc)"
+            ),
             "train_steps": declare(self, "train_steps", 2000, "optimiser steps per retraining"),
             "batch_size": declare(self, "batch_size", 256, "imitation batch size"),
             "policy_channels": declare(self, "policy_channels", 64, "width of the policy network"),
@@ -89,6 +91,7 @@ class TrainerNode(ReleasingLifecycleNode):
             require(bool(p["checkpoint_dir"]), self, "checkpoint_dir must be set")
             require(p["retrain_every"] >= 0, self, "retrain_every must be >= 0")
             require(p["eval_episodes"] > 0 and p["eval_max_steps"] > 0, self, "eval_* must be > 0")
+            annotated = load_annotated(p["base_data"]) if p["base_data"] else None
             learner = load_policy_learner(
                 p["policy"],
                 {
@@ -98,10 +101,10 @@ class TrainerNode(ReleasingLifecycleNode):
                     "channels": p["policy_channels"],
                     "eval_max_steps": p["eval_max_steps"],
                 },
+                features=annotated.info.features if annotated is not None else None,  # a generic policy's
             )
             base = []
-            if p["base_data"]:
-                annotated = load_annotated(p["base_data"])
+            if annotated is not None:
                 self.base_info = annotated.info
                 if annotated.info.features is not None:
                     learner.features.check_compatible(

@@ -1,0 +1,412 @@
+"""A generic instruction-conditioned behaviour-cloning policy for any domain's data (policy name ``bc``).
+
+pi(a_t | o_t, instruction): every camera of the data through ``image_cnn``, the state (when declared)
+through ``state_mlp`` (ps/encoders.py, standardised with the training clips' statistics), the instruction
+through a learned embedding per instruction string seen in training plus a hashed bag of words (so an
+unseen string still gets an embedding; no download), concatenated and mapped by an MLP to the action:
+logits over ``num_values`` for a discrete action (cross-entropy), the standardised action for a
+continuous one (MSE; un-standardised, and clipped to the declared bounds, when acting).
+
+`train` holds out a seeded share of the clips and reports the validation loss next to the loss of
+predicting the training clips' mean action (the marginal action frequencies when discrete). There is no
+simulator: `evaluate` returns None. Checkpoints are playseg checkpoints of kind ``policy`` with config
+``{"policy": "bc", ...}`` and the features the policy reads.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+import time
+import zlib
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from playseg_core.augment.policy import PolicyTrainReport
+from playseg_core.checkpoint import Checkpoint, CheckpointError, read_checkpoint, save_checkpoint
+from playseg_core.data.episode import SegmentClip
+from playseg_core.data.features import ACTION, STATE, FeatureError, Features, check_discrete_actions
+from playseg_core.ps.encoders import EncoderSpec, StepEncoders, choose_encoders, feature_statistics
+
+POLICY_NAME = "bc"
+_WORD = re.compile(r"[a-z0-9]+")
+
+
+@dataclass(frozen=True)
+class BCTrainConfig:
+    """Settings of the ``bc`` policy and its training (all plain values: they go into the checkpoint)."""
+
+    steps: int = 1000
+    batch_size: int = 64
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    seed: int = 0
+    hidden: int = 256  # width of the MLP head (the trainer node's ``channels``)
+    instruction_dim: int = 32
+    hash_buckets: int = 512  # bag-of-words buckets for the instruction
+    instruction_dropout: float = 0.2  # share of training samples that see only the bag of words
+    val_fraction: float = 0.1  # share of the clips held out for validation
+    image_dim: int = 128
+    state_dim: int = 64
+    log_every: int = 100
+    num_threads: int = 1
+
+
+def instruction_words(instruction: str, buckets: int) -> list[int]:
+    """The hashed bag of words of ``instruction``: lower-cased alphanumeric words -> bucket ids
+    (crc32, the same in every process)."""
+    return [zlib.crc32(word.encode()) % buckets for word in _WORD.findall(instruction.lower())]
+
+
+class BCPolicy(nn.Module):
+    """The network; ``config`` (plain data) and ``features`` (what it reads) rebuild it from a checkpoint.
+
+    config: ``policy`` ("bc"), ``settings`` (BCTrainConfig as a dict), ``encoders`` (EncoderSpec JSON),
+    ``vocabulary`` (the known instruction strings), ``action_mean``/``action_std`` (continuous only).
+    """
+
+    def __init__(self, config: Mapping[str, Any], features: Features) -> None:
+        super().__init__()
+        self.config = dict(config)
+        self.features = features
+        settings = self.config["settings"]
+        self.buckets = int(settings["hash_buckets"])
+        dim = int(settings["instruction_dim"])
+        hidden = int(settings["hidden"])
+        self.encoders = StepEncoders(
+            [EncoderSpec.from_json(raw) for raw in self.config["encoders"]], features
+        )
+        self.vocabulary = [str(s) for s in self.config["vocabulary"]]
+        self._index = {s: i + 1 for i, s in enumerate(self.vocabulary)}  # 0: unknown string
+        self.known = nn.Embedding(len(self.vocabulary) + 1, dim, padding_idx=0)
+        self.words = nn.EmbeddingBag(self.buckets, dim, mode="mean")
+        action = features.action
+        self.discrete = action.is_discrete
+        out = action.num_values if self.discrete else action.size
+        self.head = nn.Sequential(
+            nn.Linear(self.encoders.step_dim + dim, hidden),
+            nn.GELU(),
+            nn.Linear(hidden, hidden),
+            nn.GELU(),
+            nn.Linear(hidden, out),
+        )
+        if not self.discrete:
+            mean, std = self.config["action_mean"], self.config["action_std"]
+            self.register_buffer("action_mean", torch.tensor(mean, dtype=torch.float32))
+            self.register_buffer("action_std", torch.tensor(std, dtype=torch.float32))
+
+    def instruction_ids(self, instructions: Sequence[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(known-string ids (N,), flat word ids, bag offsets (N,)) of ``instructions``."""
+        known = torch.tensor([self._index.get(s, 0) for s in instructions], dtype=torch.long)
+        bags = [instruction_words(s, self.buckets) for s in instructions]
+        flat = torch.tensor([w for bag in bags for w in bag], dtype=torch.long)
+        offsets = torch.tensor(np.cumsum([0, *[len(bag) for bag in bags[:-1]]]), dtype=torch.long)
+        return known, flat, offsets
+
+    def forward(
+        self,
+        inputs: Mapping[str, torch.Tensor],
+        known: torch.Tensor,
+        words: torch.Tensor,
+        offsets: torch.Tensor,
+    ) -> torch.Tensor:
+        """Observation rows by feature (N each) and instruction ids -> (N, out) logits or standardised
+        actions."""
+        instruction = self.known(known) + self.words(words, offsets)
+        return self.head(torch.cat([self.encoders(inputs), instruction], dim=-1))
+
+    def observation_inputs(
+        self, observations: Mapping[str, np.ndarray], rows: int
+    ) -> dict[str, torch.Tensor]:
+        """The batch of observations as input tensors; FeatureError naming a missing or mis-shaped one."""
+        inputs = {}
+        for spec in self.encoders.specs:
+            feature = self.features[spec.feature]
+            if spec.feature not in observations:
+                raise FeatureError(
+                    f"policy {POLICY_NAME} reads feature {spec.feature!r}, the observations lack it"
+                )
+            array = np.asarray(observations[spec.feature])
+            if array.shape != (rows, *feature.shape) or (feature.kind == "image" and array.dtype != np.uint8):
+                raise FeatureError(
+                    f"policy {POLICY_NAME}: feature {spec.feature!r} must be {[rows, *feature.shape]} "
+                    f"{feature.dtype}, got {list(array.shape)} {array.dtype}"
+                )
+            inputs[spec.feature] = torch.from_numpy(np.array(array))
+        return inputs
+
+    @torch.no_grad()
+    def act(self, observations: Mapping[str, np.ndarray], instructions: Sequence[str]) -> np.ndarray:
+        """Actions for a batch: (N,) int64 indices for a discrete action (the argmax), (N, *shape) float32
+        for a continuous one (the prediction un-standardised, clipped to the declared bounds)."""
+        instructions = list(instructions)
+        was_training = self.training
+        self.eval()
+        try:
+            out = self(
+                self.observation_inputs(observations, len(instructions)), *self.instruction_ids(instructions)
+            )
+        finally:
+            self.train(was_training)
+        if self.discrete:
+            return out.argmax(dim=-1).numpy()
+        action = self.features.action
+        values = (out * self.action_std + self.action_mean).numpy().astype(np.float32)
+        if action.low is not None or action.high is not None:
+            low = None if action.low is None else np.asarray(action.low, np.float32)
+            high = None if action.high is None else np.asarray(action.high, np.float32)
+            values = np.clip(values, low, high)
+        return values.reshape(len(instructions), *action.shape)
+
+
+@contextlib.contextmanager
+def _torch_threads(num_threads: int) -> Iterator[None]:
+    previous = torch.get_num_threads()
+    torch.set_num_threads(num_threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+class _Steps:
+    """Every (clip, step) of some clips, gathered into batches of observations, instructions, actions."""
+
+    def __init__(self, clips: Sequence[SegmentClip], names: Sequence[str], discrete: int) -> None:
+        self.clips = list(clips)
+        self.names = list(names)
+        self.pairs = np.array(
+            [(c, t) for c, clip in enumerate(self.clips) for t in range(clip.segment.length)], np.int64
+        ).reshape(-1, 2)
+        actions = []
+        for clip in self.clips:
+            where = f"segment {clip.episode_id}[{clip.segment.start}, {clip.segment.end}) {ACTION}"
+            a = np.asarray(clip.actions, np.float32).reshape(len(clip.actions), -1)
+            actions.append(check_discrete_actions(a, discrete, where) if discrete else a)
+        self.actions = np.concatenate(actions) if actions else np.zeros((0,))
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def batch(self, which: np.ndarray) -> tuple[dict[str, np.ndarray], list[str], np.ndarray]:
+        pairs = self.pairs[which]
+        observations = {}
+        for name in self.names:
+            rows = [
+                (self.clips[c].state if name == STATE else self.clips[c].images[name])[t] for c, t in pairs
+            ]
+            observations[name] = np.stack(rows)
+        instructions = [self.clips[c].segment.instruction for c, _ in pairs]
+        return observations, instructions, self.actions[which]
+
+
+@dataclass
+class BCPolicyLearner:
+    """`augment.policy.PolicyLearner` of the ``bc`` policy for data with ``data_features``."""
+
+    data_features: Features
+    settings: BCTrainConfig = BCTrainConfig()
+    name: str = POLICY_NAME
+
+    @classmethod
+    def from_config(cls, config: Mapping[str, Any], features: Features | None) -> BCPolicyLearner:
+        """From plain settings (any field of BCTrainConfig; ``channels`` is ``hidden``; ``eval_max_steps``
+        is accepted and unused: there is no simulator) and the data's features; ValueError naming an
+        unknown setting, FeatureError when the features are missing or hold nothing to read."""
+        config = dict(config)
+        if "channels" in config:
+            config["hidden"] = config.pop("channels")
+        config.pop("eval_max_steps", None)
+        known = {f.name for f in fields(BCTrainConfig)}
+        unknown = sorted(set(config) - known)
+        if unknown:
+            raise ValueError(f"policy {POLICY_NAME}: unknown settings {unknown} (known: {sorted(known)})")
+        types = {f.name: type(getattr(BCTrainConfig(), f.name)) for f in fields(BCTrainConfig)}
+        settings = BCTrainConfig(**{k: types[k](v) for k, v in config.items()})
+        if settings.steps <= 0 or settings.batch_size <= 0 or not 0.0 <= settings.val_fraction < 1.0:
+            raise ValueError(
+                f"policy {POLICY_NAME}: steps and batch_size must be > 0, val_fraction in [0, 1)"
+            )
+        if features is None:
+            raise FeatureError(f"policy {POLICY_NAME} needs the data's declared features (none were given)")
+        return cls(features, settings)
+
+    @property
+    def features(self) -> Features:
+        """The cameras, the state when declared, and the action."""
+        names = [
+            *self.data_features.cameras,
+            *([STATE] if self.data_features.state is not None else []),
+            ACTION,
+        ]
+        if names == [ACTION]:
+            raise FeatureError(f"policy {POLICY_NAME}: the data has no camera and no state to read")
+        return Features.of([self.data_features[n] for n in names], self.data_features.fps)
+
+    def _split(self, clips: Sequence[SegmentClip]) -> tuple[list[SegmentClip], list[SegmentClip]]:
+        """(training, validation) clips: a seeded ``val_fraction`` of them held out (none of fewer than 2)."""
+        order = np.random.default_rng(self.settings.seed).permutation(len(clips))
+        held = int(round(self.settings.val_fraction * len(clips)))
+        held = min(max(held, 1 if self.settings.val_fraction > 0 else 0), len(clips) - 1)
+        return [clips[i] for i in sorted(order[held:])], [clips[i] for i in sorted(order[:held])]
+
+    def build(self, clips: Sequence[SegmentClip]) -> BCPolicy:
+        """A fresh network for ``clips``: statistics, known instructions and encoders from them."""
+        features = self.features
+        action = features.action
+        episodes = [clip.as_episode(f"clip{i}") for i, clip in enumerate(clips)]
+        names = ([STATE] if features.state is not None else []) + ([] if action.is_discrete else [ACTION])
+        statistics = feature_statistics(episodes, names)
+        specs = choose_encoders(features, None, statistics, read_actions=False)
+        for spec in specs:
+            spec.config["dim"] = (
+                self.settings.image_dim if spec.kind == "image_cnn" else self.settings.state_dim
+            )
+        config: dict[str, Any] = {
+            "policy": POLICY_NAME,
+            "settings": asdict(self.settings),
+            "encoders": [spec.to_json() for spec in specs],
+            "vocabulary": sorted({clip.segment.instruction for clip in clips}),
+        }
+        if not action.is_discrete:
+            config["action_mean"] = statistics[ACTION]["mean"]
+            config["action_std"] = statistics[ACTION]["std"]
+        return BCPolicy(config, features)
+
+    def _loss(
+        self,
+        model: BCPolicy,
+        batch: tuple[dict[str, np.ndarray], list[str], np.ndarray],
+        drop: np.ndarray | None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(mean loss, per-sample correct flags or losses) of one batch."""
+        observations, instructions, actions = batch
+        known, words, offsets = model.instruction_ids(instructions)
+        if drop is not None:
+            known = known.masked_fill(torch.from_numpy(drop), 0)
+        inputs = {name: torch.from_numpy(array) for name, array in observations.items()}
+        out = model(inputs, known, words, offsets)
+        if model.discrete:
+            target = torch.from_numpy(actions)
+            return F.cross_entropy(out, target), (out.argmax(-1) == target).float()
+        target = (torch.from_numpy(actions) - model.action_mean) / model.action_std
+        return F.mse_loss(out, target), out.new_zeros(0)
+
+    def _validate(self, model: BCPolicy, steps: _Steps, train: _Steps) -> dict[str, float]:
+        """Validation loss (and accuracy), and the loss of the mean-action (marginal) predictor."""
+        model.eval()
+        total, correct = 0.0, 0.0
+        with torch.no_grad():
+            for start in range(0, len(steps), 1024):
+                which = np.arange(start, min(start + 1024, len(steps)))
+                loss, hits = self._loss(model, steps.batch(which), None)
+                total += float(loss) * len(which)
+                correct += float(hits.sum())
+        model.train()
+        result = {"val_loss": total / len(steps)}
+        if model.discrete:
+            num_values = model.features.action.num_values
+            counts = np.bincount(train.actions, minlength=num_values) + 1.0  # add-one: no log(0)
+            log_p = np.log(counts / counts.sum())
+            result["val_accuracy"] = correct / len(steps)
+            result["baseline_val_loss"] = float(-log_p[steps.actions].mean())
+        else:
+            z = (steps.actions - model.action_mean.numpy()) / model.action_std.numpy()
+            result["baseline_val_loss"] = float(np.square(z).mean())
+        return result
+
+    def train(
+        self, clips: Sequence[SegmentClip], progress: bool = False
+    ) -> tuple[BCPolicy, PolicyTrainReport]:
+        if not clips:
+            raise ValueError(f"policy {POLICY_NAME}: no clips to train on")
+        s = self.settings
+        started = time.perf_counter()
+        train_clips, val_clips = self._split(list(clips)) if len(clips) > 1 else (list(clips), [])
+        features = self.features
+        names = [*features.cameras, *([STATE] if features.state is not None else [])]
+        discrete = features.action.num_values
+        with _torch_threads(s.num_threads), torch.random.fork_rng(devices=[]):
+            torch.manual_seed(s.seed)
+            rng = np.random.default_rng(s.seed)
+            model = self.build(train_clips)
+            train_steps = _Steps(train_clips, names, discrete)
+            optimiser = torch.optim.AdamW(model.parameters(), lr=s.lr, weight_decay=s.weight_decay)
+            model.train()
+            losses: list[tuple[int, float]] = []
+            running, count = 0.0, 0
+            for step in range(1, s.steps + 1):
+                which = rng.integers(0, len(train_steps), size=s.batch_size)
+                drop = rng.random(s.batch_size) < s.instruction_dropout
+                loss, _ = self._loss(model, train_steps.batch(which), drop)
+                optimiser.zero_grad(set_to_none=True)
+                loss.backward()
+                nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+                optimiser.step()
+                running, count = running + loss.item(), count + 1
+                if step % s.log_every == 0 or step == s.steps:
+                    losses.append((step, running / count))
+                    if progress:
+                        print(f"policy {POLICY_NAME} step {step}/{s.steps}: loss {running / count:.4f}")
+                    running, count = 0.0, 0
+            validation = (
+                self._validate(model, _Steps(val_clips, names, discrete), train_steps) if val_clips else {}
+            )
+        model.eval()
+        report = PolicyTrainReport(
+            steps=s.steps,
+            seconds=time.perf_counter() - started,
+            num_segments=len(clips),
+            final_loss=losses[-1][1],
+            losses=losses,
+            num_val_segments=len(val_clips),
+            **validation,
+        )
+        return model, report
+
+    def evaluate(self, policy: BCPolicy, num_episodes: int, seed: int) -> None:
+        """No simulator: nothing to evaluate in."""
+        return None
+
+    def save(self, path: Path, policy: BCPolicy, meta: dict[str, Any]) -> None:
+        save_bc_policy(path, policy, meta)
+
+    def load(self, path: Path) -> tuple[BCPolicy, dict[str, Any]]:
+        return load_bc_policy(path)
+
+
+def save_bc_policy(path: str | Path, policy: BCPolicy, meta: dict[str, Any]) -> None:
+    """A playseg checkpoint of kind ``policy``: config, the features the policy reads, weights, meta."""
+    save_checkpoint(path, Checkpoint("policy", policy.config, policy.features, policy.state_dict(), meta))
+
+
+def load_bc_policy(path: str | Path) -> tuple[BCPolicy, dict[str, Any]]:
+    """(policy in eval mode, meta); CheckpointError naming the file when it is not a usable ``bc`` one."""
+    checkpoint = read_checkpoint(path, kinds=("policy",))
+    if checkpoint.config.get("policy") != POLICY_NAME:
+        raise CheckpointError(
+            f"checkpoint {path}: a {checkpoint.config.get('policy')!r} policy, expected {POLICY_NAME!r}"
+        )
+    try:
+        policy = BCPolicy(checkpoint.config, checkpoint.features)
+        policy.load_state_dict(checkpoint.state_dict)
+    except (KeyError, TypeError, ValueError, RuntimeError) as error:
+        raise CheckpointError(f"checkpoint {path}: not a usable {POLICY_NAME} policy ({error})") from None
+    return policy.eval(), checkpoint.meta
+
+
+__all__ = [
+    "BCPolicy",
+    "BCPolicyLearner",
+    "BCTrainConfig",
+    "instruction_words",
+    "load_bc_policy",
+    "save_bc_policy",
+]

@@ -1,0 +1,156 @@
+"""The generic behaviour-cloning policy (playseg_core/augment/bc_policy.py) on synthetic robot-shaped clips."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from playseg_core.augment.bc_policy import BCPolicyLearner, load_bc_policy
+from playseg_core.augment.policy import load_policy_learner
+from playseg_core.augment.retraining import AugmentationTrainer, TrainerConfig
+from playseg_core.checkpoint import CheckpointError, read_checkpoint
+from playseg_core.data.episode import Segment, SegmentClip
+from playseg_core.data.features import ACTION, STATE, Feature, FeatureError, Features
+
+CAMERA = "observation.images.wrist"
+INSTRUCTIONS = ("push the block left", "push the block right", "hold the gripper still")
+FAST = {"steps": 300, "batch_size": 64, "val_fraction": 0.1, "seed": 0}
+
+
+def robot_features(discrete: bool = False) -> Features:
+    action = (
+        Feature(ACTION, "action", "float32", (1,), num_values=6)
+        if discrete
+        else Feature(ACTION, "action", "float32", (7,))
+    )
+    return Features.of(
+        [Feature(CAMERA, "image", "uint8", (16, 16, 3)), Feature(STATE, "state", "float32", (7,)), action],
+        fps=10.0,
+    )
+
+
+def rule(states: np.ndarray, k: int, discrete: bool) -> np.ndarray:
+    """The expert: continuous, a fixed per-instruction linear map of the state; discrete, which of the
+    first three state values is largest, shifted by 3 for the second half of the instructions."""
+    if discrete:
+        return (np.argmax(states[:, :3], axis=1) + 3 * (k % 2)).astype(np.float32)[:, None]
+    signs = np.array([1.0, -1.0, 0.0])[k]
+    offsets = np.linspace(-1.0, 1.0, 7) * (k - 1)
+    return (signs * states + offsets).astype(np.float32)
+
+
+def make_clips(num: int, seed: int, discrete: bool = False, length: int = 8) -> list[SegmentClip]:
+    rng = np.random.default_rng(seed)
+    clips = []
+    for i in range(num):
+        k = i % len(INSTRUCTIONS)
+        states = rng.normal(size=(length + 1, 7)).astype(np.float32)
+        frames = rng.integers(0, 256, size=(length + 1, 16, 16, 3), dtype=np.uint8)
+        clips.append(
+            SegmentClip(
+                episode_id=f"ep{i}",
+                segment=Segment(0, length, INSTRUCTIONS[k]),
+                actions=rule(states[:length], k, discrete),
+                images={CAMERA: frames},
+                state=states,
+                source="annotation",
+            )
+        )
+    return clips
+
+
+@pytest.fixture(scope="module")
+def trained() -> tuple[BCPolicyLearner, object, object]:
+    learner = load_policy_learner("bc", FAST, features=robot_features())
+    policy, report = learner.train(make_clips(60, seed=1))
+    return learner, policy, report
+
+
+def test_generic_names_resolve_and_unknown_ones_are_named() -> None:
+    learner = load_policy_learner("bc", {"channels": 32, "eval_max_steps": 5}, features=robot_features())
+    assert isinstance(learner, BCPolicyLearner) and learner.settings.hidden == 32
+    assert sorted(learner.features.by_name) == sorted([CAMERA, STATE, ACTION])
+    with pytest.raises(ValueError, match="'nope': not a generic policy"):
+        load_policy_learner("nope")
+    with pytest.raises(ValueError, match=r"unknown settings \['bogus'\]"):
+        load_policy_learner("bc", {"bogus": 1}, features=robot_features())
+    with pytest.raises(FeatureError, match="needs the data's declared features"):
+        load_policy_learner("bc", {})
+
+
+def test_training_beats_the_mean_action_on_held_out_clips(trained) -> None:
+    _, _, report = trained
+    assert report.num_segments == 60 and report.num_val_segments == 6
+    assert report.val_accuracy is None
+    assert math.isfinite(report.val_loss) and report.baseline_val_loss > 0.5
+    assert report.val_loss < 0.3 * report.baseline_val_loss, report
+    assert report.losses[-1][1] < report.losses[0][1]
+
+
+def test_act_is_batched_and_checkpoints_round_trip(trained, tmp_path: Path) -> None:
+    learner, policy, _ = trained
+    clip = make_clips(1, seed=9, length=5)[0]
+    observations = {CAMERA: clip.images[CAMERA], STATE: clip.state}
+    instructions = [
+        INSTRUCTIONS[0],
+        INSTRUCTIONS[1],
+        "push the block up",
+        "",
+        INSTRUCTIONS[2],
+        INSTRUCTIONS[0],
+    ]
+    actions = policy.act(observations, instructions)
+    assert actions.shape == (6, 7) and actions.dtype == np.float32
+    learner.save(tmp_path / "p.pt", policy, {"version": 2})
+    loaded, meta = learner.load(tmp_path / "p.pt")
+    assert meta == {"version": 2}
+    np.testing.assert_array_equal(loaded.act(observations, instructions), actions)
+    checkpoint = read_checkpoint(tmp_path / "p.pt", kinds=("policy",))
+    assert checkpoint.config["policy"] == "bc"
+    checkpoint.check_features(robot_features())
+    other = robot_features().with_camera(Feature(CAMERA, "image", "uint8", (32, 32, 3)))
+    with pytest.raises(FeatureError, match=f"p.pt reads {CAMERA}: image \\[16, 16, 3\\]"):
+        checkpoint.check_features(other)
+    with pytest.raises(FeatureError, match="action"):
+        checkpoint.check_features(robot_features(discrete=True))
+    with pytest.raises(FeatureError, match=f"{CAMERA!r} must be \\[6, 16, 16, 3\\]"):
+        policy.act({CAMERA: observations[CAMERA][:, :8], STATE: clip.state}, instructions)
+
+
+def test_a_foreign_policy_checkpoint_is_refused(trained, tmp_path: Path) -> None:
+    _, policy, _ = trained
+    policy.config = {**policy.config, "policy": "other"}
+    try:
+        load_policy_learner("bc", {}, features=robot_features()).save(tmp_path / "p.pt", policy, {})
+    finally:
+        policy.config = {**policy.config, "policy": "bc"}
+    with pytest.raises(CheckpointError, match="a 'other' policy, expected 'bc'"):
+        load_bc_policy(tmp_path / "p.pt")
+
+
+def test_discrete_actions_reach_high_validation_accuracy() -> None:
+    learner = load_policy_learner("bc", FAST, features=robot_features(discrete=True))
+    policy, report = learner.train(make_clips(60, seed=2, discrete=True))
+    assert report.val_accuracy > 0.9 and report.val_loss < 0.5 * report.baseline_val_loss, report
+    clip = make_clips(2, seed=5, discrete=True, length=3)[1]
+    actions = policy.act({CAMERA: clip.images[CAMERA], STATE: clip.state}, [clip.segment.instruction] * 4)
+    assert actions.shape == (4,) and actions.dtype == np.int64
+    np.testing.assert_array_equal(actions, rule(clip.state, 1, True)[:, 0])
+
+
+def test_no_simulator_so_no_evaluation_and_the_trainer_retrains(tmp_path: Path) -> None:
+    learner = load_policy_learner("bc", {**FAST, "steps": 20}, features=robot_features())
+    clips = make_clips(12, seed=3)
+    trainer = AugmentationTrainer(
+        TrainerConfig(str(tmp_path / "buf"), str(tmp_path / "ckpt")), learner, clips[:8]
+    )
+    for clip in clips[8:]:
+        trainer.add(clip)
+    version = trainer.retrain()
+    assert version.version == 1 and math.isnan(version.success_rate) and version.eval_episodes == 0
+    assert trainer.evaluate() is None
+    assert learner.evaluate(learner.load(Path(version.checkpoint))[0], 4, 0) is None
+    trainer.close()
