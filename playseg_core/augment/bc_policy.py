@@ -15,11 +15,10 @@ simulator: `evaluate` returns None. Checkpoints are playseg checkpoints of kind 
 
 from __future__ import annotations
 
-import contextlib
 import re
 import time
 import zlib
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -29,11 +28,17 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from playseg_core.augment.policy import PolicyTrainReport
+from playseg_core.augment.policy import PolicyTrainReport, torch_threads
 from playseg_core.checkpoint import Checkpoint, CheckpointError, read_checkpoint, save_checkpoint
 from playseg_core.data.episode import SegmentClip
 from playseg_core.data.features import ACTION, STATE, FeatureError, Features, check_discrete_actions
-from playseg_core.ps.encoders import EncoderSpec, StepEncoders, choose_encoders, feature_statistics
+from playseg_core.ps.encoders import (
+    EncoderSpec,
+    StepEncoders,
+    as_tensors,
+    choose_encoders,
+    feature_statistics,
+)
 
 POLICY_NAME = "bc"
 _WORD = re.compile(r"[a-z0-9]+")
@@ -126,21 +131,7 @@ class BCPolicy(nn.Module):
         self, observations: Mapping[str, np.ndarray], rows: int
     ) -> dict[str, torch.Tensor]:
         """The batch of observations as input tensors; FeatureError naming a missing or mis-shaped one."""
-        inputs = {}
-        for spec in self.encoders.specs:
-            feature = self.features[spec.feature]
-            if spec.feature not in observations:
-                raise FeatureError(
-                    f"policy {POLICY_NAME} reads feature {spec.feature!r}, the observations lack it"
-                )
-            array = np.asarray(observations[spec.feature])
-            if array.shape != (rows, *feature.shape) or (feature.kind == "image" and array.dtype != np.uint8):
-                raise FeatureError(
-                    f"policy {POLICY_NAME}: feature {spec.feature!r} must be {[rows, *feature.shape]} "
-                    f"{feature.dtype}, got {list(array.shape)} {array.dtype}"
-                )
-            inputs[spec.feature] = torch.from_numpy(np.array(array))
-        return inputs
+        return as_tensors(self.encoders.observation_inputs(observations, f"policy {POLICY_NAME}", rows))
 
     @torch.no_grad()
     def act(self, observations: Mapping[str, np.ndarray], instructions: Sequence[str]) -> np.ndarray:
@@ -164,16 +155,6 @@ class BCPolicy(nn.Module):
             high = None if action.high is None else np.asarray(action.high, np.float32)
             values = np.clip(values, low, high)
         return values.reshape(len(instructions), *action.shape)
-
-
-@contextlib.contextmanager
-def _torch_threads(num_threads: int) -> Iterator[None]:
-    previous = torch.get_num_threads()
-    torch.set_num_threads(num_threads)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
 
 
 class _Steps:
@@ -333,7 +314,7 @@ class BCPolicyLearner:
         features = self.features
         names = [*features.cameras, *([STATE] if features.state is not None else [])]
         discrete = features.action.num_values
-        with _torch_threads(s.num_threads), torch.random.fork_rng(devices=[]):
+        with torch_threads(s.num_threads), torch.random.fork_rng(devices=[]):
             torch.manual_seed(s.seed)
             rng = np.random.default_rng(s.seed)
             model = self.build(train_clips)

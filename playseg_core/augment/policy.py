@@ -8,12 +8,14 @@ learner by its name (`load_policy_learner`). A learner without a simulator retur
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+import contextlib
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
+import torch
 
 from playseg_core.data.episode import SegmentClip
 from playseg_core.data.features import Features
@@ -86,6 +88,18 @@ def _bc_policy(config: dict[str, Any], features: Features | None) -> PolicyLearn
 
 GENERIC_POLICIES: dict[str, Callable[[dict[str, Any], Features | None], PolicyLearner]] = {"bc": _bc_policy}
 """Policies for any domain's data, by name: factory (config, the data's features) -> learner."""
+
+
+@contextlib.contextmanager
+def torch_threads(num_threads: int) -> Iterator[None]:
+    """Train or act on ``num_threads`` torch CPU threads, restoring the previous setting afterwards (more
+    threads than free cores make a shared machine crawl)."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(num_threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
 
 
 def load_policy_learner(

@@ -247,24 +247,28 @@ class StepEncoders(nn.Module):
             for spec, enc in zip(self.specs, self.encoders, strict=True)
         }
 
-    def observation_inputs(self, observation: Mapping[str, np.ndarray], where: str) -> dict[str, np.ndarray]:
-        """One observation's input row (1, ...) for each observation encoder, by feature; FeatureError
-        naming the feature when the observation lacks it or it has another shape (or, for a camera,
-        another dtype than uint8)."""
+    def observation_inputs(
+        self, observations: Mapping[str, np.ndarray], where: str, rows: int | None = None
+    ) -> dict[str, np.ndarray]:
+        """Input rows for each observation encoder, by feature: one observation (``rows`` None; a row axis
+        is added) or a batch of ``rows`` observations. FeatureError naming the feature when it is missing
+        or has another shape (or, for a camera, another dtype than uint8)."""
         inputs = {}
         for spec, encoder in zip(self.specs, self.encoders, strict=True):
             if not isinstance(encoder, ObservationEncoder):
                 continue
-            if spec.feature not in observation:
-                raise FeatureError(f"{where}: the model reads feature {spec.feature!r}, the step lacks it")
-            row = np.asarray(observation[spec.feature])[None]
+            if spec.feature not in observations:
+                lacking = "the step" if rows is None else "the observations"
+                raise FeatureError(f"{where}: the model reads feature {spec.feature!r}, {lacking} lacks it")
+            array = np.asarray(observations[spec.feature])
             feature = encoder.feature
-            if row.shape[1:] != feature.shape or (feature.kind == "image" and row.dtype != np.uint8):
+            expected = feature.shape if rows is None else (rows, *feature.shape)
+            if array.shape != expected or (feature.kind == "image" and array.dtype != np.uint8):
                 raise FeatureError(
-                    f"{where}: feature {spec.feature!r} must be {list(feature.shape)} {feature.dtype}, "
-                    f"got {list(row.shape[1:])} {row.dtype}"
+                    f"{where}: feature {spec.feature!r} must be {list(expected)} {feature.dtype}, "
+                    f"got {list(array.shape)} {array.dtype}"
                 )
-            inputs[spec.feature] = row
+            inputs[spec.feature] = array[None] if rows is None else array
         return inputs
 
     @property

@@ -107,11 +107,7 @@ def model_config_for(
 ) -> ModelConfig:
     """The default model for data with ``features`` (step encoders by `choose_encoders`; the state and a
     continuous action standardised with ``episodes``' statistics, computed only when read)."""
-    needs = [
-        name
-        for name in (features.state.name if features.state else None, features.action.name)
-        if name and (name != features.action.name or not features.action.is_discrete)
-    ]
+    needs = [f.name for f in (features.state, features.action) if f is not None and not f.is_discrete]
     episodes = list(episodes)
     statistics = feature_statistics(episodes, needs) if episodes and needs else {}
     encoders = choose_encoders(features, domain, statistics, read_actions, overrides)

@@ -15,9 +15,9 @@ import numpy as np
 from minigrid.envs.babyai import GoToLocal
 from minigrid.utils.baby_ai_bot import BabyAIBot
 
-from playseg_core.augment.policy import InstructionPolicy, PolicyEvaluation
+from playseg_core.augment.policy import InstructionPolicy, PolicyEvaluation, torch_threads
 from playseg_core.data.features import STATE
-from playseg_core.domains.babyai.imitation import Demonstration, torch_threads
+from playseg_core.domains.babyai.imitation import Demonstration
 from playseg_core.domains.babyai.play import PlayConfig, encode_state, make_env, quiet_level_generation
 
 

@@ -6,9 +6,8 @@ cross-entropy, Adam. Seeded: the same seed and data give the same weights. (Eval
 
 from __future__ import annotations
 
-import contextlib
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -16,6 +15,7 @@ import torch
 from torch.nn import functional as F
 from tqdm import tqdm
 
+from playseg_core.augment.policy import torch_threads
 from playseg_core.domains.babyai.policy import (
     AGENT_TYPE,
     NUM_ACTIONS,
@@ -26,17 +26,6 @@ from playseg_core.domains.babyai.policy import (
 
 # (instruction, states (L+1, 8, 8, 3) uint8, actions (L,) or (L, 1) discrete action indices)
 Demonstration = tuple[str, np.ndarray, np.ndarray]
-
-
-@contextlib.contextmanager
-def torch_threads(num_threads: int) -> Iterator[None]:
-    """Run torch ops on ``num_threads`` CPU threads, restoring the previous setting afterwards."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(num_threads)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
 
 
 # ---------------------------------------------------------------------------------------------------------
