@@ -264,6 +264,49 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     evaluate.set_defaults(func=_cmd_evaluate)
 
 
+def _cmd_convert(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from playseg_ros.convert import convert, inspect_text, load_mapping
+
+    if args.inspect:
+        if len(args.bags) != 1 or args.out or args.mapping:
+            raise ValueError("--inspect takes one bag and no --out or --mapping")
+        print(inspect_text(Path(args.bags[0])), end="")
+        return 0
+    if not args.out:
+        raise ValueError("--out is required (the dataset directory to write)")
+    if args.format != "playseg":
+        raise ValueError(f"--format {args.format!r}: this playseg writes only 'playseg'")
+    mapping = load_mapping(args.mapping) if args.mapping else None
+    summary = convert(args.bags, args.out, mapping, args.workers, args.overwrite, progress=not args.quiet)
+    for report in summary.reports:
+        for note in report.notes:
+            print(f"{report.bag.name}: {note}", file=sys.stderr)
+    for report in summary.failed:
+        print(f"playseg convert: failed: {report.error}", file=sys.stderr)
+    print(summary.text())
+    return EXIT_FAILED if summary.failed else 0
+
+
+def _add_convert_command(sub: argparse._SubParsersAction) -> None:
+    convert = sub.add_parser(
+        "convert",
+        help="convert robot bags (rosbag2, ROS 1) through a mapping into a dataset (docs/convert.md)",
+    )
+    convert.add_argument("bags", nargs="+", metavar="BAG_OR_DIR", help="bags, or directories holding bags")
+    convert.add_argument("--out", help="dataset directory to write (a rerun skips the bags it holds)")
+    convert.add_argument("--mapping", help="mapping YAML (not needed for playseg play bags)")
+    convert.add_argument("--format", default="playseg", choices=["playseg"], help="output format")
+    convert.add_argument("--workers", type=int, default=1, help="bags converted in parallel (processes)")
+    convert.add_argument("--overwrite", action="store_true", help="convert every bag again into a new --out")
+    convert.add_argument(
+        "--inspect", action="store_true", help="list BAG's topics and print a proposed mapping"
+    )
+    convert.add_argument("--quiet", action="store_true", help="no progress bar")
+    convert.set_defaults(func=_cmd_convert)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="playseg",
@@ -279,6 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_generate_command(sub)
     _add_up_command(sub)
     _add_segmentation_commands(sub)
+    _add_convert_command(sub)
     return parser
 
 

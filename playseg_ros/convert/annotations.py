@@ -1,0 +1,144 @@
+"""Instruction labels in time, mapped onto the steps of the converted episodes.
+
+Two sources, used together when both are given: ``playseg_msgs/msg/TimedAnnotation`` messages on a topic
+(start, end, instruction), and a sidecar file next to the bag (YAML or JSON)::
+
+    times: from_start        # seconds from the bag's first message (default), or: absolute (epoch seconds)
+    annotations:
+      - {start: 1.5, end: 4.0, instruction: pick up the red cup}
+
+A label [start, end] becomes the segment [s, e) of the episode holding it, where s is the first step at or
+after ``start`` and e the last step at or before ``end`` (the observations o_s..o_e lie inside the label's
+time). A label that covers fewer than two steps, overlaps an earlier label, or has no instruction is
+dropped and reported; one that runs past its episode's end is cut there and reported.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal, NotRequired, TypedDict
+
+import numpy as np
+
+from playseg_core.data.episode import Segment
+from playseg_ros.convert.errors import ConvertError, MappingError
+from playseg_ros.convert.mapping import read_yaml
+from playseg_ros.convert.source import TIMED_ANNOTATION, TopicSamples
+
+
+class SidecarLabelYaml(TypedDict):
+    start: float
+    end: float
+    instruction: str
+
+
+class SidecarYaml(TypedDict):
+    times: NotRequired[Literal["from_start", "absolute"]]
+    annotations: list[SidecarLabelYaml]
+
+
+@dataclass(frozen=True, order=True)
+class TimedLabel:
+    start_ns: int
+    end_ns: int
+    instruction: str
+
+
+def labels_from_topic(bag: Path, samples: TopicSamples) -> list[TimedLabel]:
+    if samples.msgtype != TIMED_ANNOTATION:
+        raise ConvertError(
+            bag, f"message type is {samples.msgtype!r}, expected {TIMED_ANNOTATION!r}", samples.topic
+        )
+    labels = []
+    for msg in samples.messages:
+        start = int(msg.start.sec) * 1_000_000_000 + int(msg.start.nanosec)
+        end = int(msg.end.sec) * 1_000_000_000 + int(msg.end.nanosec)
+        labels.append(TimedLabel(start, end, str(msg.instruction)))
+    return labels
+
+
+def sidecar_path(bag: Path, pattern: str) -> Path:
+    """Where the sidecar file of ``bag`` lies: ``pattern`` with ``{name}`` replaced by the bag's name (without
+    suffix), relative to the bag directory (a bag file: the directory holding it) unless absolute."""
+    name = bag.name if bag.is_dir() else bag.stem
+    relative = Path(pattern.replace("{name}", name))
+    return relative if relative.is_absolute() else (bag if bag.is_dir() else bag.parent) / relative
+
+
+def labels_from_file(bag: Path, file: Path, bag_start_ns: int) -> list[TimedLabel]:
+    """The labels of a sidecar file; ConvertError naming the bag, the file and the entry when malformed."""
+    try:
+        raw: Any = read_yaml(file, "annotations file")
+    except MappingError as error:
+        raise ConvertError(bag, str(error)) from None
+    entries: Any = raw
+    base = bag_start_ns
+    if isinstance(raw, Mapping):
+        unknown = set(raw) - {"times", "annotations"}
+        if unknown:
+            raise ConvertError(bag, f"annotations file {str(file)!r}: unknown key(s) {sorted(unknown)}")
+        times = raw.get("times", "from_start")
+        if times not in ("from_start", "absolute"):
+            raise ConvertError(
+                bag, f"annotations file {str(file)!r}, key 'times': {times!r} is not from_start or absolute"
+            )
+        base = 0 if times == "absolute" else bag_start_ns
+        entries = raw.get("annotations", [])
+    if not isinstance(entries, Sequence) or isinstance(entries, str):
+        raise ConvertError(bag, f"annotations file {str(file)!r}: expected a list of annotations")
+    labels = []
+    for i, entry in enumerate(entries):
+        where = f"annotations file {str(file)!r}, annotations[{i}]"
+        if not isinstance(entry, Mapping) or set(entry) != {"start", "end", "instruction"}:
+            raise ConvertError(bag, f"{where}: expected exactly start, end, instruction; got {entry!r}")
+        start, end = entry["start"], entry["end"]
+        if (
+            not all(isinstance(v, int | float) and not isinstance(v, bool) for v in (start, end))
+            or end < start
+        ):
+            raise ConvertError(bag, f"{where}: start and end must be numbers (seconds) with start <= end")
+        labels.append(
+            TimedLabel(base + round(start * 1e9), base + round(end * 1e9), str(entry["instruction"]))
+        )
+    return labels
+
+
+def segments_of_episodes(
+    episode_steps: Sequence[np.ndarray], labels: Sequence[TimedLabel]
+) -> tuple[list[list[Segment]], list[str]]:
+    """Each episode's segments (``episode_steps``: each episode's step times, sorted) and notes about the
+    labels that were cut or dropped."""
+    segments: list[list[Segment]] = [[] for _ in episode_steps]
+    notes: list[str] = []
+    for label in sorted(labels):
+        when = f"annotation {label.instruction!r} [{label.start_ns / 1e9:.3f}, {label.end_ns / 1e9:.3f}]"
+        if not label.instruction:
+            notes.append(f"{when}: no instruction; dropped")
+            continue
+        # the episode holding its first step: the first episode that ends at or after the label's start
+        index = next((k for k, steps in enumerate(episode_steps) if steps[-1] >= label.start_ns), None)
+        if index is None or episode_steps[index][0] > label.end_ns:
+            notes.append(f"{when}: no step of any episode in its time; dropped")
+            continue
+        steps = episode_steps[index]
+        start = int(np.searchsorted(steps, label.start_ns, side="left"))
+        end = int(np.searchsorted(steps, label.end_ns, side="right")) - 1
+        if (
+            label.end_ns > steps[-1]
+            and index + 1 < len(episode_steps)
+            and episode_steps[index + 1][0] <= label.end_ns
+        ):
+            notes.append(f"{when}: runs past the end of its episode; cut at step {end}")
+        if end - start < 1:
+            notes.append(f"{when}: covers {max(end - start + 1, 0)} step(s), a segment needs 2; dropped")
+            continue
+        previous = segments[index][-1] if segments[index] else None
+        if previous is not None and start < previous.end:
+            notes.append(
+                f"{when}: overlaps the previous annotation (steps {previous.start}-{previous.end}); dropped"
+            )
+            continue
+        segments[index].append(Segment(start, end, label.instruction))
+    return segments, notes

@@ -1,0 +1,388 @@
+"""`playseg convert`: many bags, a process pool, one dataset; resumable.
+
+Each bag is converted on its own (in a worker process) into a *part*: a complete playseg dataset under
+``.<OUT>.convert/`` next to ``OUT``, written through a staging directory and renamed when finished, so an
+unfinished part never looks finished. When the bags are done, the parts (and the bags an earlier run put
+into ``OUT``) are merged into ``OUT``, again through a staging directory; merged parts are removed.
+
+Resuming: ``OUT``'s meta/info.json lists the bags it holds (path and a fingerprint of their files) and the
+mapping's digest; a rerun skips those bags, and bags whose part is finished, and converts the rest. A bag
+that fails is reported in one line and skipped; the others convert and are merged, and the run exits
+non-zero. Episodes with annotations land in the ``train`` split (with their segments), the others in
+``play``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import multiprocessing
+import os
+import shutil
+import sys
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NotRequired, TypedDict
+
+from playseg_core.data.dataset import DatasetWriter, PlayDataset, is_dataset
+from playseg_core.data.episode import Episode
+from playseg_core.data.features import Features
+from playseg_ros.convert.build import convert_bag
+from playseg_ros.convert.errors import ConvertError
+from playseg_ros.convert.mapping import ConvertMapping
+from playseg_ros.convert.source import bag_size, find_bags, fingerprint, is_play_bag
+
+CONVERT_META = "convert"
+"""The key of meta/info.json's ``meta`` that records what a conversion put into a dataset."""
+
+
+class BagRecordJson(TypedDict):
+    """One converted bag as a dataset's ``meta.convert.bags`` records it."""
+
+    fingerprint: str
+    episodes: int
+    name: str
+
+
+class ConvertMetaJson(TypedDict):
+    mapping_digest: str | None
+    mapping: NotRequired[str | None]
+    bags: dict[str, BagRecordJson]  # by the bag's absolute path
+
+
+@dataclass(frozen=True)
+class BagTask:
+    bag: Path
+    fingerprint: str
+    part: Path
+    mapping: ConvertMapping | None
+
+
+@dataclass
+class BagReport:
+    """What became of one bag."""
+
+    bag: Path
+    status: str  # "converted", "skipped" (in OUT already), "finished" (a part from an earlier run), "failed"
+    error: str | None = None
+    episodes: int = 0
+    steps: int = 0
+    segments: int = 0
+    dropped_steps: int = 0
+    notes: list[str] = field(default_factory=list)
+    bytes: int = 0
+
+
+@dataclass
+class ConvertSummary:
+    out: Path
+    reports: list[BagReport]
+    seconds: float = 0.0
+
+    def count(self, status: str) -> int:
+        return sum(r.status == status for r in self.reports)
+
+    @property
+    def failed(self) -> list[BagReport]:
+        return [r for r in self.reports if r.status == "failed"]
+
+    def totals(self) -> dict[str, int]:
+        done = [r for r in self.reports if r.status in ("converted", "finished")]
+        return {
+            key: sum(getattr(r, key) for r in done)
+            for key in ("episodes", "steps", "segments", "dropped_steps")
+        }
+
+    def text(self) -> str:
+        totals = self.totals()
+        return (
+            f"{self.out}: {len(self.reports)} bags: {self.count('converted') + self.count('finished')} converted, "
+            f"{self.count('skipped')} skipped (already in the dataset), {self.count('failed')} failed; "
+            f"{totals['episodes']} episodes, {totals['steps']} steps, {totals['segments']} segments, "
+            f"{totals['dropped_steps']} dropped steps"
+        )
+
+
+def parts_dir(out: Path) -> Path:
+    return out.with_name(f".{out.name}.convert")
+
+
+def part_path(out: Path, bag: Path) -> Path:
+    digest = hashlib.sha256(str(bag).encode()).hexdigest()[:12]
+    return parts_dir(out) / f"{bag.name}-{digest}"
+
+
+def convert_meta(dataset: PlayDataset) -> ConvertMetaJson | None:
+    meta = dataset.info.get("meta", {}).get(CONVERT_META)
+    return meta if isinstance(meta, dict) and isinstance(meta.get("bags"), dict) else None
+
+
+def split_of(episode: Episode) -> str:
+    return "train" if episode.segments else "play"
+
+
+def convert_one(task: BagTask) -> BagReport:
+    """Convert one bag into its part (a worker's job). Bad input is reported, never raised."""
+    report = BagReport(task.bag, "converted", bytes=bag_size(task.bag))
+    try:
+        if task.mapping is None or is_play_bag(task.bag):
+            episodes, features, notes, dropped = _play_bag_episodes(task)
+        else:
+            converted = convert_bag(task.bag, task.mapping)
+            episodes, features, notes, dropped = (
+                converted.episodes,
+                converted.features,
+                converted.notes,
+                converted.dropped_steps,
+            )
+        report.notes, report.dropped_steps = notes, dropped
+        if not episodes:
+            raise ConvertError(
+                task.bag, f"no episode left ({dropped} steps dropped: {'; '.join(notes) or 'empty'})"
+            )
+        instructions = sorted({s.instruction for e in episodes for s in e.segments if s.instruction})
+        meta = {CONVERT_META: {"bag": str(task.bag), "fingerprint": task.fingerprint,
+                               "mapping_digest": task.mapping.digest if task.mapping else None,
+                               "notes": notes, "dropped_steps": dropped}}  # fmt: skip
+        with DatasetWriter(task.part, instructions, meta=meta, overwrite=True, features=features) as writer:
+            for episode in episodes:
+                writer.add(episode, split_of(episode), extra={"bag": str(task.bag)})
+                report.episodes += 1
+                report.steps += episode.num_steps
+                report.segments += len(episode.segments)
+    except (ValueError, OSError) as error:  # BagError, ConvertError, FeatureError, DatasetError, a full disk
+        report.status, report.error = "failed", _one_line(error)
+    return report
+
+
+def _play_bag_episodes(task: BagTask) -> tuple[list[Episode], Features | None, list[str], int]:
+    from playseg_ros.play_bags import iter_play_bag, read_play_bag_info
+
+    if not is_play_bag(task.bag):
+        raise ConvertError(task.bag, "not a playseg play bag: give a mapping (--mapping MAP.yaml)")
+    info = read_play_bag_info(task.bag)
+    incomplete: list[str] = []
+    episodes = list(
+        iter_play_bag(task.bag, incomplete="drop", on_incomplete=lambda e, s: incomplete.append(e))
+    )
+    notes = [f"episode {e!r} cut off before its end; dropped" for e in incomplete]
+    return episodes, info.features, notes, 0
+
+
+def _one_line(error: BaseException) -> str:
+    return " ".join((str(error) or type(error).__name__).split())
+
+
+def convert(
+    inputs: Sequence[str | Path],
+    out: str | Path,
+    mapping: ConvertMapping | None,
+    workers: int = 1,
+    overwrite: bool = False,
+    progress: bool = True,
+    on_report: Callable[[BagReport], None] | None = None,
+) -> ConvertSummary:
+    """Convert the bags named by ``inputs`` into the playseg dataset ``out`` (see the module docstring)."""
+    import time
+
+    started = time.perf_counter()
+    if workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {workers}")
+    out = Path(out).resolve()
+    bags = find_bags(inputs)
+    if not bags:
+        raise ValueError(f"{', '.join(map(str, inputs))}: no bags found")
+    previous = _previous_dataset(out, mapping, overwrite)
+    done = {} if previous is None else convert_meta(previous)["bags"]  # type: ignore[index]
+    reports: dict[Path, BagReport] = {}
+    tasks: list[BagTask] = []
+    for bag in bags:
+        stamp = fingerprint(bag)
+        if done.get(str(bag), {}).get("fingerprint") == stamp:
+            reports[bag] = BagReport(bag, "skipped")
+            continue
+        task = BagTask(bag, stamp, part_path(out, bag), mapping)
+        if _finished_part(task) is not None:
+            reports[bag] = _report_of_part(task)
+            continue
+        tasks.append(task)
+    for report in _run_tasks(tasks, workers, progress):
+        reports[report.bag] = report
+        if on_report is not None:
+            on_report(report)
+    ordered = [reports[bag] for bag in bags]
+    merged = [r for r in ordered if r.status in ("converted", "finished")]
+    if merged:
+        _merge(out, previous, [(r, part_path(out, r.bag)) for r in merged], mapping, overwrite)
+    elif previous is None and not out.exists():
+        pass  # nothing converted, nothing to write
+    shutil.rmtree(parts_dir(out), ignore_errors=True) if not any(parts_dir(out).glob("*")) else None
+    return ConvertSummary(out, ordered, time.perf_counter() - started)
+
+
+def _previous_dataset(out: Path, mapping: ConvertMapping | None, overwrite: bool) -> PlayDataset | None:
+    """The dataset an earlier run left at ``out`` (None with ``overwrite`` or when there is none)."""
+    if not out.exists():
+        return None
+    if not is_dataset(out):
+        raise FileExistsError(f"{out}: exists and is not a playseg dataset; refusing to write into it")
+    if overwrite:
+        shutil.rmtree(parts_dir(out), ignore_errors=True)
+        return None
+    dataset = PlayDataset.open(out)
+    meta = convert_meta(dataset)
+    if meta is None:
+        raise FileExistsError(
+            f"{out}: a playseg dataset not written by `playseg convert`; use --overwrite or another --out"
+        )
+    digest = mapping.digest if mapping else None
+    if meta.get("mapping_digest") != digest:
+        raise ValueError(
+            f"{out}: converted with another mapping ({meta.get('mapping')}); convert again with --overwrite, "
+            "or choose another --out"
+        )
+    return dataset
+
+
+def _finished_part(task: BagTask) -> PlayDataset | None:
+    if not is_dataset(task.part):
+        return None
+    try:
+        part = PlayDataset.open(task.part)
+    except (ValueError, OSError):
+        return None
+    meta = part.info.get("meta", {}).get(CONVERT_META, {})
+    digest = task.mapping.digest if task.mapping else None
+    if meta.get("fingerprint") != task.fingerprint or meta.get("mapping_digest") != digest:
+        return None
+    return part
+
+
+def _report_of_part(task: BagTask) -> BagReport:
+    part = PlayDataset.open(task.part)
+    meta = part.info["meta"][CONVERT_META]
+    counts = part.info["counts"]
+    return BagReport(
+        task.bag, "finished", episodes=counts["episodes"], steps=counts["steps"], segments=counts["segments"],
+        dropped_steps=int(meta.get("dropped_steps", 0)), notes=list(meta.get("notes", [])),
+    )  # fmt: skip
+
+
+def _run_tasks(tasks: list[BagTask], workers: int, progress: bool) -> list[BagReport]:
+    from tqdm import tqdm
+
+    reports: list[BagReport] = []
+    total_bytes = sum(bag_size(t.bag) for t in tasks)
+    bar = tqdm(total=total_bytes, unit="B", unit_scale=True, desc="convert", disable=not progress or not tasks,
+               file=sys.stderr)  # fmt: skip
+    try:
+        if workers == 1 or len(tasks) <= 1:
+            for task in tasks:
+                reports.append(convert_one(task))
+                bar.update(reports[-1].bytes)
+            return reports
+        # spawn: workers start clean (no inherited threads or locks), the same on every platform
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=context) as pool:
+            futures: list[Future[BagReport]] = [pool.submit(convert_one, task) for task in tasks]
+            try:
+                for future in as_completed(futures):
+                    reports.append(future.result())
+                    bar.update(reports[-1].bytes)
+                    bar.set_postfix(failed=sum(r.status == "failed" for r in reports))
+            except BaseException:
+                pool.shutdown(wait=True, cancel_futures=True)
+                raise
+        return reports
+    finally:
+        bar.close()
+
+
+def _merge(
+    out: Path,
+    previous: PlayDataset | None,
+    parts: list[tuple[BagReport, Path]],
+    mapping: ConvertMapping | None,
+    overwrite: bool,
+) -> None:
+    """Write ``out`` from the previous dataset's bags (those not converted again) and the new parts; a part
+    whose features differ from the dataset's fails its bag (reported), the rest are merged."""
+    sources: list[tuple[PlayDataset, BagReport | None]] = []
+    features: Features | None = previous.features if previous is not None else None
+    for report, path in parts:
+        part = PlayDataset.open(path)
+        if features is None:
+            features = part.features
+        if part.features != features:
+            report.status = "failed"
+            report.error = (
+                f"bag {str(report.bag)!r}: its features differ from the dataset's "
+                f"({_difference(features, part.features)}); not merged"
+            )
+            shutil.rmtree(path, ignore_errors=True)
+            continue
+        sources.append((part, report))
+    if not sources:
+        return
+    renewed = {str(report.bag) for _, report in sources if report is not None}
+    bags: dict[str, BagRecordJson] = {}
+    if previous is not None:
+        bags = {k: v for k, v in convert_meta(previous)["bags"].items() if k not in renewed}  # type: ignore[index]
+    instructions: set[str] = set()
+    for dataset, _ in ([(previous, None)] if previous is not None else []) + sources:
+        instructions.update(dataset.instructions)
+    meta: dict[str, Any] = {
+        CONVERT_META: {
+            "mapping_digest": mapping.digest if mapping else None,
+            "mapping": str(mapping.path) if mapping else None,
+            "bags": bags,
+        }  # fmt: skip
+    }
+    for part, report in sources:
+        assert report is not None
+        bags[str(report.bag)] = {"fingerprint": part.info["meta"][CONVERT_META]["fingerprint"],
+                                 "episodes": len(part.records), "name": report.bag.name}  # fmt: skip
+    used: set[str] = set()
+    with DatasetWriter(out, sorted(instructions), meta=meta, overwrite=True, features=features) as writer:
+        if previous is not None:
+            for index, record in enumerate(previous.records):
+                if record.extra.get("bag") not in renewed:
+                    writer.add(previous.episode(index, truth=True), record.split, record.extra)
+                    used.add(record.episode_id)
+        for part, _ in sources:
+            for index, record in enumerate(part.records):
+                episode = _unique_id(part.episode(index, truth=True), str(record.extra.get("bag")), used)
+                writer.add(episode, record.split, record.extra)
+    for _, report in sources:
+        assert report is not None
+        shutil.rmtree(part_path(out, report.bag), ignore_errors=True)
+
+
+def _unique_id(episode: Episode, bag: str, used: set[str]) -> Episode:
+    """Episode ids are ``<bag name>:<k>``; two bags of one name (in different directories) are told apart
+    by a digest of their path."""
+    if episode.episode_id in used:
+        name, _, k = episode.episode_id.rpartition(":")
+        digest = hashlib.sha256(bag.encode()).hexdigest()[:6]
+        episode = Episode(
+            f"{name}~{digest}:{k}", episode.actions, episode.images, episode.state, episode.segments
+        )
+    used.add(episode.episode_id)
+    return episode
+
+
+def _difference(ours: Features | None, theirs: Features) -> str:
+    if ours is None:
+        return "no features"
+    for name in sorted(set(ours.by_name) | set(theirs.by_name)):
+        a, b = ours.by_name.get(name), theirs.by_name.get(name)
+        if a != b:
+            return f"{name}: {a.describe() if a else 'absent'} vs {b.describe() if b else 'absent'}" + (
+                " (names differ)" if a and b and a.describe() == b.describe() else ""
+            )
+    return f"fps {ours.fps} vs {theirs.fps}"
+
+
+def default_workers() -> int:
+    return max(1, min(4, (os.cpu_count() or 1)))
