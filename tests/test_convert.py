@@ -76,6 +76,8 @@ class RobotBag:
     joint_gap: tuple[float, float] | None = None  # no JointState in [a, b)
     camera_topic: str = "/camera/image_raw"
     bad_image_at: int | None = None  # this frame's CompressedImage bytes are garbage
+    silence: tuple[float, float] | None = None  # no message of any topic in [a, b) seconds
+    markers: list[float] = field(default_factory=list)  # std_msgs/Empty on /episode_start
 
     def camera_times(self) -> list[int]:
         return [ns(i / CAMERA_HZ) for i in range(round(self.seconds * CAMERA_HZ))]
@@ -138,6 +140,10 @@ class RobotBag:
                     end=Time(sec=ns(end) // 10**9, nanosec=ns(end) % 10**9), instruction=text, episode_id="",
                 )  # fmt: skip
                 out.append(("/annotations", "playseg_msgs/msg/TimedAnnotation", t, msg))
+        for seconds in self.markers:
+            out.append(("/episode_start", "std_msgs/msg/Empty", ns(seconds), types["std_msgs/msg/Empty"]()))
+        if self.silence:
+            out = [m for m in out if not ns(self.silence[0]) <= m[2] < ns(self.silence[1])]
         return sorted(out, key=lambda item: item[2])
 
 
@@ -494,3 +500,77 @@ def test_cli_mapping_error_is_one_line(tmp_path: Path, capsys: pytest.CaptureFix
         f"playseg convert: mapping {str(tmp_path / 'm.yaml')!r}, key 'features': no features named"
     ]
     assert not (tmp_path / "data").exists()
+
+
+def test_episodes_split_at_markers_and_labels_are_cut_at_their_episode(tmp_path: Path) -> None:
+    spec = RobotBag(markers=[1.45])
+    bag = write_rosbag2(tmp_path / "marked", spec)
+    mapping = dict(MAPPING, episodes={"split": "marker", "topic": "/episode_start"})
+    summary = convert(
+        [bag], tmp_path / "data", load_mapping(write_mapping(tmp_path / "m.yaml", mapping)), progress=False
+    )
+    (report,) = summary.reports
+    dataset = PlayDataset.open(tmp_path / "data")
+    assert [r.num_steps for r in dataset.records] == [14, 14]  # observations 0.0..1.4 s and 1.5..2.9 s
+    check_episode(dataset, 0, spec, expected_steps(spec)[:15])
+    check_episode(dataset, 1, spec, expected_steps(spec)[15:])
+    # [0.3, 1.2]: steps 3..12 of episode 0; [1.2, 2.5] starts in episode 0, so it is cut at its last step
+    assert [(s.start, s.end) for s in dataset.segments(0)] == [(3, 12), (12, 14)]
+    assert dataset.segments(1) == [] and dataset.records[1].split == "play"
+    assert any("'put the cup down'" in note and "cut at step 14" in note for note in report.notes)
+
+
+def test_episodes_split_at_a_time_gap_drop_nothing(tmp_path: Path) -> None:
+    spec = RobotBag(silence=(1.0, 2.0), labels=[])
+    bag = write_rosbag2(tmp_path / "gappy", spec, "sqlite3")
+    mapping = dict(MAPPING, episodes={"split": "gap", "gap_s": 0.5})
+    summary = convert(
+        [bag], tmp_path / "data", load_mapping(write_mapping(tmp_path / "m.yaml", mapping)), progress=False
+    )
+    assert summary.totals()["dropped_steps"] == 0
+    dataset = PlayDataset.open(tmp_path / "data")
+    frames = expected_steps(spec)
+    check_episode(dataset, 0, spec, [i for i in frames if i < 30])
+    check_episode(dataset, 1, spec, [i for i in frames if i >= 60])
+
+
+def test_a_field_not_in_the_message_and_a_non_image_camera_fail_their_bag(tmp_path: Path) -> None:
+    bag = write_rosbag2(tmp_path / "bag", RobotBag(seconds=0.5))
+    features = dict(MAPPING["features"], action={"topic": "/cmd_vel", "fields": ["linear.x", "linear.w"]})
+    mapping = load_mapping(write_mapping(tmp_path / "m.yaml", dict(MAPPING, features=features)))
+    (report,) = convert([bag], tmp_path / "a", mapping, progress=False).reports
+    assert report.status == "failed"
+    assert (
+        "topic '/cmd_vel', field 'linear.w', time 1700000000.005000: not in the message (there: x, y, z)"
+        in str(report.error)
+    )
+    features = dict(MAPPING["features"], **{"observation.images.front": {"topic": "/joint_states"}})
+    mapping = load_mapping(write_mapping(tmp_path / "m2.yaml", dict(MAPPING, features=features)))
+    (report,) = convert([bag], tmp_path / "b", mapping, progress=False).reports
+    assert "topic '/joint_states': type sensor_msgs/msg/JointState is not an image" in str(report.error)
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_play_bags_need_no_mapping_and_other_bags_do(tmp_path: Path) -> None:
+    from playseg_core.data.episode import Episode, Segment
+    from playseg_ros.play_bags import write_play_bag
+
+    rng = np.random.default_rng(0)
+    episode = Episode(
+        "e0",
+        rng.integers(0, 3, size=(6, 1)).astype(np.float32),
+        {"observation.images.camera": rng.integers(0, 255, size=(7, 8, 8, 3), dtype=np.uint8)},
+        segments=[Segment(0, 3, "left"), Segment(3, 6, "right")],
+    )
+    write_play_bag(tmp_path / "bags" / "play", [episode], annotated=True)
+    write_rosbag2(tmp_path / "bags" / "robot", RobotBag(seconds=0.5))
+    summary = convert([tmp_path / "bags"], tmp_path / "data", None, progress=False)
+    assert [r.status for r in summary.reports] == ["converted", "failed"]
+    assert "not a playseg play bag: give a mapping" in str(summary.reports[1].error)
+    dataset = PlayDataset.open(tmp_path / "data")
+    loaded = dataset.episode(0, truth=True)
+    np.testing.assert_array_equal(
+        loaded.images["observation.images.camera"], episode.images["observation.images.camera"]
+    )
+    np.testing.assert_array_equal(loaded.actions, episode.actions)
+    assert loaded.segments == episode.segments and dataset.records[0].split == "train"

@@ -10,6 +10,7 @@ is dropped, never filled in, and reported once per feature (count and first time
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -42,8 +43,11 @@ class BagEpisodes:
     notes: list[str] = field(default_factory=list)
 
 
-def step_times(primary: np.ndarray, period_ns: int) -> tuple[np.ndarray, int, list[str]]:
-    """The primary's sample indices taken as steps, the number of steps its gaps miss, and notes."""
+def step_times(
+    primary: np.ndarray, period_ns: int, episode_gap_ns: int | None = None
+) -> tuple[np.ndarray, int, list[str]]:
+    """The primary's sample indices taken as steps, the number of steps its gaps miss (a gap longer than
+    ``episode_gap_ns`` ends an episode and misses nothing), and notes."""
     if len(primary) == 0:
         return np.zeros(0, dtype=np.int64), 0, []
     intervals = np.diff(primary)
@@ -55,7 +59,7 @@ def step_times(primary: np.ndarray, period_ns: int) -> tuple[np.ndarray, int, li
     for i in range(1, len(primary)):
         since = int(primary[i] - primary[taken[-1]])
         if since >= period_ns - slack:
-            if since > period_ns + period_ns // 2:
+            if since > period_ns + period_ns // 2 and (episode_gap_ns is None or since <= episode_gap_ns):
                 missing += round(since / period_ns) - 1
                 first_gap = first_gap if first_gap is not None else int(primary[taken[-1]])
             taken.append(i)
@@ -92,7 +96,8 @@ def episodes_of(
     notes: list[str] = []
     primary = mapping.features[mapping.primary]
     primary_samples = samples[primary.topic]
-    taken, dropped, clock_notes = step_times(primary_samples.stamps, mapping.period_ns)
+    episode_gap = mapping.gap_ns if mapping.split == "gap" else None
+    taken, dropped, clock_notes = step_times(primary_samples.stamps, mapping.period_ns, episode_gap)
     notes += clock_notes
     steps = primary_samples.stamps[taken]
     # every feature's sample index (or pair) per step; the primary reads its own samples
@@ -141,12 +146,15 @@ def episodes_of(
     markers = samples[mapping.marker_topic].stamps if mapping.marker_topic else None
     starts = episode_starts(steps, mapping, markers)
     bounds = list(zip(starts, [*starts[1:], len(steps)], strict=True))
-    short = [(a, b) for a, b in bounds if b - a < mapping.min_steps]
+    short = [
+        (a, b) for a, b in bounds if b - a - 1 < mapping.min_steps
+    ]  # b - a observations, one action less
     if short:
         dropped += sum(b - a for a, b in short)
-        notes.append(f"{len(short)} episode(s) shorter than {mapping.min_steps} steps; dropped")
-        bounds = [(a, b) for a, b in bounds if b - a >= mapping.min_steps]
-    labels = _labels(bag, mapping, samples, bag_start_ns)
+        notes.append(f"{len(short)} episode(s) with fewer than {mapping.min_steps} steps; dropped")
+        bounds = [(a, b) for a, b in bounds if b - a - 1 >= mapping.min_steps]
+    labels, label_notes = _labels(bag, mapping, samples, bag_start_ns)
+    notes += label_notes
     segments, label_notes = segments_of_episodes([steps[a:b] for a, b in bounds], labels)
     notes += label_notes
     episodes = []
@@ -186,7 +194,7 @@ def _feature_rows(
             )
         frames: list[np.ndarray] = []
         for i in alignment.lo.tolist():
-            image = _decoded(bag, topic, i, None, lambda m: decode_image(m, topic.msgtype, feature.resize))
+            image = _decoded(bag, topic, i, lambda m: decode_image(m, topic.msgtype, feature.resize))
             if frames and image.shape != frames[0].shape:
                 raise ConvertError(
                     bag,
@@ -203,18 +211,16 @@ def _feature_rows(
         return array, Feature(feature.name, "image", "uint8", tuple(array.shape[1:]))
     if not topic.messages:
         raise ConvertError(bag, "no messages", topic.topic)
-    first = topic.messages[0]
     decoder = _decoded(
         bag,
         topic,
         0,
-        None,
         lambda m: NumericDecoder.of_first(m, topic.msgtype, feature.fields, feature.joints),
     )
     needed = sorted(set(alignment.lo.tolist()) | set(alignment.hi.tolist()))
     values = np.zeros((len(topic.messages), decoder.size), dtype=np.float32)
     for i in needed:
-        values[i] = _decoded(bag, topic, i, first, decoder.decode)
+        values[i] = _decoded(bag, topic, i, decoder.decode)
     array = alignment.take(values) if len(alignment.lo) else np.zeros((0, decoder.size), np.float32)
     kind = "action" if feature.name == ACTION else "state"
     for bound, key in ((feature.low, "low"), (feature.high, "high")):
@@ -227,7 +233,7 @@ def _feature_rows(
     )
 
 
-def _decoded(bag: Path, topic: TopicSamples, i: int, _first: Any, decode: Any) -> Any:
+def _decoded(bag: Path, topic: TopicSamples, i: int, decode: Callable[[Any], Any]) -> Any:
     try:
         return decode(topic.messages[i])
     except DecodeError as error:
@@ -236,12 +242,19 @@ def _decoded(bag: Path, topic: TopicSamples, i: int, _first: Any, decode: Any) -
 
 def _labels(
     bag: Path, mapping: ConvertMapping, samples: dict[str, TopicSamples], bag_start_ns: int
-) -> list[TimedLabel]:
+) -> tuple[list[TimedLabel], list[str]]:
+    """The bag's labels from the topic and the sidecar file; a missing source is a note, not an error
+    (a bag nobody annotated is unannotated play)."""
     labels: list[TimedLabel] = []
+    notes: list[str] = []
     if mapping.annotation_topic and samples[mapping.annotation_topic].messages:
         labels += labels_from_topic(bag, samples[mapping.annotation_topic])
     if mapping.annotation_file:
         file = sidecar_path(bag, mapping.annotation_file)
         if file.is_file():
             labels += labels_from_file(bag, file, bag_start_ns)
-    return labels
+        else:
+            notes.append(f"no annotations file {str(file)!r}")
+    if mapping.annotation_topic and not samples[mapping.annotation_topic].messages:
+        notes.append(f"no annotations on {mapping.annotation_topic}")
+    return labels, notes

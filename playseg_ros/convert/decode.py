@@ -129,7 +129,9 @@ def field_value(msg: Any, path: str) -> Any:
         name, index = (indexed.group(1), int(indexed.group(2))) if indexed else (part, None)
         walked.append(part)
         if not hasattr(value, name) or name.startswith("_"):
-            have = ", ".join(sorted(k for k in getattr(value, "__dataclass_fields__", {})))
+            have = ", ".join(
+                sorted(k for k in getattr(value, "__dataclass_fields__", {}) if not k.startswith("_"))
+            )
             raise DecodeError(f"not in the message (there: {have or 'no fields'})", ".".join(walked))
         value = getattr(value, name)
         if index is not None:

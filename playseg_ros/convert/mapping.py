@@ -100,7 +100,7 @@ EPISODE_KEYS = {
     "gap": ("split", "gap_s", "min_steps"),
 }
 DEFAULT_TOLERANCE_MS = 50.0
-DEFAULT_MIN_STEPS = 2
+DEFAULT_MIN_STEPS = 1
 
 
 # --------------------------------------------------------------------------------------------------
@@ -280,8 +280,8 @@ def parse_mapping(raw: Any, path: Path) -> ConvertMapping:
     if split == "gap":
         gap_ns = round(_positive(episodes.get("gap_s"), path, "episodes.gap_s") * 1e9)
     min_steps = episodes.get("min_steps", DEFAULT_MIN_STEPS)
-    if isinstance(min_steps, bool) or not isinstance(min_steps, int) or min_steps < 2:
-        raise MappingError(path, "episodes.min_steps", f"must be a whole number >= 2, got {min_steps!r}")
+    if isinstance(min_steps, bool) or not isinstance(min_steps, int) or min_steps < 1:
+        raise MappingError(path, "episodes.min_steps", f"must be a whole number >= 1, got {min_steps!r}")
     digest = hashlib.sha256(json.dumps(raw, sort_keys=True, default=str).encode()).hexdigest()
     return ConvertMapping(
         path=path,

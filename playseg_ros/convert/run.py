@@ -214,10 +214,9 @@ def convert(
     ordered = [reports[bag] for bag in bags]
     merged = [r for r in ordered if r.status in ("converted", "finished")]
     if merged:
-        _merge(out, previous, [(r, part_path(out, r.bag)) for r in merged], mapping, overwrite)
-    elif previous is None and not out.exists():
-        pass  # nothing converted, nothing to write
-    shutil.rmtree(parts_dir(out), ignore_errors=True) if not any(parts_dir(out).glob("*")) else None
+        _merge(out, previous, [(r, part_path(out, r.bag)) for r in merged], mapping)
+    if parts_dir(out).is_dir() and not any(parts_dir(out).iterdir()):
+        parts_dir(out).rmdir()  # every part merged: nothing left to resume from
     return ConvertSummary(out, ordered, time.perf_counter() - started)
 
 
@@ -304,7 +303,6 @@ def _merge(
     previous: PlayDataset | None,
     parts: list[tuple[BagReport, Path]],
     mapping: ConvertMapping | None,
-    overwrite: bool,
 ) -> None:
     """Write ``out`` from the previous dataset's bags (those not converted again) and the new parts; a part
     whose features differ from the dataset's fails its bag (reported), the rest are merged."""
