@@ -1,0 +1,237 @@
+"""Tabletop play: long episodes in which the teleoperator carries out one instruction after another.
+
+One random layout per episode, then tasks in a row until the episode has its number of solved tasks.
+Each next instruction is drawn among those that may be given now (not already done, worth doing: see
+instructions.py), first a family uniformly among the families with such tasks, then a task of it,
+never the one just attempted. Every step records the camera frame, the proprioceptive state and the
+commanded velocity.
+
+Ground truth: every solved task is one segment labelled with its instruction, ending at the step where
+the oracle first says done. Steps no segment covers are unlabelled: short idle stretches between tasks
+(pauses, aimless moves), and the steps of a task the teleoperator failed within `max_task_steps` (they
+stay in the recording, as an operator's fumbling would, but carry no label). After `max_failures`
+failures in a row the episode ends.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from playseg_core.data.episode import Episode, Segment
+from playseg_core.data.features import ACTION, STATE, Feature, Features
+from playseg_core.domains.tabletop.instructions import Task, applicable_tasks, is_done
+from playseg_core.domains.tabletop.render import Renderer
+from playseg_core.domains.tabletop.sim import Scene, TabletopSim
+from playseg_core.domains.tabletop.spec import (
+    ACTION_HIGH,
+    ACTION_LOW,
+    ACTION_NAMES,
+    CAMERA,
+    CONTROL_HZ,
+    DEFAULT_IMAGE_SIZE,
+    STATE_NAMES,
+)
+from playseg_core.domains.tabletop.teleop import TeleopConfig, Teleoperator
+
+
+@dataclass(frozen=True)
+class PlayConfig:
+    """How tabletop play episodes are generated.
+
+    tasks_per_episode: (low, high) solved tasks per episode, drawn uniformly.
+    max_task_steps: a task not done after this many steps counts as failed (its steps stay unlabelled).
+    max_failures: failed tasks in a row that end the episode.
+    idle_chance: chance of an unlabelled stretch before each task; idle_steps: its (low, high) length.
+    """
+
+    image_size: int = DEFAULT_IMAGE_SIZE
+    tasks_per_episode: tuple[int, int] = (10, 20)
+    max_task_steps: int = 120
+    max_failures: int = 2
+    idle_chance: float = 0.1
+    idle_steps: tuple[int, int] = (5, 15)
+    teleop: TeleopConfig = field(default_factory=TeleopConfig)
+
+    def __post_init__(self) -> None:
+        Renderer(self.image_size)  # ValueError naming a bad image size
+        low, high = self.tasks_per_episode
+        if not 1 <= low <= high:
+            raise ValueError(f"PlayConfig.tasks_per_episode must be 1 <= low <= high, got {(low, high)}")
+        if self.max_task_steps < 1 or self.max_failures < 1:
+            raise ValueError("PlayConfig.max_task_steps and max_failures must be >= 1")
+        if not 0.0 <= self.idle_chance <= 1.0:
+            raise ValueError(f"PlayConfig.idle_chance must be in [0, 1], got {self.idle_chance}")
+        if not 1 <= self.idle_steps[0] <= self.idle_steps[1]:
+            raise ValueError(f"PlayConfig.idle_steps must be 1 <= low <= high, got {self.idle_steps}")
+
+    @property
+    def features(self) -> Features:
+        """The dataset features: the top camera, the effector state, the commanded velocity."""
+        side = self.image_size
+        return Features.of(
+            [
+                Feature(CAMERA, "image", "uint8", (side, side, 3)),
+                Feature(STATE, "state", "float32", (len(STATE_NAMES),), names=STATE_NAMES),
+                Feature(
+                    ACTION, "action", "float32", (2,), names=ACTION_NAMES, low=ACTION_LOW, high=ACTION_HIGH
+                ),
+            ],
+            fps=CONTROL_HZ,
+        )
+
+
+@dataclass
+class PlayStats:
+    """What the teleoperator did in one episode: attempted, solved and failed tasks (by family),
+    the steps of each solved task, the unlabelled idle steps."""
+
+    attempted: dict[str, int] = field(default_factory=dict)
+    solved: dict[str, int] = field(default_factory=dict)
+    task_lengths: list[int] = field(default_factory=list)
+    failed_steps: int = 0
+    idle_steps: int = 0
+
+    def count(self, task: Task, solved: bool) -> None:
+        self.attempted[task.family] = self.attempted.get(task.family, 0) + 1
+        if solved:
+            self.solved[task.family] = self.solved.get(task.family, 0) + 1
+
+    def merge(self, other: PlayStats) -> None:
+        for family, n in other.attempted.items():
+            self.attempted[family] = self.attempted.get(family, 0) + n
+        for family, n in other.solved.items():
+            self.solved[family] = self.solved.get(family, 0) + n
+        self.task_lengths.extend(other.task_lengths)
+        self.failed_steps += other.failed_steps
+        self.idle_steps += other.idle_steps
+
+    @property
+    def success_rate(self) -> float:
+        attempted = sum(self.attempted.values())
+        return sum(self.solved.values()) / attempted if attempted else 0.0
+
+    def to_json(self) -> dict[str, object]:
+        return {
+            "attempted": dict(sorted(self.attempted.items())),
+            "solved": dict(sorted(self.solved.items())),
+            "success_rate": round(self.success_rate, 4),
+            "failed_steps": self.failed_steps,
+            "idle_steps": self.idle_steps,
+        }
+
+
+@dataclass
+class PlayEpisode:
+    """One generated episode and what the teleoperator did in it."""
+
+    episode: Episode
+    stats: PlayStats
+
+
+class _Recorder:
+    """Runs the sim step by step and keeps every observation and action."""
+
+    def __init__(self, sim: TabletopSim, renderer: Renderer) -> None:
+        self.sim, self.renderer = sim, renderer
+        self.scene = sim.scene()
+        self.frames = [renderer.render(self.scene)]
+        self.states = [sim.state_vector()]
+        self.actions: list[tuple[float, float]] = []
+
+    @property
+    def steps(self) -> int:
+        return len(self.actions)
+
+    def step(self, action: np.ndarray) -> Scene:
+        self.actions.append(self.sim.step(action))
+        self.scene = self.sim.scene()
+        self.frames.append(self.renderer.render(self.scene))
+        self.states.append(self.sim.state_vector())
+        return self.scene
+
+
+def episode_id_for_seed(seed: int) -> str:
+    """The id of the play episode generated from ``seed``."""
+    return f"tabletop-{seed}"
+
+
+def draw_task(scene: Scene, rng: np.random.Generator, exclude: Task | None = None) -> Task | None:
+    """A task that may be given in ``scene``: a family uniformly, then one of its tasks; None if none."""
+    by_family = applicable_tasks(scene)
+    if exclude is not None and exclude.family in by_family:
+        remaining = [task for task in by_family[exclude.family] if task != exclude]
+        if remaining:
+            by_family[exclude.family] = remaining
+        else:
+            del by_family[exclude.family]
+    if not by_family:
+        return None
+    families = sorted(by_family)
+    tasks = by_family[families[int(rng.integers(len(families)))]]
+    return tasks[int(rng.integers(len(tasks)))]
+
+
+def run_task(recorder: _Recorder, teleop: Teleoperator, task: Task, max_steps: int) -> bool:
+    """Let the teleoperator carry out ``task`` until the oracle says done (True) or ``max_steps`` pass."""
+    start = recorder.scene
+    teleop.begin(task, start)
+    for _ in range(max_steps):
+        scene = recorder.step(teleop.act(recorder.scene))
+        if is_done(task, scene, start):
+            return True
+    return False
+
+
+def generate_episode(config: PlayConfig, seed: int) -> PlayEpisode:
+    """One deterministic play episode (same config and seed -> identical arrays and segments)."""
+    rng = np.random.default_rng(seed)
+    sim = TabletopSim()
+    sim.place_randomly(rng)
+    recorder = _Recorder(sim, Renderer(config.image_size))
+    teleop = Teleoperator(config.teleop, rng)
+    stats = PlayStats()
+    segments: list[Segment] = []
+    wanted = int(rng.integers(config.tasks_per_episode[0], config.tasks_per_episode[1] + 1))
+    failures, previous = 0, None
+    while len(segments) < wanted and failures < config.max_failures:
+        if rng.random() < config.idle_chance:
+            teleop.begin_idle("pause" if rng.random() < 0.5 else "wander")
+            steps = int(rng.integers(config.idle_steps[0], config.idle_steps[1] + 1))
+            for _ in range(steps):
+                recorder.step(teleop.act(recorder.scene))
+            stats.idle_steps += steps
+        task = draw_task(recorder.scene, rng, exclude=previous)
+        if task is None:
+            break
+        previous = task
+        start = recorder.steps
+        solved = run_task(recorder, teleop, task, config.max_task_steps)
+        stats.count(task, solved)
+        if solved:
+            segments.append(Segment(start, recorder.steps, task.text))
+            stats.task_lengths.append(recorder.steps - start)
+            failures = 0
+        else:
+            stats.failed_steps += recorder.steps - start
+            failures += 1
+    episode = Episode(
+        episode_id=episode_id_for_seed(seed),
+        actions=np.asarray(recorder.actions, dtype=np.float32).reshape(-1, 2),
+        images={CAMERA: np.stack(recorder.frames)},
+        state=np.stack(recorder.states),
+        segments=segments,
+    )
+    return PlayEpisode(episode, stats)
+
+
+__all__ = [
+    "PlayConfig",
+    "PlayEpisode",
+    "PlayStats",
+    "draw_task",
+    "episode_id_for_seed",
+    "generate_episode",
+    "run_task",
+]

@@ -1,0 +1,199 @@
+"""The tabletop physics: a pymunk world with a table, rims, 8 blocks and a round end effector.
+
+Top-down, so there is no gravity; table friction is Coulomb friction per block (a pivot and a gear joint
+to the table with a bounded force and torque, pymunk's usual top-down friction), so a block slides only
+while it is pushed. The effector is a kinematic body: it pushes blocks with whatever force it takes, is
+not pushed back, and passes over the rims (kinematic bodies do not collide with static ones). Its
+velocity follows the commanded one with a first-order lag, sampled at the control rate: each step it
+moves `1 - exp(-dt / EFFECTOR_TIME_CONSTANT)` of the way to the command, then holds for the step.
+
+pymunk is deterministic for the same sequence of calls, so a sim driven by the same seed and actions
+reproduces its states bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pymunk
+
+from playseg_core.domains.tabletop.spec import (
+    BLOCK_EXTENTS,
+    BLOCK_FRICTION,
+    BLOCK_MASS,
+    BLOCKS,
+    CONTROL_HZ,
+    CUBE_SIDE,
+    CYLINDER_RADIUS,
+    EFFECTOR_RADIUS,
+    EFFECTOR_REACH,
+    EFFECTOR_TIME_CONSTANT,
+    MAX_SPEED,
+    PHYSICS_SUBSTEPS,
+    TABLE_SIZE,
+)
+
+GRAVITY = 9.81
+PHYSICS_DT = 1.0 / (CONTROL_HZ * PHYSICS_SUBSTEPS)
+RIM_THICKNESS = 0.02
+EFFECTOR_LOW = -EFFECTOR_REACH
+EFFECTOR_HIGH = TABLE_SIZE + EFFECTOR_REACH
+
+PLACEMENT_MARGIN = 0.06
+"""Blocks are placed at least this far from the table's edge (m)."""
+PLACEMENT_MIN_DISTANCE = 0.09
+"""Centres of randomly placed blocks are at least this far apart (m)."""
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A snapshot of the table: what the task oracle and the teleoperator read.
+
+    blocks: (8, 2) block centres; angles: (8,) block orientations; effector, effector_velocity: (2,).
+    """
+
+    blocks: np.ndarray
+    angles: np.ndarray
+    effector: np.ndarray
+    effector_velocity: np.ndarray
+
+
+def _clip_command(action: np.ndarray | tuple[float, float]) -> tuple[float, float]:
+    vx, vy = float(action[0]), float(action[1])
+    if not (math.isfinite(vx) and math.isfinite(vy)):
+        raise ValueError(f"tabletop action {action!r}: velocities must be finite numbers")
+    return (min(MAX_SPEED, max(-MAX_SPEED, vx)), min(MAX_SPEED, max(-MAX_SPEED, vy)))
+
+
+class TabletopSim:
+    """One table. `place` or `place_randomly` sets it up; `step` applies one control step."""
+
+    def __init__(self) -> None:
+        space = pymunk.Space()
+        space.gravity = (0.0, 0.0)
+        space.iterations = 10
+        space.collision_slop = 0.0005  # pymunk's default (0.1) assumes pixels, not metres
+        self.space = space
+        self._add_rims()
+        self.blocks: list[pymunk.Body] = [self._add_block(index) for index in range(len(BLOCKS))]
+        self.effector = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
+        effector_shape = pymunk.Circle(self.effector, EFFECTOR_RADIUS)
+        effector_shape.friction = 0.3
+        space.add(self.effector, effector_shape)
+        self._velocity = (0.0, 0.0)
+        self._response = 1.0 - math.exp(-1.0 / (CONTROL_HZ * EFFECTOR_TIME_CONSTANT))
+
+    def _add_rims(self) -> None:
+        # Thick segments just outside the edges: their inner surface is the table's edge.
+        low, high, r = -RIM_THICKNESS, TABLE_SIZE + RIM_THICKNESS, RIM_THICKNESS
+        corners = [(low, low), (high, low), (high, high), (low, high)]
+        for a, b in zip(corners, corners[1:] + corners[:1], strict=True):
+            rim = pymunk.Segment(self.space.static_body, a, b, r)
+            rim.friction = 0.3
+            self.space.add(rim)
+
+    def _add_block(self, index: int) -> pymunk.Body:
+        if BLOCKS[index].endswith("cube"):
+            body = pymunk.Body(BLOCK_MASS, pymunk.moment_for_box(BLOCK_MASS, (CUBE_SIDE, CUBE_SIDE)))
+            shape: pymunk.Shape = pymunk.Poly.create_box(body, (CUBE_SIDE, CUBE_SIDE))
+        else:
+            body = pymunk.Body(BLOCK_MASS, pymunk.moment_for_circle(BLOCK_MASS, 0.0, CYLINDER_RADIUS))
+            shape = pymunk.Circle(body, CYLINDER_RADIUS)
+        shape.friction = 0.4
+        shape.elasticity = 0.0
+        self.space.add(body, shape)
+        table = self.space.static_body
+        sliding = pymunk.PivotJoint(table, body, (0.0, 0.0), (0.0, 0.0))
+        sliding.max_bias = 0.0  # no position correction: the joint only resists motion
+        sliding.max_force = BLOCK_FRICTION * BLOCK_MASS * GRAVITY
+        turning = pymunk.GearJoint(table, body, 0.0, 1.0)
+        turning.max_bias = 0.0
+        turning.max_force = BLOCK_FRICTION * BLOCK_MASS * GRAVITY * BLOCK_EXTENTS[index] * 0.5
+        self.space.add(sliding, turning)
+        return body
+
+    def place(
+        self,
+        blocks: np.ndarray | list[tuple[float, float]],
+        effector: tuple[float, float] | np.ndarray,
+        angles: np.ndarray | list[float] | None = None,
+    ) -> None:
+        """Put the blocks (8 centres) and the effector at rest where given; ValueError if off the table."""
+        blocks = np.asarray(blocks, dtype=np.float64)
+        if blocks.shape != (len(BLOCKS), 2):
+            raise ValueError(
+                f"tabletop blocks must be {len(BLOCKS)} (x, y) centres, got shape {blocks.shape}"
+            )
+        if np.any(blocks < 0.0) or np.any(blocks > TABLE_SIZE):
+            raise ValueError(f"tabletop blocks must lie on the table [0, {TABLE_SIZE}]^2")
+        ex, ey = float(effector[0]), float(effector[1])
+        if not (EFFECTOR_LOW <= ex <= EFFECTOR_HIGH and EFFECTOR_LOW <= ey <= EFFECTOR_HIGH):
+            raise ValueError(f"tabletop effector ({ex}, {ey}) outside [{EFFECTOR_LOW}, {EFFECTOR_HIGH}]^2")
+        angles = np.zeros(len(BLOCKS)) if angles is None else np.asarray(angles, dtype=np.float64)
+        for body, (x, y), angle in zip(self.blocks, blocks, angles, strict=True):
+            body.position = (float(x), float(y))
+            body.angle = float(angle)
+            body.velocity = (0.0, 0.0)
+            body.angular_velocity = 0.0
+        self.effector.position = (ex, ey)
+        self.effector.velocity = (0.0, 0.0)
+        self._velocity = (0.0, 0.0)
+        self.space.reindex_shapes_for_body(self.effector)
+        for body in self.blocks:
+            self.space.reindex_shapes_for_body(body)
+
+    def place_randomly(self, rng: np.random.Generator) -> None:
+        """A random layout: blocks apart from each other and from the edges, the effector anywhere."""
+        low, high = PLACEMENT_MARGIN, TABLE_SIZE - PLACEMENT_MARGIN
+        centres: list[np.ndarray] = []
+        while len(centres) < len(BLOCKS):
+            candidate = rng.uniform(low, high, size=2)
+            if all(np.hypot(*(candidate - c)) >= PLACEMENT_MIN_DISTANCE for c in centres):
+                centres.append(candidate)
+            elif len(centres) and rng.random() < 0.01:
+                centres = []  # a crowded start: begin again rather than search forever
+        angles = rng.uniform(-math.pi / 4, math.pi / 4, size=len(BLOCKS))
+        effector = rng.uniform(0.05, TABLE_SIZE - 0.05, size=2)
+        self.place(np.array(centres), effector, angles)
+
+    def step(self, action: np.ndarray | tuple[float, float]) -> tuple[float, float]:
+        """Command the effector's planar velocity for one control step (1 / CONTROL_HZ s).
+
+        The command is clipped to [-MAX_SPEED, MAX_SPEED] per axis (returned); the effector stops at the
+        edge of its reach [-EFFECTOR_REACH, TABLE_SIZE + EFFECTOR_REACH]^2.
+        """
+        command = _clip_command(action)
+        vx, vy = self._velocity
+        vx += (command[0] - vx) * self._response
+        vy += (command[1] - vy) * self._response
+        x, y = self.effector.position
+        # Stop at the edge of the reach: never step past it.
+        horizon = 1.0 / CONTROL_HZ
+        vx = min(max(vx, (EFFECTOR_LOW - x) / horizon), (EFFECTOR_HIGH - x) / horizon)
+        vy = min(max(vy, (EFFECTOR_LOW - y) / horizon), (EFFECTOR_HIGH - y) / horizon)
+        self.effector.velocity = (vx, vy)
+        self._velocity = (vx, vy)
+        step, dt = self.space.step, PHYSICS_DT
+        for _ in range(PHYSICS_SUBSTEPS):
+            step(dt)
+        return command
+
+    def scene(self) -> Scene:
+        """The current positions and velocities (copies)."""
+        blocks = self.blocks
+        return Scene(
+            blocks=np.array([body.position for body in blocks]),
+            angles=np.array([body.angle for body in blocks]),
+            effector=np.array(self.effector.position),
+            effector_velocity=np.array(self._velocity),
+        )
+
+    def state_vector(self) -> np.ndarray:
+        """The proprioceptive state (spec.STATE_NAMES): effector x, y, velocity x, velocity y, float32."""
+        x, y = self.effector.position
+        return np.array((x, y, *self._velocity), dtype=np.float32)
+
+
+__all__ = ["PHYSICS_DT", "Scene", "TabletopSim"]
