@@ -10,3 +10,26 @@ import os
 os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+
+# Imported only now: rclpy must see the environment above.
+from collections.abc import Iterator  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+from node_procs import Processes, RosPeer  # noqa: E402
+
+
+@pytest.fixture
+def procs(tmp_path: Path) -> Iterator[Processes]:
+    """Node processes of one test, logging into its tmp_path; killed at the end."""
+    processes = Processes(tmp_path)
+    yield processes
+    processes.close()
+
+
+@pytest.fixture
+def peer() -> Iterator[RosPeer]:
+    """An rclpy node of the test process to publish, subscribe and call services with."""
+    ros = RosPeer("playseg_test_peer")
+    yield ros
+    ros.close()

@@ -8,11 +8,9 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-import pytest
 import yaml
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
@@ -39,20 +37,6 @@ from playseg_ros.play_bags import read_play_bag, write_play_bag
 from playseg_ros.typestore import playseg_typestore
 
 FLUSHED = re.compile(r"flushed: (\d+) messages on disk")
-
-
-@pytest.fixture
-def procs(tmp_path: Path) -> Iterator[Processes]:
-    processes = Processes(tmp_path)
-    yield processes
-    processes.close()
-
-
-@pytest.fixture
-def peer() -> Iterator[RosPeer]:
-    ros = RosPeer("playseg_node_test")
-    yield ros
-    ros.close()
 
 
 def _episodes(count: int) -> list[Episode]:

@@ -13,8 +13,9 @@ from playseg_core.data.dataset import DatasetWriter, PlayDataset
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.data.features import ACTION, STATE, Feature, Features
 from playseg_core.ps.encoders import feature_statistics
-from playseg_core.ps.model import load_model
+from playseg_core.ps.model import PSModel, load_model
 from playseg_core.ps.segmentation import segment_episode
+from playseg_core.ps.streaming import StreamingSegmenter
 from playseg_core.ps.training import TrainConfig, model_config_for, segment_bounds, train_ps
 from playseg_ros.cli import main as cli_main
 
@@ -144,3 +145,26 @@ def test_a_robot_dataset_goes_through_train_segment_evaluate(tmp_path: Path, cap
         segments = segmented.segments(index, truth=True)
         assert segments and all(loaded.cfg.min_len <= s.length <= loaded.max_len for s in segments)
     assert cli_main(["evaluate", "--pred", str(out), "--truth", str(data), "--plot-episodes", "0"]) == 0
+
+
+def test_the_stream_equals_offline_segmentation_on_robot_data() -> None:
+    """Two cameras, a state and continuous actions, pushed one step at a time as a live segmenter does."""
+    features = robot_features({FRONT: (12, 16), WRIST: (8, 8)}, state=True)
+    episodes = [robot_episode(s, features, "action") for s in range(3)]
+    torch.manual_seed(1)  # untrained: many arbitrary cuts to compare
+    bounds = segment_bounds(episodes)
+    config = model_config_for(
+        features, None, len(INSTRUCTIONS), max_len=bounds.max_len, episodes=episodes, min_len=bounds.min_len
+    )
+    model = PSModel(config, list(INSTRUCTIONS))
+    episode = episodes[0]
+    stream, live = StreamingSegmenter(model), []
+    for t in range(episode.num_steps + 1):
+        observation = {name: frames[t] for name, frames in episode.images.items()} | {STATE: episode.state[t]}
+        live += stream.push(observation, episode.actions[t] if t < episode.num_steps else None)
+    live += stream.finish()
+    offline = segment_episode(model, episode)
+    assert len(offline) > 1
+    assert [(s.start, s.end, s.instruction) for s in live] == [
+        (s.start, s.end, s.instruction) for s in offline
+    ]

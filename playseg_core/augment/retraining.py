@@ -8,6 +8,7 @@ The policy is any `augment.policy.PolicyLearner`; the trainer node is a thin ROS
 from __future__ import annotations
 
 import json
+import math
 import os
 import threading
 from collections.abc import Iterable
@@ -15,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from playseg_core.augment.buffer import AugmentationBuffer
-from playseg_core.augment.policy import PolicyEvaluation, PolicyLearner
+from playseg_core.augment.policy import PolicyEvaluation, PolicyLearner, PolicyTrainReport
 from playseg_core.data.episode import Episode, SegmentClip
 from playseg_core.data.features import ACTION, STATE, Features
 
@@ -57,6 +58,14 @@ class PolicyVersion:
     train_loss: float
     num_base_segments: int
     num_buffer_segments: int
+    # What this version's evaluation reports (`evaluation_figure`): "success_rate" in the simulator, else
+    # "val_accuracy" / "val_loss" on the learner's held-out clips, "" when there is neither.
+    eval_metric: str = "success_rate"
+    eval_value: float = float("nan")
+
+    def __post_init__(self) -> None:
+        if self.eval_metric == "success_rate" and math.isnan(self.eval_value):  # a record from before
+            self.eval_value = self.success_rate
 
 
 class AugmentationTrainer:
@@ -114,9 +123,10 @@ class AugmentationTrainer:
         model, report = self.learner.train(clips, progress=progress)
         result = self.evaluate(model)
         success = result.success_rate if result else float("nan")
+        metric, value = evaluation_figure(result, report)
         version = self.policy_version + 1
         path = self.checkpoint_dir / f"policy-v{version:04d}.pt"
-        meta = {"version": version, "success_rate": success, "segments": len(clips)}
+        meta = {"version": version, "success_rate": success, metric or "eval": value, "segments": len(clips)}
         self.learner.save(path, model, meta)
         latest = PolicyVersion(
             version=version,
@@ -126,6 +136,8 @@ class AugmentationTrainer:
             train_loss=report.final_loss,
             num_base_segments=len(self.base_clips),
             num_buffer_segments=len(clips) - len(self.base_clips),
+            eval_metric=metric,
+            eval_value=value,
         )
         _write_json_atomically(self.checkpoint_dir / "latest.json", latest.__dict__)
         self.latest = latest
@@ -150,6 +162,19 @@ class AugmentationTrainer:
             return PolicyVersion(**json.loads(path.read_text()))
         except (ValueError, TypeError) as exc:
             raise ValueError(f"{path}: not a policy version record: {exc}") from exc
+
+
+def evaluation_figure(result: PolicyEvaluation | None, report: PolicyTrainReport) -> tuple[str, float]:
+    """(metric, value) a policy version reports: its simulator success rate when its domain has a
+    simulator, else its accuracy (discrete actions) or loss on the learner's held-out clips; ("", NaN)
+    when there is neither."""
+    if result is not None:
+        return "success_rate", result.success_rate
+    if report.val_accuracy is not None:
+        return "val_accuracy", report.val_accuracy
+    if report.val_loss is not None:
+        return "val_loss", report.val_loss
+    return "", float("nan")
 
 
 def _write_json_atomically(path: Path, data: dict) -> None:

@@ -201,7 +201,9 @@ class ContinuousActionEncoder(PreviousActionEncoder):
         nn.init.zeros_(self.embed.bias)
 
     def previous_action_rows(self, actions: np.ndarray, where: str) -> np.ndarray:
-        values = np.asarray(actions, np.float32).reshape(len(actions), -1)
+        values = np.asarray(actions, np.float32)
+        # No action yet (o_0 of a stream) arrives as an empty array of any width.
+        values = values.reshape(len(values), -1) if len(values) else np.zeros((0, self.size), np.float32)
         if values.shape[1] != self.size:
             raise FeatureError(f"{where}: actions of {values.shape[1]} values, the model reads {self.size}")
         if not np.isfinite(values).all():

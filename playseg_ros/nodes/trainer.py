@@ -8,6 +8,8 @@ counts (TrainerStatus.buffer_segments is the acknowledged count), so a crash los
 acknowledged. Retraining runs in a background thread every `retrain_every` segments and on the
 `~/retrain` service; each run writes `policy-vNNNN.pt` and evaluates it on fixed seeded episodes of the
 policy's simulator (the `policy` parameter names it: ``<domain>.<policy>``, see playseg_core.augment.policy).
+A policy without a simulator (the generic ``bc``) reports its held-out validation figure instead;
+TrainerStatus.last_eval_metric and the `~/evaluate` answer say which one they carry.
 """
 
 from __future__ import annotations
@@ -73,6 +75,7 @@ class TrainerNode(ReleasingLifecycleNode):
         self.message = ""
         self.last_eval = math.nan
         self.last_eval_episodes = 0
+        self.last_eval_metric, self.last_eval_value = "", math.nan
         self.last_loss = math.nan
         self._training = threading.Lock()
         self._sub = None
@@ -177,6 +180,8 @@ class TrainerNode(ReleasingLifecycleNode):
                 self.destroy_publisher(self._status_pub)
                 self._status_pub = None
         self.base_info = DataInfo()
+        self.last_eval, self.last_eval_episodes, self.last_loss = math.nan, 0, math.nan
+        self.last_eval_metric, self.last_eval_value = "", math.nan
 
     # -- data ------------------------------------------------------------------------------------------
     def _on_segment(self, msg: LabelledSegment) -> None:
@@ -205,8 +210,11 @@ class TrainerNode(ReleasingLifecycleNode):
             self.publish_status()
             version = trainer.retrain()
             self.last_eval, self.last_eval_episodes = version.success_rate, version.eval_episodes
+            self.last_eval_metric, self.last_eval_value = version.eval_metric, version.eval_value
             self.last_loss = version.train_loss
-            self.message = f"policy v{version.version}: success {version.success_rate:.3f}"
+            self.message = (
+                f"policy v{version.version}: {version.eval_metric or 'eval'} {version.eval_value:.3f}"
+            )
             self.get_logger().info(self.message)
             self.state = "idle"
         except Exception as exc:  # a failed retraining must not kill the node or lose the buffer
@@ -231,10 +239,11 @@ class TrainerNode(ReleasingLifecycleNode):
                     return response
                 response.accepted = self.state != "error"
                 response.eval_success_rate = self.last_eval
+                response.eval_metric, response.eval_value = self.last_eval_metric, self.last_eval_value
             else:
                 trainer = self.trainer
                 response.accepted = self._start_retraining()
-                response.eval_success_rate = math.nan
+                response.eval_success_rate = response.eval_value = math.nan
             response.policy_version = trainer.policy_version + (0 if request.wait else 1)
             response.message = self.message if request.wait else ("started" if response.accepted else "busy")
         except Exception as exc:  # a service must answer, never take the node down
@@ -268,10 +277,19 @@ class TrainerNode(ReleasingLifecycleNode):
             return response
         try:
             result = trainer.evaluate(episodes=request.episodes or None)
-            if result is None:
-                raise ValueError(f"policy {self.p['policy']} has no simulator to evaluate in")
-            response.success, response.success_rate = True, result.success_rate
-            response.episodes, response.policy_version = result.num_episodes, trainer.policy_version
+            response.policy_version = trainer.policy_version
+            if result is not None:
+                response.success, response.success_rate = True, result.success_rate
+                response.metric, response.value = "success_rate", result.success_rate
+                response.episodes = result.num_episodes
+            else:  # no simulator: the held-out figure measured when this version was trained
+                latest = trainer.latest
+                response.success, response.success_rate = True, math.nan
+                response.metric, response.value = latest.eval_metric, latest.eval_value
+                response.message = (
+                    f"policy {self.p['policy']} has no simulator: {latest.eval_metric or 'no figure'} "
+                    f"of v{latest.version} on its held-out annotated segments"
+                )
         except ValueError as exc:
             response.success, response.message = False, str(exc)
         except Exception as exc:  # a service must answer, never take the node down
@@ -294,10 +312,14 @@ class TrainerNode(ReleasingLifecycleNode):
                 msg.policy_version = trainer.policy_version
                 if trainer.latest:
                     msg.checkpoint_path = trainer.latest.checkpoint
-                    if math.isnan(self.last_eval):
+                    if not self.last_eval_metric:  # a version trained before this node started
                         self.last_eval = trainer.latest.success_rate
                         self.last_eval_episodes = trainer.latest.eval_episodes
+                        self.last_eval_metric = trainer.latest.eval_metric
+                        self.last_eval_value = trainer.latest.eval_value
             msg.last_eval_success_rate = float(self.last_eval)
+            msg.last_eval_metric = self.last_eval_metric
+            msg.last_eval_value = float(self.last_eval_value)
             msg.last_eval_episodes = self.last_eval_episodes
             msg.last_train_loss = float(self.last_loss)
             msg.message = self.message
