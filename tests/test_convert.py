@@ -151,7 +151,7 @@ def write_rosbag2(
     path: Path,
     spec: RobotBag,
     storage: str = "mcap",
-    zstd: bool = False,
+    zstd: bool | str = False,
     start: float = 0.0,
     stop: float = 1e9,
 ) -> Path:
@@ -159,8 +159,10 @@ def write_rosbag2(
     store = convert_typestore()
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     writer = Writer(path, version=9, storage_plugin=plugin)
-    if zstd:
-        writer.set_compression(CompressionMode.MESSAGE, CompressionFormat.ZSTD)
+    if zstd:  # True: each message compressed; "file": each storage file
+        writer.set_compression(
+            CompressionMode.FILE if zstd == "file" else CompressionMode.MESSAGE, CompressionFormat.ZSTD
+        )
     with writer:
         connections: dict[str, Any] = {}
         for topic, msgtype, t, msg in spec.messages(store):
@@ -245,12 +247,15 @@ def check_episode(dataset: PlayDataset, index: int, spec: RobotBag, frames: list
 # Tests
 
 
-@pytest.mark.parametrize("layout", ["sqlite3-zstd", "mcap-split"])
+@pytest.mark.parametrize("layout", ["sqlite3-zstd", "mcap-split", "mcap-zstd-file"])
 def test_mapping_converts_frames_states_actions_and_segments(tmp_path: Path, layout: str) -> None:
     spec = RobotBag()
     bag = tmp_path / "run_01"
     if layout == "sqlite3-zstd":
         write_rosbag2(bag, spec, "sqlite3", zstd=True)
+    elif layout == "mcap-zstd-file":
+        write_rosbag2(bag, spec, "mcap", zstd="file")
+        assert len(list(bag.glob("*.mcap.zstd"))) == 1
     else:
         write_split_mcap(bag, spec, at=1.55)
         assert len(list(bag.glob("*.mcap"))) == 2
