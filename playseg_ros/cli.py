@@ -276,10 +276,10 @@ def _cmd_convert(args: argparse.Namespace) -> int:
         return 0
     if not args.out:
         raise ValueError("--out is required (the dataset directory to write)")
-    if args.format != "playseg":
-        raise ValueError(f"--format {args.format!r}: this playseg writes only 'playseg'")
     mapping = load_mapping(args.mapping) if args.mapping else None
-    summary = convert(args.bags, args.out, mapping, args.workers, args.overwrite, progress=not args.quiet)
+    summary = convert(
+        args.bags, args.out, mapping, args.workers, args.overwrite, not args.quiet, output_format=args.format
+    )
     for report in summary.reports:
         for note in report.notes:
             print(f"{report.bag.name}: {note}", file=sys.stderr)
@@ -297,7 +297,12 @@ def _add_convert_command(sub: argparse._SubParsersAction) -> None:
     convert.add_argument("bags", nargs="+", metavar="BAG_OR_DIR", help="bags, or directories holding bags")
     convert.add_argument("--out", help="dataset directory to write (a rerun skips the bags it holds)")
     convert.add_argument("--mapping", help="mapping YAML (not needed for playseg play bags)")
-    convert.add_argument("--format", default="playseg", choices=["playseg"], help="output format")
+    convert.add_argument(
+        "--format",
+        default="playseg",
+        choices=["playseg", "lerobot"],
+        help="a playseg dataset or LeRobot v3.0",
+    )
     convert.add_argument("--workers", type=int, default=1, help="bags converted in parallel (processes)")
     convert.add_argument("--overwrite", action="store_true", help="convert every bag again into a new --out")
     convert.add_argument(

@@ -9,7 +9,8 @@ Resuming: ``OUT``'s meta/info.json lists the bags it holds (path and a fingerpri
 mapping's digest; a rerun skips those bags, and bags whose part is finished, and converts the rest. A bag
 that fails is reported in one line and skipped; the others convert and are merged, and the run exits
 non-zero. Episodes with annotations land in the ``train`` split (with their segments), the others in
-``play``.
+``play``. ``--format lerobot`` keeps that dataset as ``.<OUT>.playseg`` and exports it to ``OUT`` as a
+LeRobot v3.0 dataset (lerobot.py).
 """
 
 from __future__ import annotations
@@ -23,16 +24,19 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NotRequired, TypedDict
+from typing import Any, Literal, NotRequired, TypedDict
 
 from playseg_core.data.dataset import DatasetWriter, PlayDataset, is_dataset
 from playseg_core.data.episode import Episode
 from playseg_core.data.features import Features
 from playseg_ros.convert.build import convert_bag
 from playseg_ros.convert.errors import ConvertError
+from playseg_ros.convert.lerobot import export_lerobot, is_lerobot_dataset
 from playseg_ros.convert.mapping import ConvertMapping
 from playseg_ros.convert.source import bag_size, find_bags, fingerprint, is_play_bag
 
+OutputFormat = Literal["playseg", "lerobot"]
+OUTPUT_FORMATS: tuple[OutputFormat, ...] = ("playseg", "lerobot")
 CONVERT_META = "convert"
 """The key of meta/info.json's ``meta`` that records what a conversion put into a dataset."""
 
@@ -102,6 +106,11 @@ class ConvertSummary:
             f"{totals['episodes']} episodes, {totals['steps']} steps, {totals['segments']} segments, "
             f"{totals['dropped_steps']} dropped steps"
         )
+
+
+def playseg_copy(lerobot_out: Path) -> Path:
+    """Where the playseg dataset behind a LeRobot export is kept (what a rerun resumes from)."""
+    return lerobot_out.with_name(f".{lerobot_out.name}.playseg")
 
 
 def parts_dir(out: Path) -> Path:
@@ -182,14 +191,24 @@ def convert(
     overwrite: bool = False,
     progress: bool = True,
     on_report: Callable[[BagReport], None] | None = None,
+    output_format: OutputFormat = "playseg",
 ) -> ConvertSummary:
-    """Convert the bags named by ``inputs`` into the playseg dataset ``out`` (see the module docstring)."""
+    """Convert the bags named by ``inputs`` into the playseg dataset ``out`` (see the module docstring).
+
+    With ``output_format="lerobot"`` the playseg dataset is kept next to ``out`` as ``.<OUT>.playseg``
+    (what a rerun resumes from) and exported to ``out`` as a LeRobot v3.0 dataset (lerobot.py) whenever
+    it changed or ``out`` is missing."""
     import time
 
     started = time.perf_counter()
     if workers < 1:
         raise ValueError(f"--workers must be >= 1, got {workers}")
-    out = Path(out).resolve()
+    if output_format not in OUTPUT_FORMATS:
+        raise ValueError(f"--format {output_format!r}: expected one of {', '.join(OUTPUT_FORMATS)}")
+    export_to = Path(out).resolve() if output_format == "lerobot" else None
+    if export_to is not None and export_to.exists() and not is_lerobot_dataset(export_to):
+        raise FileExistsError(f"{export_to}: exists and is not a LeRobot dataset; refusing to write into it")
+    out = playseg_copy(export_to) if export_to is not None else Path(out).resolve()
     bags = find_bags(inputs)
     if not bags:
         raise ValueError(f"{', '.join(map(str, inputs))}: no bags found")
@@ -217,7 +236,13 @@ def convert(
         _merge(out, previous, [(r, part_path(out, r.bag)) for r in merged], mapping)
     if parts_dir(out).is_dir() and not any(parts_dir(out).iterdir()):
         parts_dir(out).rmdir()  # every part merged: nothing left to resume from
-    return ConvertSummary(out, ordered, time.perf_counter() - started)
+    if (
+        export_to is not None
+        and is_dataset(out)
+        and (any(r.status != "failed" for r in merged) or not export_to.exists())
+    ):
+        export_lerobot(PlayDataset.open(out), export_to, overwrite=True)
+    return ConvertSummary(export_to or out, ordered, time.perf_counter() - started)
 
 
 def _previous_dataset(out: Path, mapping: ConvertMapping | None, overwrite: bool) -> PlayDataset | None:
