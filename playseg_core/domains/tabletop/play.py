@@ -130,8 +130,8 @@ class PlayEpisode:
     stats: PlayStats
 
 
-class _Recorder:
-    """Runs the sim step by step and keeps every observation and action."""
+class Recorder:
+    """Runs the sim step by step and keeps every observation (frame, state) and applied action."""
 
     def __init__(self, sim: TabletopSim, renderer: Renderer) -> None:
         self.sim, self.renderer = sim, renderer
@@ -173,7 +173,7 @@ def draw_task(scene: Scene, rng: np.random.Generator, exclude: Task | None = Non
     return tasks[int(rng.integers(len(tasks)))]
 
 
-def run_task(recorder: _Recorder, teleop: Teleoperator, task: Task, max_steps: int) -> bool:
+def run_task(recorder: Recorder, teleop: Teleoperator, task: Task, max_steps: int) -> bool:
     """Let the teleoperator carry out ``task`` until the oracle says done (True) or ``max_steps`` pass."""
     start = recorder.scene
     teleop.begin(task, start)
@@ -189,7 +189,7 @@ def generate_episode(config: PlayConfig, seed: int) -> PlayEpisode:
     rng = np.random.default_rng(seed)
     sim = TabletopSim()
     sim.place_randomly(rng)
-    recorder = _Recorder(sim, Renderer(config.image_size))
+    recorder = Recorder(sim, Renderer(config.image_size))
     teleop = Teleoperator(config.teleop, rng)
     stats = PlayStats()
     segments: list[Segment] = []
@@ -228,6 +228,7 @@ def generate_episode(config: PlayConfig, seed: int) -> PlayEpisode:
 
 __all__ = [
     "PlayConfig",
+    "Recorder",
     "PlayEpisode",
     "PlayStats",
     "draw_task",

@@ -2,10 +2,12 @@
 
 Top-down, so there is no gravity; table friction is Coulomb friction per block (a pivot and a gear joint
 to the table with a bounded force and torque, pymunk's usual top-down friction), so a block slides only
-while it is pushed. The effector is a kinematic body: it pushes blocks with whatever force it takes, is
-not pushed back, and passes over the rims (kinematic bodies do not collide with static ones). Its
-velocity follows the commanded one with a first-order lag, sampled at the control rate: each step it
-moves `1 - exp(-dt / EFFECTOR_TIME_CONSTANT)` of the way to the command, then holds for the step.
+while it is pushed. The effector is a heavy disc driven by a velocity servo (a pivot joint with a bounded
+force to an invisible kinematic "hand" that moves at the commanded velocity): it pushes blocks, but a
+block pinned against a rim stops it instead of being crushed through it. It passes over the rims (they
+stop only blocks). The hand's velocity follows the command with a first-order lag sampled at the
+control rate: each step it moves ``1 - exp(-dt / EFFECTOR_TIME_CONSTANT)`` of the way to the command.
+The state's velocity is the effector's measured velocity.
 
 pymunk is deterministic for the same sequence of calls, so a sim driven by the same seed and actions
 reproduces its states bit for bit.
@@ -41,6 +43,13 @@ RIM_THICKNESS = 0.02
 EFFECTOR_LOW = -EFFECTOR_REACH
 EFFECTOR_HIGH = TABLE_SIZE + EFFECTOR_REACH
 
+EFFECTOR_MASS = 1.0  # kg
+EFFECTOR_MAX_FORCE = 20.0
+"""The servo's force bound (N): enough to push a row of blocks, not to crush one into a rim."""
+RIMS = pymunk.ShapeFilter(categories=0b10)
+EFFECTOR_FILTER = pymunk.ShapeFilter(mask=pymunk.ShapeFilter.ALL_MASKS() ^ 0b10)
+"""The effector collides with the blocks, not with the rims."""
+
 PLACEMENT_MARGIN = 0.06
 """Blocks are placed at least this far from the table's edge (m)."""
 PLACEMENT_MIN_DISTANCE = 0.09
@@ -61,10 +70,15 @@ class Scene:
 
 
 def _clip_command(action: np.ndarray | tuple[float, float]) -> tuple[float, float]:
+    """The command as applied: clipped to the bounds, rounded to float32 (as datasets store actions, so
+    replaying recorded actions reproduces the recorded run exactly)."""
+    if len(action) != 2:
+        raise ValueError(f"tabletop action {action!r}: expected 2 velocities (x, y)")
     vx, vy = float(action[0]), float(action[1])
     if not (math.isfinite(vx) and math.isfinite(vy)):
         raise ValueError(f"tabletop action {action!r}: velocities must be finite numbers")
-    return (min(MAX_SPEED, max(-MAX_SPEED, vx)), min(MAX_SPEED, max(-MAX_SPEED, vy)))
+    clipped = np.array([min(MAX_SPEED, max(-MAX_SPEED, vx)), min(MAX_SPEED, max(-MAX_SPEED, vy))], np.float32)
+    return (float(clipped[0]), float(clipped[1]))
 
 
 class TabletopSim:
@@ -78,10 +92,15 @@ class TabletopSim:
         self.space = space
         self._add_rims()
         self.blocks: list[pymunk.Body] = [self._add_block(index) for index in range(len(BLOCKS))]
-        self.effector = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
+        self.effector = pymunk.Body(EFFECTOR_MASS, math.inf)  # does not turn
         effector_shape = pymunk.Circle(self.effector, EFFECTOR_RADIUS)
         effector_shape.friction = 0.3
-        space.add(self.effector, effector_shape)
+        effector_shape.filter = EFFECTOR_FILTER
+        self._hand = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
+        servo = pymunk.PivotJoint(self._hand, self.effector, (0.0, 0.0), (0.0, 0.0))
+        servo.max_bias = 0.0  # matches velocities only: where the hand is does not matter
+        servo.max_force = EFFECTOR_MAX_FORCE
+        space.add(self.effector, effector_shape, self._hand, servo)
         self._velocity = (0.0, 0.0)
         self._response = 1.0 - math.exp(-1.0 / (CONTROL_HZ * EFFECTOR_TIME_CONSTANT))
 
@@ -92,6 +111,7 @@ class TabletopSim:
         for a, b in zip(corners, corners[1:] + corners[:1], strict=True):
             rim = pymunk.Segment(self.space.static_body, a, b, r)
             rim.friction = 0.3
+            rim.filter = RIMS
             self.space.add(rim)
 
     def _add_block(self, index: int) -> pymunk.Body:
@@ -137,8 +157,9 @@ class TabletopSim:
             body.angle = float(angle)
             body.velocity = (0.0, 0.0)
             body.angular_velocity = 0.0
-        self.effector.position = (ex, ey)
-        self.effector.velocity = (0.0, 0.0)
+        for body in (self.effector, self._hand):
+            body.position = (ex, ey)
+            body.velocity = (0.0, 0.0)
         self._velocity = (0.0, 0.0)
         self.space.reindex_shapes_for_body(self.effector)
         for body in self.blocks:
@@ -161,8 +182,9 @@ class TabletopSim:
     def step(self, action: np.ndarray | tuple[float, float]) -> tuple[float, float]:
         """Command the effector's planar velocity for one control step (1 / CONTROL_HZ s).
 
-        The command is clipped to [-MAX_SPEED, MAX_SPEED] per axis (returned); the effector stops at the
-        edge of its reach [-EFFECTOR_REACH, TABLE_SIZE + EFFECTOR_REACH]^2.
+        The command is clipped to [-MAX_SPEED, MAX_SPEED] per axis (returned as applied); the effector
+        stops at the edge of its reach [-EFFECTOR_REACH, TABLE_SIZE + EFFECTOR_REACH]^2 (braking within
+        ~2 mm of it).
         """
         command = _clip_command(action)
         vx, vy = self._velocity
@@ -173,7 +195,7 @@ class TabletopSim:
         horizon = 1.0 / CONTROL_HZ
         vx = min(max(vx, (EFFECTOR_LOW - x) / horizon), (EFFECTOR_HIGH - x) / horizon)
         vy = min(max(vy, (EFFECTOR_LOW - y) / horizon), (EFFECTOR_HIGH - y) / horizon)
-        self.effector.velocity = (vx, vy)
+        self._hand.velocity = (vx, vy)
         self._velocity = (vx, vy)
         step, dt = self.space.step, PHYSICS_DT
         for _ in range(PHYSICS_SUBSTEPS):
@@ -187,13 +209,14 @@ class TabletopSim:
             blocks=np.array([body.position for body in blocks]),
             angles=np.array([body.angle for body in blocks]),
             effector=np.array(self.effector.position),
-            effector_velocity=np.array(self._velocity),
+            effector_velocity=np.array(self.effector.velocity),
         )
 
     def state_vector(self) -> np.ndarray:
         """The proprioceptive state (spec.STATE_NAMES): effector x, y, velocity x, velocity y, float32."""
         x, y = self.effector.position
-        return np.array((x, y, *self._velocity), dtype=np.float32)
+        vx, vy = self.effector.velocity
+        return np.array((x, y, vx, vy), dtype=np.float32)
 
 
 __all__ = ["PHYSICS_DT", "Scene", "TabletopSim"]

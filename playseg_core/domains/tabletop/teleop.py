@@ -46,6 +46,9 @@ TABLE_INSET = 0.012
 """A block's goal keeps it this far from the rims (m)."""
 GOAL_TOLERANCE = 0.008
 """A block this close to its goal point is there (m)."""
+STUCK_STEPS = 6
+STUCK_DISTANCE = 0.004
+"""Moving less than this (m) over STUCK_STEPS steps while meaning to move is being stuck."""
 PLAN_CANDIDATES = 6
 """Goal points the operator considers for one push."""
 MIN_CLEARANCE = 0.01
@@ -165,6 +168,10 @@ class Teleoperator:
         self._wait = 0
         self._side = 1.0
         self._bearing = 0.0
+        self._trail: list[Vec] = []
+        self._escape: Vec = (0.0, 0.0)
+        self._escape_steps = 0
+        self._stuck = 0
 
     def _draw(self, bounds: tuple[float, float]) -> float:
         return float(self.rng.uniform(*bounds))
@@ -186,6 +193,9 @@ class Teleoperator:
         low, high = cfg.hesitation_steps
         self._wait = int(self.rng.integers(low, high + 1)) if self.rng.random() < cfg.hesitation_chance else 0
         self._mover, self._goal = self._plan(task, scene)
+        self._trail.clear()
+        self._escape_steps = 0
+        self._stuck = 0
 
     def _plan(self, task: Task, scene: Scene) -> tuple[int, np.ndarray]:
         """The block to move (-1: the effector itself) and where to.
@@ -334,10 +344,14 @@ class Teleoperator:
             low, high = cfg.pause_steps
             self._wait = int(self.rng.integers(low, high + 1)) - 1
             intended = (0.0, 0.0)
+        elif self._escape_steps > 0:
+            self._escape_steps -= 1
+            intended = self._escape
         elif self._mover < 0:
-            intended = _reach(effector, (float(self._goal[0]), float(self._goal[1])), self._approach_speed)
+            intended = self._travel(scene, effector, (float(self._goal[0]), float(self._goal[1])), -1)
         else:
             intended = self._push_intent(scene, effector)
+        self._watch_progress(scene, effector, intended)
         # Hand jitter: an Ornstein-Uhlenbeck process, correlated over a few steps.
         kick = self.rng.normal(0.0, cfg.jitter * math.sqrt(1 - 0.49), size=2).tolist()
         nx, ny = self._noise
@@ -389,10 +403,52 @@ class Teleoperator:
         if math.hypot(ex - start[0], ey - start[1]) < 0.01:
             self._mode = "push"
             return self._push_velocity((px, py), behind, effector)
-        target = start
-        if _segment_point_distance(effector, start, (bx, by)) < contact + 0.005:
-            target = self._detour(effector, (bx, by), start, contact)
+        return self._travel(scene, effector, start, mover)
+
+    def _travel(self, scene: Scene, effector: Vec, target: Vec, mover: int) -> Vec:
+        """Towards ``target``, round the first block in the way (the mover included); a block lying on
+        the target itself is shoved aside rather than circled for ever."""
+        blocker, nearest = -1, math.inf
+        for index, (x, y) in enumerate(scene.blocks.tolist()):
+            room = BLOCK_EXTENTS[index] + EFFECTOR_RADIUS + (0.005 if index == mover else 0.003)
+            occupied = index != mover and math.hypot(x - target[0], y - target[1]) < room + 0.01
+            if not occupied and _segment_point_distance(effector, target, (x, y)) < room:
+                distance = math.hypot(x - effector[0], y - effector[1])
+                if distance < nearest:
+                    blocker, nearest = index, distance
+        if blocker >= 0:
+            centre = (float(scene.blocks[blocker][0]), float(scene.blocks[blocker][1]))
+            contact = BLOCK_EXTENTS[blocker] + EFFECTOR_RADIUS + CONTACT_MARGIN
+            target = self._detour(effector, centre, target, contact)
         return _reach(effector, target, self._approach_speed)
+
+    def _watch_progress(self, scene: Scene, effector: Vec, intended: Vec) -> None:
+        """Stuck (meaning to move, hardly moving: hemmed in by blocks against a rim)? Back away for a few
+        steps, away from the nearest block and a little sideways, then try the other way round."""
+        self._trail.append(effector)
+        if len(self._trail) > STUCK_STEPS:
+            self._trail.pop(0)
+        wants_to_move = math.hypot(intended[0], intended[1]) > 0.03
+        if not wants_to_move or len(self._trail) < STUCK_STEPS:
+            return
+        first, last = self._trail[0], self._trail[-1]
+        if math.hypot(last[0] - first[0], last[1] - first[1]) > STUCK_DISTANCE:
+            return
+        distances = [math.hypot(x - effector[0], y - effector[1]) for x, y in scene.blocks.tolist()]
+        nearest = scene.blocks[int(np.argmin(distances))]
+        away = _unit_xy(effector[0] - float(nearest[0]), effector[1] - float(nearest[1]))
+        turn = self._draw((-0.8, 0.8))
+        c, s = math.cos(turn), math.sin(turn)
+        speed = self._approach_speed
+        self._escape = ((c * away[0] - s * away[1]) * speed, (s * away[0] + c * away[1]) * speed)
+        self._escape_steps = int(self.rng.integers(3, 7))
+        self._side = -self._side
+        self._trail.clear()
+        self._stuck += 1
+        if self._stuck % 2 == 0 and self._task is not None:
+            # Stuck again: this way does not work; think again from here (another goal, another block).
+            self._mover, self._goal = self._plan(self._task, scene)
+            self._mode = "approach"
 
     def _push_velocity(self, push: Vec, behind: Vec, effector: Vec) -> Vec:
         """Along the push line, steering back to the point just behind the block."""
