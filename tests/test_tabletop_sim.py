@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from playseg_core.domains.tabletop.play import PlayConfig
-from playseg_core.domains.tabletop.render import EFFECTOR_CENTRE_RGB, VIEW_BORDER, Renderer
-from playseg_core.domains.tabletop.sim import TabletopSim
+from playseg_core.domains.tabletop.render import EFFECTOR_RGB, VIEW_BORDER, Renderer
+from playseg_core.domains.tabletop.sim import TabletopSim, physics_stepper
 from playseg_core.domains.tabletop.spec import (
     BLOCK_EXTENTS,
     BLOCKS,
@@ -94,6 +94,19 @@ def test_same_start_and_actions_give_identical_states() -> None:
     assert not np.array_equal(start.scene().blocks, runs[0].blocks)  # the actions did move blocks
 
 
+def test_the_fast_physics_step_is_pymunks_step() -> None:
+    actions = np.random.default_rng(2).uniform(-MAX_SPEED, MAX_SPEED, size=(80, 2))
+    sims = [TabletopSim(), TabletopSim()]
+    sims[1]._physics_step = sims[1].space.step  # pymunk's own, with its bookkeeping
+    assert physics_stepper(sims[0].space) is not sims[0].space.step  # the fast path is in use
+    for sim in sims:
+        sim.place_randomly(np.random.default_rng(3))
+        for action in actions:
+            sim.step(action)
+    assert np.array_equal(sims[0].scene().blocks, sims[1].scene().blocks)
+    assert np.array_equal(sims[0].scene().effector, sims[1].scene().effector)
+
+
 def test_bad_input_is_a_one_line_value_error() -> None:
     sim = TabletopSim()
     with pytest.raises(ValueError, match="tabletop blocks must be 8"):
@@ -120,7 +133,7 @@ def test_the_camera_shows_blocks_and_effector_where_they_are(size: int) -> None:
     frame = renderer.render(sim.scene())
     assert frame.shape == (size, size, 3) and frame.dtype == np.uint8
     assert tuple(frame[pixel_of(renderer, 0.3, 0.15)]) == COLOUR_RGB["blue"]
-    assert tuple(frame[pixel_of(renderer, 0.1, 0.3)]) == EFFECTOR_CENTRE_RGB
+    assert tuple(frame[pixel_of(renderer, 0.1, 0.3)]) == EFFECTOR_RGB
     assert np.array_equal(frame, renderer.render(sim.scene()))
     # Half a pixel's move still changes the frame (anti-aliased, sub-pixel drawing).
     moved = sim_with(BLUE_CUBE, (0.3 + 0.5 / renderer.pixels_per_metre, 0.15), (0.1, 0.3))

@@ -86,28 +86,30 @@ def region_box(region: str) -> tuple[float, float, float, float]:
     )
 
 
-def distance_to_region(point: np.ndarray, region: str) -> float:
+_REGION_BOXES = {region: region_box(region) for region in REGION_CELLS}
+
+
+def distance_to_region(point: tuple[float, float] | np.ndarray, region: str) -> float:
     """Distance from ``point`` to ``region``'s box (0 inside it)."""
-    x0, y0, x1, y1 = region_box(region)
-    dx = max(x0 - point[0], 0.0, point[0] - x1)
-    dy = max(y0 - point[1], 0.0, point[1] - y1)
-    return math.hypot(dx, dy)
+    x0, y0, x1, y1 = _REGION_BOXES[region] if region in _REGION_BOXES else region_box(region)
+    x, y = float(point[0]), float(point[1])
+    return math.hypot(max(x0 - x, 0.0, x - x1), max(y0 - y, 0.0, y - y1))
 
 
-def in_region(point: np.ndarray, region: str) -> bool:
+def in_region(point: tuple[float, float] | np.ndarray, region: str) -> bool:
     return distance_to_region(point, region) == 0.0
 
 
 def block_gap(scene: Scene, a: int, b: int) -> float:
     """The gap between blocks ``a`` and ``b``: centre distance less both half-sizes (m)."""
-    dx, dy = scene.blocks[a] - scene.blocks[b]
-    return math.hypot(dx, dy) - BLOCK_EXTENTS[a] - BLOCK_EXTENTS[b]
+    (ax, ay), (bx, by) = scene.points[a], scene.points[b]
+    return math.hypot(ax - bx, ay - by) - BLOCK_EXTENTS[a] - BLOCK_EXTENTS[b]
 
 
 def room_towards(scene: Scene, block: int, direction: str) -> float:
     """How far ``block`` can move in ``direction`` before it touches the table's edge (m)."""
     dx, dy = DIRECTIONS[direction]
-    x, y = scene.blocks[block]
+    x, y = scene.points[block]
     coordinate, sign = (x, dx) if dx else (y, dy)
     edge = TABLE_SIZE if sign > 0 else 0.0
     return abs(edge - coordinate) - BLOCK_EXTENTS[block]
@@ -146,10 +148,10 @@ class BlockToRegion(Family):
         )
 
     def done(self, task: Task, scene: Scene, start: Scene) -> bool:
-        return in_region(scene.blocks[task.block], task.region)
+        return in_region(scene.points[task.block], task.region)
 
     def applicable(self, task: Task, scene: Scene) -> bool:
-        return distance_to_region(scene.blocks[task.block], task.region) >= REGION_MIN_DISTANCE
+        return distance_to_region(scene.points[task.block], task.region) >= REGION_MIN_DISTANCE
 
 
 class BlockNextToBlock(Family):
@@ -183,8 +185,9 @@ class BlockInDirection(Family):
         )
 
     def done(self, task: Task, scene: Scene, start: Scene) -> bool:
-        moved = scene.blocks[task.block] - start.blocks[task.block]
-        return float(np.dot(moved, DIRECTIONS[task.direction])) >= PUSH_DISTANCE
+        (x, y), (x0, y0) = scene.points[task.block], start.points[task.block]
+        dx, dy = DIRECTIONS[task.direction]
+        return (x - x0) * dx + (y - y0) * dy >= PUSH_DISTANCE
 
     def applicable(self, task: Task, scene: Scene) -> bool:
         return room_towards(scene, task.block, task.direction) >= PUSH_DISTANCE + PUSH_ROOM
@@ -219,10 +222,10 @@ class EffectorToRegion(Family):
         )
 
     def done(self, task: Task, scene: Scene, start: Scene) -> bool:
-        return in_region(scene.effector, task.region)
+        return in_region(scene.effector_point, task.region)
 
     def applicable(self, task: Task, scene: Scene) -> bool:
-        return distance_to_region(scene.effector, task.region) >= EFFECTOR_REGION_MIN_DISTANCE
+        return distance_to_region(scene.effector_point, task.region) >= EFFECTOR_REGION_MIN_DISTANCE
 
 
 FAMILIES: MappingProxyType[str, Family] = MappingProxyType(

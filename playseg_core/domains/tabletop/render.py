@@ -31,7 +31,6 @@ VIEW_BORDER = EFFECTOR_REACH + EFFECTOR_RADIUS + 0.002
 FLOOR_RGB = (60, 60, 66)
 TABLE_RGB = (205, 200, 190)
 EFFECTOR_RGB = (40, 40, 40)
-EFFECTOR_CENTRE_RGB = (170, 170, 170)
 
 _SHIFT = 4  # OpenCV fixed-point bits: coordinates in 1/16 pixel
 _ONE = 1 << _SHIFT
@@ -93,7 +92,6 @@ class Renderer:
         ex, ey = scene.effector.tolist()
         effector = (round(offset_x + ex * scale), round(offset_y - ey * scale))
         cv2.circle(frame, effector, self._effector_radius, EFFECTOR_RGB, -1, cv2.LINE_AA, _SHIFT)
-        cv2.circle(frame, effector, self._effector_radius // 3, EFFECTOR_CENTRE_RGB, -1, cv2.LINE_AA, _SHIFT)
         return frame
 
 

@@ -16,7 +16,9 @@ reproduces its states bit for bit.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import pymunk
@@ -50,6 +52,10 @@ RIMS = pymunk.ShapeFilter(categories=0b10)
 EFFECTOR_FILTER = pymunk.ShapeFilter(mask=pymunk.ShapeFilter.ALL_MASKS() ^ 0b10)
 """The effector collides with the blocks, not with the rims."""
 
+SLEEP_SPEED = 0.002
+SLEEP_AFTER = 0.2
+"""A block slower than SLEEP_SPEED (m/s) for SLEEP_AFTER seconds stops and sleeps until touched."""
+
 PLACEMENT_MARGIN = 0.06
 """Blocks are placed at least this far from the table's edge (m)."""
 PLACEMENT_MIN_DISTANCE = 0.09
@@ -67,6 +73,34 @@ class Scene:
     angles: np.ndarray
     effector: np.ndarray
     effector_velocity: np.ndarray
+
+    @cached_property
+    def points(self) -> list[tuple[float, float]]:
+        """The block centres as Python floats (what per-step geometry reads; numpy scalars are slow)."""
+        return [(x, y) for x, y in self.blocks.tolist()]
+
+    @cached_property
+    def effector_point(self) -> tuple[float, float]:
+        x, y = self.effector.tolist()
+        return (x, y)
+
+
+def physics_stepper(space: pymunk.Space) -> Callable[[float], None]:
+    """``space.step`` without its per-call bookkeeping (bodies added or removed during a step, post-step
+    callbacks: this world uses neither), which costs more than the physics itself for 9 bodies (~2.5 of
+    ~5 us per substep). Falls back to ``space.step`` if pymunk's internals are not as expected."""
+    try:
+        from pymunk._chipmunk import lib
+
+        handle = space._space
+        step = lib.cpSpaceStep
+    except (ImportError, AttributeError):
+        return space.step
+
+    def raw_step(dt: float) -> None:
+        step(handle, dt)
+
+    return raw_step
 
 
 def _clip_command(action: np.ndarray | tuple[float, float]) -> tuple[float, float]:
@@ -89,6 +123,10 @@ class TabletopSim:
         space.gravity = (0.0, 0.0)
         space.iterations = 10
         space.collision_slop = 0.0005  # pymunk's default (0.1) assumes pixels, not metres
+        # Blocks at rest sleep (cost nothing) until something touches them: most of the table is still
+        # most of the time, and this makes the physics ~3x faster.
+        space.idle_speed_threshold = SLEEP_SPEED
+        space.sleep_time_threshold = SLEEP_AFTER
         self.space = space
         self._add_rims()
         self.blocks: list[pymunk.Body] = [self._add_block(index) for index in range(len(BLOCKS))]
@@ -101,6 +139,7 @@ class TabletopSim:
         servo.max_bias = 0.0  # matches velocities only: where the hand is does not matter
         servo.max_force = EFFECTOR_MAX_FORCE
         space.add(self.effector, effector_shape, self._hand, servo)
+        self._physics_step = physics_stepper(space)
         self._velocity = (0.0, 0.0)
         self._response = 1.0 - math.exp(-1.0 / (CONTROL_HZ * EFFECTOR_TIME_CONSTANT))
 
@@ -157,6 +196,7 @@ class TabletopSim:
             body.angle = float(angle)
             body.velocity = (0.0, 0.0)
             body.angular_velocity = 0.0
+            body.activate()
         for body in (self.effector, self._hand):
             body.position = (ex, ey)
             body.velocity = (0.0, 0.0)
@@ -196,8 +236,9 @@ class TabletopSim:
         vx = min(max(vx, (EFFECTOR_LOW - x) / horizon), (EFFECTOR_HIGH - x) / horizon)
         vy = min(max(vy, (EFFECTOR_LOW - y) / horizon), (EFFECTOR_HIGH - y) / horizon)
         self._hand.velocity = (vx, vy)
+        self.effector.activate()  # the hand moves it: it must never sleep
         self._velocity = (vx, vy)
-        step, dt = self.space.step, PHYSICS_DT
+        step, dt = self._physics_step, PHYSICS_DT
         for _ in range(PHYSICS_SUBSTEPS):
             step(dt)
         return command

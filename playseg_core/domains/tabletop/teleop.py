@@ -120,10 +120,10 @@ def _segment_point_distance(a: Vec, b: Vec, point: Vec) -> float:
 
 def _path_clearance(scene: Scene, block: int, goal: np.ndarray, exclude: int = -1) -> float:
     """How far ``block``, pushed straight to ``goal``, passes from the nearest other block (gap, m)."""
-    a = (float(scene.blocks[block][0]), float(scene.blocks[block][1]))
+    a = scene.points[block]
     b = (float(goal[0]), float(goal[1]))
     clearance = math.inf
-    for other, centre in enumerate(scene.blocks.tolist()):
+    for other, centre in enumerate(scene.points):
         if other in (block, exclude):
             continue
         distance = _segment_point_distance(a, b, (centre[0], centre[1]))
@@ -334,7 +334,7 @@ class Teleoperator:
     def act(self, scene: Scene) -> np.ndarray:
         """The velocity command for this step (m/s, within the action bounds)."""
         cfg = self.config
-        effector = (float(scene.effector[0]), float(scene.effector[1]))
+        effector = scene.effector_point
         if self._task is None:
             intended = self._idle_intent(effector)
         elif self._wait > 0:
@@ -368,7 +368,7 @@ class Teleoperator:
 
     def _push_intent(self, scene: Scene, effector: Vec) -> Vec:
         mover = self._mover
-        bx, by = float(scene.blocks[mover][0]), float(scene.blocks[mover][1])
+        bx, by = scene.points[mover]
         ex, ey = effector
         if self._task is not None and self._task.family == "block_next_to_block":
             gx, gy = self._next_to_goal(scene, mover, self._task.other, self._bearing).tolist()
@@ -409,7 +409,7 @@ class Teleoperator:
         """Towards ``target``, round the first block in the way (the mover included); a block lying on
         the target itself is shoved aside rather than circled for ever."""
         blocker, nearest = -1, math.inf
-        for index, (x, y) in enumerate(scene.blocks.tolist()):
+        for index, (x, y) in enumerate(scene.points):
             room = BLOCK_EXTENTS[index] + EFFECTOR_RADIUS + (0.005 if index == mover else 0.003)
             occupied = index != mover and math.hypot(x - target[0], y - target[1]) < room + 0.01
             if not occupied and _segment_point_distance(effector, target, (x, y)) < room:
@@ -417,7 +417,7 @@ class Teleoperator:
                 if distance < nearest:
                     blocker, nearest = index, distance
         if blocker >= 0:
-            centre = (float(scene.blocks[blocker][0]), float(scene.blocks[blocker][1]))
+            centre = scene.points[blocker]
             contact = BLOCK_EXTENTS[blocker] + EFFECTOR_RADIUS + CONTACT_MARGIN
             target = self._detour(effector, centre, target, contact)
         return _reach(effector, target, self._approach_speed)
@@ -434,8 +434,8 @@ class Teleoperator:
         first, last = self._trail[0], self._trail[-1]
         if math.hypot(last[0] - first[0], last[1] - first[1]) > STUCK_DISTANCE:
             return
-        distances = [math.hypot(x - effector[0], y - effector[1]) for x, y in scene.blocks.tolist()]
-        nearest = scene.blocks[int(np.argmin(distances))]
+        distances = [math.hypot(x - effector[0], y - effector[1]) for x, y in scene.points]
+        nearest = scene.points[int(np.argmin(distances))]
         away = _unit_xy(effector[0] - float(nearest[0]), effector[1] - float(nearest[1]))
         turn = self._draw((-0.8, 0.8))
         c, s = math.cos(turn), math.sin(turn)
