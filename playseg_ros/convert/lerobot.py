@@ -226,7 +226,9 @@ class VideoFile:
         self.stream = self.container.add_stream(VIDEO_CODEC, rate=rate)
         self.stream.width, self.stream.height, self.stream.pix_fmt = self.width, self.height, PIX_FMT
         self.stream.time_base = Fraction(1, 1) / rate
-        self.stream.options = {"g": "2", "crf": "18"}  # a key frame every 2 frames: cheap random access
+        # a key frame every 2 frames: cheap random access for training; 'veryfast' encodes ~10x faster
+        # than x264's default preset at a slightly larger file
+        self.stream.options = {"g": "2", "crf": "20", "preset": "veryfast"}
 
     def write(self, frames: np.ndarray) -> None:
         if self.container is None:

@@ -31,7 +31,6 @@ from playseg_core.data.episode import Episode
 from playseg_core.data.features import Features
 from playseg_ros.convert.build import convert_bag
 from playseg_ros.convert.errors import ConvertError
-from playseg_ros.convert.lerobot import export_lerobot, is_lerobot_dataset
 from playseg_ros.convert.mapping import ConvertMapping
 from playseg_ros.convert.source import bag_size, find_bags, fingerprint, is_play_bag
 
@@ -205,6 +204,8 @@ def convert(
         raise ValueError(f"--workers must be >= 1, got {workers}")
     if output_format not in OUTPUT_FORMATS:
         raise ValueError(f"--format {output_format!r}: expected one of {', '.join(OUTPUT_FORMATS)}")
+    from playseg_ros.convert.lerobot import export_lerobot, is_lerobot_dataset  # PyAV, pyarrow: only here
+
     export_to = Path(out).resolve() if output_format == "lerobot" else None
     if export_to is not None and export_to.exists() and not is_lerobot_dataset(export_to):
         raise FileExistsError(f"{export_to}: exists and is not a LeRobot dataset; refusing to write into it")
@@ -306,8 +307,13 @@ def _run_tasks(tasks: list[BagTask], workers: int, progress: bool) -> list[BagRe
                 reports.append(convert_one(task))
                 bar.update(reports[-1].bytes)
             return reports
-        # spawn: workers start clean (no inherited threads or locks), the same on every platform
-        context = multiprocessing.get_context("spawn")
+        # forkserver: workers start clean (no inherited threads or locks) and, forked from a server that
+        # imported the conversion once, without each paying the imports
+        if "forkserver" in multiprocessing.get_all_start_methods():
+            context = multiprocessing.get_context("forkserver")
+            context.set_forkserver_preload(["playseg_ros.convert.build", "playseg_ros.convert.run"])
+        else:
+            context = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=context) as pool:
             futures: list[Future[BagReport]] = [pool.submit(convert_one, task) for task in tasks]
             try:
