@@ -78,6 +78,7 @@ class RobotBag:
     bad_image_at: int | None = None  # this frame's CompressedImage bytes are garbage
     silence: tuple[float, float] | None = None  # no message of any topic in [a, b) seconds
     markers: list[float] = field(default_factory=list)  # std_msgs/Empty on /episode_start
+    joints: tuple[str, ...] = JOINTS
 
     def camera_times(self) -> list[int]:
         return [ns(i / CAMERA_HZ) for i in range(round(self.seconds * CAMERA_HZ))]
@@ -120,7 +121,7 @@ class RobotBag:
                 continue
             t = ns(seconds)
             msg = types["sensor_msgs/msg/JointState"](
-                header=header(t), name=list(JOINTS), position=joint_position(k).astype(np.float64),
+                header=header(t), name=list(self.joints), position=joint_position(k).astype(np.float64),
                 velocity=np.zeros(3), effort=np.zeros(3),
             )  # fmt: skip
             out.append(("/joint_states", "sensor_msgs/msg/JointState", t, msg))
@@ -579,3 +580,27 @@ def test_play_bags_need_no_mapping_and_other_bags_do(tmp_path: Path) -> None:
     )
     np.testing.assert_array_equal(loaded.actions, episode.actions)
     assert loaded.segments == episode.segments and dataset.records[0].split == "train"
+
+
+def test_joints_are_taken_by_name_and_a_bag_with_other_joints_fails_the_merge(tmp_path: Path) -> None:
+    spec = RobotBag(seconds=1.0, labels=[])
+    write_rosbag2(tmp_path / "bags" / "a", spec)
+    write_rosbag2(tmp_path / "bags" / "b", RobotBag(seconds=1.0, labels=[], joints=("hip", "knee", "ankle")))
+    state = {"topic": "/joint_states", "field": "position", "joints": ["wrist", "shoulder"]}
+    features = dict(MAPPING["features"], **{"observation.state": state})
+    mapping = load_mapping(write_mapping(tmp_path / "m.yaml", dict(MAPPING, features=features)))
+    summary = convert([tmp_path / "bags"], tmp_path / "data", mapping, progress=False)
+    assert [r.status for r in summary.reports] == ["converted", "failed"]
+    assert "field 'position'" in str(summary.reports[1].error)
+    assert "joint(s) ['wrist', 'shoulder'] not in this message" in str(summary.reports[1].error)
+    dataset = PlayDataset.open(tmp_path / "data")
+    assert dataset.features.state.names == ("wrist", "shoulder")  # type: ignore[union-attr]
+    want = np.stack([joint_position(round(i * 10 / 3))[[2, 0]] for i in expected_steps(spec)])
+    np.testing.assert_array_equal(dataset.episode(0).state, want)
+    # without a selection both bags convert, but their state names differ: the second is not merged
+    mapping = load_mapping(write_mapping(tmp_path / "all.yaml"))
+    summary = convert([tmp_path / "bags"], tmp_path / "all", mapping, progress=False)
+    assert [r.status for r in summary.reports] == ["converted", "failed"]
+    assert "its features differ from the dataset's (observation.state" in str(summary.reports[1].error)
+    assert "names differ" in str(summary.reports[1].error)
+    assert len(PlayDataset.open(tmp_path / "all")) == 1
