@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import sqlite3
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -16,7 +17,7 @@ import yaml
 from rosbags.rosbag1 import Writer as Ros1Writer
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from playseg_core.data.dataset import PlayDataset
 from playseg_ros.cli import main
@@ -604,3 +605,29 @@ def test_joints_are_taken_by_name_and_a_bag_with_other_joints_fails_the_merge(tm
     assert "its features differ from the dataset's (observation.state" in str(summary.reports[1].error)
     assert "names differ" in str(summary.reports[1].error)
     assert len(PlayDataset.open(tmp_path / "all")) == 1
+
+
+def test_a_type_without_definition_fails_its_bag(tmp_path: Path) -> None:
+    """An older sqlite3 bag stores no message definitions; a type neither the bag nor ROS 2 defines is
+    reported, not guessed."""
+    store = get_typestore(Stores.ROS2_KILTED)
+    store.register(get_types_from_msg("float64 width\n", "acme_msgs/msg/Gripper"))
+    bag = tmp_path / "old"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.SQLITE3) as writer:
+        connection = writer.add_connection("/gripper", "acme_msgs/msg/Gripper", typestore=store)
+        for i in range(5):
+            msg = store.types["acme_msgs/msg/Gripper"](width=0.1 * i)
+            writer.write(connection, T0 + i * 10**8, store.serialize_cdr(msg, "acme_msgs/msg/Gripper"))
+    (database,) = bag.glob("*.db3")
+    with sqlite3.connect(database) as connection_db:
+        connection_db.execute("DELETE FROM message_definitions")
+    features = {
+        "observation.state": {"topic": "/gripper", "field": "width"},
+        "action": {"derive": "next", "of": "observation.state"},
+    }
+    mapping = {"fps": 10, "primary": "observation.state", "features": features}
+    (report,) = convert(
+        [bag], tmp_path / "data", load_mapping(write_mapping(tmp_path / "m.yaml", mapping)), progress=False
+    ).reports
+    assert report.status == "failed"
+    assert "topic '/gripper': unknown message type 'acme_msgs/msg/Gripper'" in str(report.error)
