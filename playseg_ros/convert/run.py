@@ -20,6 +20,7 @@ import multiprocessing
 import os
 import shutil
 import sys
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -197,8 +198,6 @@ def convert(
     With ``output_format="lerobot"`` the playseg dataset is kept next to ``out`` as ``.<OUT>.playseg``
     (what a rerun resumes from) and exported to ``out`` as a LeRobot v3.0 dataset (lerobot.py) whenever
     it changed or ``out`` is missing."""
-    import time
-
     started = time.perf_counter()
     if workers < 1:
         raise ValueError(f"--workers must be >= 1, got {workers}")
