@@ -45,13 +45,13 @@ class Preset:
 PRESETS: dict[str, Preset] = {
     "tiny": Preset(
         "tiny",
-        "for tests: ~20 short episodes, ~75 segments, ~3,500 steps (~100 MB), a few seconds",
+        "for tests: ~16 short episodes, ~76 segments, ~4,000 steps (~110 MB), a few seconds",
         PlayConfig(tasks_per_episode=(3, 6)),
         SplitTargets(test_segments=12, annotated_segments=24, play_segments=36, val_fraction=0.25),
     ),
     "small": Preset(
         "small",
-        "the demo: 100 annotated + 300 play segments (25%), 80 test segments; ~22,000 steps (~0.6 GB)",
+        "the demo: 100 annotated + 300 play segments (25%), 80 test segments; ~24,000 steps (~0.67 GB)",
         PlayConfig(),
         SplitTargets.from_share(total_segments=400, annotated_share=0.25, test_segments=80),
     ),
@@ -143,11 +143,11 @@ def length_summary(lengths: list[int]) -> dict[str, float]:
     return {
         "count": int(values.size),
         "mean": round(float(values.mean()), 2),
-        "p5": float(p5),
-        "p25": float(p25),
-        "median": float(p50),
-        "p75": float(p75),
-        "p95": float(p95),
+        "p5": round(float(p5), 1),
+        "p25": round(float(p25), 1),
+        "median": round(float(p50), 1),
+        "p75": round(float(p75), 1),
+        "p95": round(float(p95), 1),
         "max": int(values.max()),
         "share_20_to_100": round(float(((values >= 20) & (values <= 100)).mean()), 4),
     }
