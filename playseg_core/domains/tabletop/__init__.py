@@ -38,4 +38,27 @@ def generate_dataset(
     return generate.generate_dataset(out, chosen, seed, workers, progress, overwrite)
 
 
-__all__ = ["CAMERA", "DOMAIN", "POLICIES", "PRESET_NAMES", "generate_dataset"]
+def play_config(**settings: Any) -> Any:
+    """A `play.PlayConfig` with ``settings`` (for callers that reach this domain by name)."""
+    from playseg_core.domains.tabletop.play import PlayConfig
+
+    return PlayConfig(**settings)
+
+
+def record_robot_log(config: Any, seed: int, state_hz: float = 50.0) -> Any:
+    """The play episode of ``seed`` as a robot logs it (robot_log.py): streams with times, for writing
+    standard-message bags (playseg_ros/tabletop)."""
+    from playseg_core.domains.tabletop.robot_log import record_robot_log as record
+
+    return record(config, seed, state_hz=state_hz)
+
+
+__all__ = [
+    "CAMERA",
+    "DOMAIN",
+    "POLICIES",
+    "PRESET_NAMES",
+    "generate_dataset",
+    "play_config",
+    "record_robot_log",
+]

@@ -15,6 +15,7 @@ failures in a row the episode ends.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -184,12 +185,18 @@ def run_task(recorder: Recorder, teleop: Teleoperator, task: Task, max_steps: in
     return False
 
 
-def generate_episode(config: PlayConfig, seed: int) -> PlayEpisode:
-    """One deterministic play episode (same config and seed -> identical arrays and segments)."""
+def play(
+    config: PlayConfig, seed: int, recorder: Callable[[TabletopSim, Renderer], Recorder] = Recorder
+) -> tuple[Recorder, list[Segment], PlayStats]:
+    """Play one episode from ``seed`` into a recorder made by ``recorder(sim, renderer)``; returns it,
+    the ground-truth segments and the teleoperator's record.
+
+    Deterministic: same config and seed, same run (a recorder only reads the sim, never changes it).
+    """
     rng = np.random.default_rng(seed)
     sim = TabletopSim()
     sim.place_randomly(rng)
-    recorder = Recorder(sim, Renderer(config.image_size))
+    recording = recorder(sim, Renderer(config.image_size))
     teleop = Teleoperator(config.teleop, rng)
     stats = PlayStats()
     segments: list[Segment] = []
@@ -200,27 +207,33 @@ def generate_episode(config: PlayConfig, seed: int) -> PlayEpisode:
             teleop.begin_idle("pause" if rng.random() < 0.5 else "wander")
             steps = int(rng.integers(config.idle_steps[0], config.idle_steps[1] + 1))
             for _ in range(steps):
-                recorder.step(teleop.act(recorder.scene))
+                recording.step(teleop.act(recording.scene))
             stats.idle_steps += steps
-        task = draw_task(recorder.scene, rng, exclude=previous)
+        task = draw_task(recording.scene, rng, exclude=previous)
         if task is None:
             break
         previous = task
-        start = recorder.steps
-        solved = run_task(recorder, teleop, task, config.max_task_steps)
+        start = recording.steps
+        solved = run_task(recording, teleop, task, config.max_task_steps)
         stats.count(task, solved)
         if solved:
-            segments.append(Segment(start, recorder.steps, task.text))
-            stats.task_lengths.append(recorder.steps - start)
+            segments.append(Segment(start, recording.steps, task.text))
+            stats.task_lengths.append(recording.steps - start)
             failures = 0
         else:
-            stats.failed_steps += recorder.steps - start
+            stats.failed_steps += recording.steps - start
             failures += 1
+    return recording, segments, stats
+
+
+def generate_episode(config: PlayConfig, seed: int) -> PlayEpisode:
+    """One deterministic play episode (same config and seed -> identical arrays and segments)."""
+    recording, segments, stats = play(config, seed)
     episode = Episode(
         episode_id=episode_id_for_seed(seed),
-        actions=np.asarray(recorder.actions, dtype=np.float32).reshape(-1, 2),
-        images={CAMERA: np.stack(recorder.frames)},
-        state=np.stack(recorder.states),
+        actions=np.asarray(recording.actions, dtype=np.float32).reshape(-1, 2),
+        images={CAMERA: np.stack(recording.frames)},
+        state=np.stack(recording.states),
         segments=segments,
     )
     return PlayEpisode(episode, stats)
@@ -234,5 +247,6 @@ __all__ = [
     "draw_task",
     "episode_id_for_seed",
     "generate_episode",
+    "play",
     "run_task",
 ]

@@ -227,6 +227,34 @@ class TabletopSim:
         ~2 mm of it).
         """
         command = _clip_command(action)
+        self._command(command)
+        step, dt = self._physics_step, PHYSICS_DT
+        for _ in range(PHYSICS_SUBSTEPS):
+            step(dt)
+        return command
+
+    def step_sampled(
+        self, action: np.ndarray | tuple[float, float], every: int
+    ) -> tuple[tuple[float, float], list[tuple[float, float, float, float]]]:
+        """`step`, also reading the effector's state (x, y, velocity x, velocity y) after every ``every``
+        physics substeps: a state sensor faster than the control rate. Same physics as `step`."""
+        if every < 1 or PHYSICS_SUBSTEPS % every:
+            raise ValueError(
+                f"tabletop state sampling: every must divide {PHYSICS_SUBSTEPS} substeps, got {every}"
+            )
+        command = _clip_command(action)
+        self._command(command)
+        step, dt, effector = self._physics_step, PHYSICS_DT, self.effector
+        samples = []
+        for substep in range(1, PHYSICS_SUBSTEPS + 1):
+            step(dt)
+            if substep % every == 0:
+                (x, y), (vx, vy) = effector.position, effector.velocity
+                samples.append((x, y, vx, vy))
+        return command, samples
+
+    def _command(self, command: tuple[float, float]) -> None:
+        """Set the hand's velocity for the coming control step (lagged command, kept within reach)."""
         vx, vy = self._velocity
         vx += (command[0] - vx) * self._response
         vy += (command[1] - vy) * self._response
@@ -238,10 +266,6 @@ class TabletopSim:
         self._hand.velocity = (vx, vy)
         self.effector.activate()  # the hand moves it: it must never sleep
         self._velocity = (vx, vy)
-        step, dt = self._physics_step, PHYSICS_DT
-        for _ in range(PHYSICS_SUBSTEPS):
-            step(dt)
-        return command
 
     def scene(self) -> Scene:
         """The current positions and velocities (copies)."""
