@@ -5,7 +5,7 @@ One file format: a dict of plain tensors, numbers and strings, read with ``torch
 
     format    "playseg-checkpoint"
     version   CHECKPOINT_VERSION
-    kind      "ps" | "labeller" | "policy"
+    kind      "ps" | "labeller" | "policy" | "unloc" | "tridet" (the window baselines, baselines/)
     config    the model's full configuration (JSON-like), including which features it reads
     features  the data features the model reads, as the training data declared them (data/features.py)
     state_dict
@@ -29,8 +29,8 @@ from playseg_core.data.features import FeatureError, Features
 
 CHECKPOINT_FORMAT = "playseg-checkpoint"
 CHECKPOINT_VERSION = 1
-Kind = Literal["ps", "labeller", "policy"]
-KINDS: tuple[str, ...] = ("ps", "labeller", "policy")
+Kind = Literal["ps", "labeller", "policy", "unloc", "tridet"]
+KINDS: tuple[str, ...] = ("ps", "labeller", "policy", "unloc", "tridet")
 
 
 class CheckpointError(ValueError):

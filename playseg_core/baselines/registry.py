@@ -1,0 +1,160 @@
+"""The selection point: a segmentation method's name -> how to train it and how to segment with it.
+
+    method = get_method("tridet")
+    trained = method.train(data, TrainOptions(steps=500))   # TrainedSegmenter; .save(path, meta)
+    segmenter = method.load(path, SegmentOptions(seed=0))   # Segmenter; .segment(episode) -> [Segment]
+
+`playseg train --method` and `playseg segment --method` dispatch through `METHODS`; so do the benchmark
+and the experiment runner. ``ps`` is Play Segmentation itself (ps/), the others are the paper's baselines.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from playseg_core.baselines.changepoint import load_changepoint_segmenter, train_changepoint
+from playseg_core.baselines.common import (
+    Segmenter,
+    SegmentOptions,
+    TrainedSegmenter,
+    TrainingData,
+    TrainOptions,
+)
+from playseg_core.baselines.random_windows import load_random_segmenter, train_random
+from playseg_core.baselines.tridet import load_tridet_segmenter, train_tridet
+from playseg_core.baselines.unloc import load_unloc_segmenter, train_unloc
+from playseg_core.data.episode import Episode, Segment
+from playseg_core.ps.model import PSModel, load_model, save_model
+
+
+class PlaySegmenter(Segmenter):
+    """Play Segmentation (ps/segmentation.py) behind the common interface."""
+
+    method = "ps"
+    tiles = True
+
+    def __init__(self, model: PSModel, meta: dict[str, Any], options: SegmentOptions) -> None:
+        self.model = model.eval()
+        self.instructions = model.instructions
+        self.features = model.cfg.features
+        self.feature_names = model.cfg.feature_names
+        self.min_len = options.min_len or model.cfg.min_len
+        self.label_threshold = float(meta.get("calibration", {}).get("threshold", 0.0))
+
+    def segment(self, episode: Episode) -> list[Segment]:
+        from playseg_core.ps.segmentation import segment_episode
+
+        return segment_episode(self.model, episode, min_len=self.min_len)
+
+
+def train_play_segmentation(data: TrainingData, options: TrainOptions) -> TrainedSegmenter:
+    """The PS model as `playseg train` trains it (TrainConfig defaults; the options' budget if given),
+    calibrated on the val split."""
+    from dataclasses import replace
+
+    from playseg_core.ps.calibration import calibrate_ps_model
+    from playseg_core.ps.training import TrainConfig, model_config_for, segment_bounds, train_ps
+
+    train_eps = data.annotated()
+    bounds = segment_bounds(train_eps, data.domain, **data.bounds)
+    cfg = TrainConfig(seed=options.seed, k_max=bounds.k_max, num_threads=options.num_threads, progress=False)
+    cfg = replace(cfg, log_epochs=bool(options.log_every))
+    if options.epochs is not None:
+        cfg = replace(cfg, epochs=options.epochs, min_steps=0)
+    if options.steps is not None:
+        cfg = replace(cfg, epochs=1, min_steps=options.steps)
+    if options.batch_size is not None:
+        cfg = replace(cfg, segments_per_batch=options.batch_size)
+    if options.lr is not None:
+        cfg = replace(cfg, lr=options.lr)
+    model_cfg = model_config_for(
+        data.features,
+        data.domain,
+        len(data.instructions),
+        max_len=bounds.max_len,
+        read_actions=data.read_actions,
+        episodes=train_eps,
+        overrides=data.encoder_overrides,
+        min_len=bounds.min_len,
+    )
+    began = time.perf_counter()
+    result = train_ps(train_eps, data.val, data.instructions, cfg, model_cfg)
+    calibrated = calibrate_ps_model(result.model, data.val, 0.95) if data.val else {}
+    meta = {"train": asdict(cfg), "history": result.history, "seconds": result.seconds, "calibration": {}}
+    meta |= calibrated
+    seconds = time.perf_counter() - began
+
+    def save(path: Path, extra: dict[str, Any]) -> Path:
+        return save_model(path, result.model, {**meta, **extra})
+
+    segmenter = PlaySegmenter(result.model, meta, SegmentOptions())
+    return TrainedSegmenter(segmenter, save, seconds, f"PS model trained in {result.seconds:.0f} s")
+
+
+def load_play_segmenter(path: str | Path, options: SegmentOptions) -> PlaySegmenter:
+    model, meta = load_model(path, kinds=("ps",))
+    return PlaySegmenter(model, meta, options)
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str
+    summary: str
+    tiles: bool  # whether its segments cover the trajectory (else: report precision and label accuracy)
+    train: Callable[[TrainingData, TrainOptions], TrainedSegmenter]
+    load: Callable[[str | Path, SegmentOptions], Segmenter]
+
+
+METHODS: dict[str, Method] = {
+    method.name: method
+    for method in (
+        Method("ps", "Play Segmentation (ps/)", True, train_play_segmentation, load_play_segmenter),
+        Method(
+            "unloc",
+            "UnLoc-style per-step classification, background cropped",
+            False,
+            train_unloc,
+            load_unloc_segmenter,
+        ),
+        Method(
+            "tridet",
+            "TriDet-style localisation, top-1 detection per window",
+            False,
+            train_tridet,
+            load_tridet_segmenter,
+        ),
+        Method(
+            "random",
+            "random windows labelled by the labelling model",
+            True,
+            train_random,
+            load_random_segmenter,
+        ),
+        Method(
+            "changepoint",
+            "PELT changepoints labelled by the labelling model",
+            True,
+            train_changepoint,
+            load_changepoint_segmenter,
+        ),
+    )
+}
+
+
+def get_method(name: str) -> Method:
+    """The method called ``name``; ValueError listing the known ones otherwise."""
+    if name not in METHODS:
+        raise ValueError(f"--method {name!r}: unknown segmentation method (known: {', '.join(METHODS)})")
+    return METHODS[name]
+
+
+def train_segmenter(name: str, data: TrainingData, options: TrainOptions) -> TrainedSegmenter:
+    return get_method(name).train(data, options)
+
+
+def load_segmenter(name: str, path: str | Path, options: SegmentOptions | None = None) -> Segmenter:
+    return get_method(name).load(path, options or SegmentOptions())
