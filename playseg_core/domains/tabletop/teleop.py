@@ -172,6 +172,12 @@ class Teleoperator:
         self._escape: Vec = (0.0, 0.0)
         self._escape_steps = 0
         self._stuck = 0
+        # This demonstration's style (drawn anew by `begin` and `begin_idle`).
+        self._approach_speed = config.approach_speed[0]
+        self._push_speed = config.push_speed[0]
+        self._angle = 0.0
+        self._steering = config.steering[0]
+        self._responsiveness = config.responsiveness[1]
 
     def _draw(self, bounds: tuple[float, float]) -> float:
         return float(self.rng.uniform(*bounds))
