@@ -5,11 +5,13 @@ Bags use rosbags' typestore dataclasses (`ROSBAGS`, no rclpy); the live nodes us
 only, so they accept either kind, and every field check lives here once.
 
 An episode ``(o_0, a_0, ..., o_T)`` is T+1 PlayStep messages with ``step = 0..T``; step t carries the
-camera frame of o_t as a ``sensor_msgs/Image`` (rgb8; 0x0 when the episode has no camera: a PlayStep
-carries at most one), the state flattened with its shape, and the action a_t (empty on the last step,
-which has ``episode_end = true``). Which camera feature the image is (``observation.images.<camera>``)
-is not in the message: readers take it from the stream's declared features, else `DEFAULT_CAMERA`. A LabelledSegment carries the steps
-start..end of its segment; the last one's action, if any, is the first action after the segment and is
+camera frames of o_t as ``sensor_msgs/Image`` (rgb8): the first camera's in ``observation`` (0x0 when
+the episode has no camera), any further ones in ``extra_observations``, and each frame's feature name
+(``observation.images.<camera>``) in ``camera_names``. A message without names (written before
+PlayStep carried them, or by a publisher that leaves them out) has one camera, whose name readers take
+from the stream's declared features, else `DEFAULT_CAMERA`. It also carries the state flattened with its
+shape and the action a_t (empty on the last step, which has ``episode_end = true``). A LabelledSegment
+carries the steps start..end of its segment; the last one's action, if any, is the first action after the segment and is
 not part of it. Reading raises `StepError` naming the episode, step and field, so callers can add where
 the message came from.
 """
@@ -18,7 +20,7 @@ from __future__ import annotations
 
 import array
 import importlib
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from functools import cache
 from typing import Any
@@ -104,34 +106,32 @@ def image_message(frame: np.ndarray | None, msg_header: Any, kind: MessageKind =
 def play_step_message(
     episode_id: str,
     step: int,
-    frame: np.ndarray | None,
+    frames: Mapping[str, np.ndarray],
     state: np.ndarray | None,
     action: np.ndarray | None,
     stamp: int,
     frame_id: str = "play",
     kind: MessageKind = ROSBAGS,
 ) -> Any:
-    """PlayStep for observation ``step``; ``action`` None marks the episode's last step."""
+    """PlayStep for observation ``step``: ``frames`` maps each camera's feature name to its (H, W, 3)
+    frame (none: no camera); ``action`` None marks the episode's last step."""
     msg_header = header(stamp, frame_id, kind)
     no_values = np.zeros(0)
+    names = list(frames)
+    images = [image_message(frames[name], msg_header, kind) for name in names]
     return kind.make(
         PLAY_STEP,
         header=msg_header,
         episode_id=episode_id,
         step=step,
-        observation=image_message(frame, msg_header, kind),
+        observation=images[0] if images else image_message(None, msg_header, kind),
         state=kind.array(no_values if state is None else state, np.float32),
         state_shape=kind.array(no_values if state is None else np.shape(state), np.uint32),
         action=kind.array(no_values if action is None else action, np.float32),
         episode_end=action is None,
+        camera_names=names,
+        extra_observations=images[1:],
     )
-
-
-def single_camera(images: dict[str, np.ndarray], where: str) -> np.ndarray | None:
-    """The frames of the one camera a PlayStep can carry (None without a camera)."""
-    if len(images) > 1:
-        raise ValueError(f"{where}: a PlayStep carries one camera, this data has {sorted(images)}")
-    return next(iter(images.values()), None)
 
 
 def play_step_messages(
@@ -148,13 +148,12 @@ def play_step_messages(
 
     The last message has no action and ``episode_end = true``. ``stamps[i]`` is the stamp of observation i.
     """
-    frames = single_camera(images, f"episode {episode_id!r}")
     last = len(actions)
     for i in range(last + 1):
         yield play_step_message(
             episode_id,
             first_step + i,
-            None if frames is None else frames[i],
+            {name: frames[i] for name, frames in images.items()},
             None if state is None else state[i],
             None if i == last else actions[i],
             stamps[i],
@@ -176,11 +175,10 @@ def episode_step_message(
     episode: Episode, t: int, stamp: int = 0, frame_id: str = "play", kind: MessageKind = ROSBAGS
 ) -> Any:
     """Step t of an episode as a PlayStep (the last step, t = T, carries episode_end and no action)."""
-    frames = single_camera(episode.images, f"episode {episode.episode_id!r}")
+    frames = {name: images[t] for name, images in episode.images.items()}
     state = None if episode.state is None else episode.state[t]
     action = None if t == episode.num_steps else episode.actions[t]
-    frame = None if frames is None else frames[t]
-    return play_step_message(episode.episode_id, t, frame, state, action, stamp, frame_id, kind)
+    return play_step_message(episode.episode_id, t, frames, state, action, stamp, frame_id, kind)
 
 
 def annotation_message(
@@ -261,14 +259,18 @@ class StepData:
 
     episode_id: str
     step: int
-    frame: np.ndarray | None  # (H, W, 3) uint8; None for an empty (0x0) image: no camera
+    frames: dict[str, np.ndarray]  # camera feature name -> (H, W, 3) uint8; "" for an unnamed single camera
     state: np.ndarray | None  # float32, shaped by state_shape
     action: np.ndarray | None  # float32 (action_dim,); None on the final step (episode_end)
     episode_end: bool
 
+    def named_frames(self, camera: str = DEFAULT_CAMERA) -> dict[str, np.ndarray]:
+        """The frames by feature name, an unnamed single camera's as feature ``camera``."""
+        return {name or camera: frame for name, frame in self.frames.items()}
+
     def observation(self, camera: str = DEFAULT_CAMERA) -> dict[str, np.ndarray]:
-        """The observation by feature name, the image as feature ``camera``."""
-        observation = {} if self.frame is None else {camera: self.frame}
+        """The observation by feature name (an unnamed single camera's frame as feature ``camera``)."""
+        observation = self.named_frames(camera)
         if self.state is not None:
             observation[STATE] = self.state
         return observation
@@ -281,7 +283,9 @@ def _values(field: Any, dtype: type) -> np.ndarray:
     return np.asarray(field, dtype).reshape(-1)
 
 
-def frame_from_image(image: Any, frame_shape: tuple[int, ...] | None = None) -> np.ndarray | None:
+def frame_from_image(
+    image: Any, frame_shape: tuple[int, ...] | None = None, field: str = "observation"
+) -> np.ndarray | None:
     """The (H, W, 3) uint8 frame of an rgb8 Image, None for an empty one; ValueError naming the field
     for anything else.
 
@@ -289,21 +293,47 @@ def frame_from_image(image: Any, frame_shape: tuple[int, ...] | None = None) -> 
     """
     if int(image.height) == 0 and int(image.width) == 0 and not len(image.data):
         if frame_shape is not None:
-            raise ValueError(f"observation is empty, expected {frame_shape[0]}x{frame_shape[1]}")
+            raise ValueError(f"{field} is empty, expected {frame_shape[0]}x{frame_shape[1]}")
         return None
     if image.encoding != RGB8:
-        raise ValueError(f"observation.encoding is {image.encoding!r}, expected {RGB8!r}")
+        raise ValueError(f"{field}.encoding is {image.encoding!r}, expected {RGB8!r}")
     height, width, row = int(image.height), int(image.width), int(image.step)
     if row != width * 3:
-        raise ValueError(f"observation.step is {row} bytes, expected {width * 3} for width {width}")
+        raise ValueError(f"{field}.step is {row} bytes, expected {width * 3} for width {width}")
     data = _values(image.data, np.uint8)
     if data.size != height * row:
-        raise ValueError(
-            f"observation.data holds {data.size} bytes, expected {height} x {row} = {height * row}"
-        )
+        raise ValueError(f"{field}.data holds {data.size} bytes, expected {height} x {row} = {height * row}")
     if frame_shape is not None and (height, width, 3) != tuple(frame_shape):
-        raise ValueError(f"observation is {height}x{width}, expected {frame_shape[0]}x{frame_shape[1]}")
+        raise ValueError(f"{field} is {height}x{width}, expected {frame_shape[0]}x{frame_shape[1]}")
     return data.reshape(height, width, 3)
+
+
+def _frames(msg: Any, frame_shapes: Mapping[str, tuple[int, ...]] | None) -> dict[str, np.ndarray]:
+    """The step's frames by camera name ("" for an unnamed single camera); ``frame_shapes`` (by name,
+    "" for the unnamed one) enforced where given."""
+    names = [str(name) for name in getattr(msg, "camera_names", ())]
+    images = [msg.observation, *getattr(msg, "extra_observations", ())]
+    if not names:
+        if len(images) > 1:
+            raise ValueError(f"{len(images) - 1} extra_observations but no camera_names")
+        names = [""]
+    elif len(names) != len(images):
+        raise ValueError(f"camera_names has {len(names)} names for {len(images)} images")
+    elif "" in names or len(set(names)) != len(names):
+        raise ValueError(f"camera_names {names}: names must be non-empty and distinct")
+    shapes = frame_shapes or {}
+    frames = {}
+    for index, (name, image) in enumerate(zip(names, images, strict=True)):
+        field = "observation" if index == 0 else f"extra_observations[{index - 1}]"
+        try:
+            frame = frame_from_image(image, shapes.get(name), field)
+        except ValueError as error:
+            if len(names) > 1:  # say which camera
+                raise ValueError(f"camera {name}: {error}") from None
+            raise
+        if frame is not None:
+            frames[name] = frame
+    return frames
 
 
 def _state(msg: Any) -> np.ndarray | None:
@@ -331,18 +361,18 @@ def _action(msg: Any) -> np.ndarray | None:
     return action
 
 
-def step_from_message(msg: Any, frame_shape: tuple[int, ...] | None = None) -> StepData:
+def step_from_message(msg: Any, frame_shapes: Mapping[str, tuple[int, ...]] | None = None) -> StepData:
     """Validate and unpack one PlayStep on its own; StepError naming the episode, step and field.
 
-    ``frame_shape`` (H, W, 3), when given, is enforced.
+    ``frame_shapes`` maps camera names ("" for an unnamed single camera) to the (H, W, 3) they must have.
     """
     step = int(msg.step)
     try:
-        frame = frame_from_image(msg.observation, frame_shape)
+        frames = _frames(msg, frame_shapes)
         state, action = _state(msg), _action(msg)
     except ValueError as error:
         raise StepError(msg.episode_id, step, str(error)) from None
-    return StepData(msg.episode_id, step, frame, state, action, bool(msg.episode_end))
+    return StepData(msg.episode_id, step, frames, state, action, bool(msg.episode_end))
 
 
 def check_step_number(episode_id: str, step: int, expected: int) -> None:
@@ -362,8 +392,8 @@ def segment_from_annotation(msg: Any) -> Segment:
 
 
 def clip_from_labelled(msg: Any, camera: str = DEFAULT_CAMERA) -> SegmentClip:
-    """The SegmentClip of a LabelledSegment (every step validated, its image as feature ``camera``);
-    StepError naming episode and step."""
+    """The SegmentClip of a LabelledSegment (every step validated; an unnamed single camera's image as
+    feature ``camera``); StepError naming episode and step."""
     episode_id, start, end = msg.episode_id, int(msg.start_step), int(msg.end_step)
     if not start < end:
         raise StepError(episode_id, start, f"segment [{start}, {end}) is empty")
@@ -391,7 +421,7 @@ class EpisodeBuilder:
     """Collects the PlayStep messages of one episode in order and checks each against the first.
 
     ``first_step`` is the step number the stream must start at (0 for a play stream, ``start_step``
-    for the steps inside a LabelledSegment); the image becomes feature ``camera``.
+    for the steps inside a LabelledSegment); an unnamed single camera's image becomes feature ``camera``.
     """
 
     def __init__(self, episode_id: str, first_step: int = 0, camera: str = DEFAULT_CAMERA) -> None:
@@ -399,8 +429,8 @@ class EpisodeBuilder:
         self.first_step = first_step
         self.camera = camera
         self.num_observations = 0
-        self.frame_shape: tuple[int, ...] | None = None
-        self.frames: list[np.ndarray] = []
+        self.frame_shapes: dict[str, tuple[int, ...]] | None = None  # by camera name, from the first step
+        self.frames: dict[str, list[np.ndarray]] = {}
         self.states: list[np.ndarray] = []
         self.actions: list[np.ndarray] = []
         self.state_shape: tuple[int, ...] | None = None
@@ -411,7 +441,7 @@ class EpisodeBuilder:
         return self.first_step + self.num_observations
 
     def images(self) -> dict[str, np.ndarray]:
-        return {self.camera: np.stack(self.frames)} if self.frames else {}
+        return {name or self.camera: np.stack(frames) for name, frames in self.frames.items()}
 
     def add(self, msg: Any) -> StepData:
         """Append one PlayStep; StepError on a gap, repeat, bad field, change of shape or step after the end."""
@@ -423,10 +453,12 @@ class EpisodeBuilder:
                 self.episode_id, step, f"step after the episode ended at step {self.next_step - 1}"
             )
         check_step_number(self.episode_id, step, self.next_step)
-        data = step_from_message(msg, self.frame_shape)
-        frame_shape = None if data.frame is None else data.frame.shape
-        if self.num_observations and frame_shape != self.frame_shape:
-            raise StepError(self.episode_id, step, f"image {frame_shape}, earlier steps {self.frame_shape}")
+        data = step_from_message(msg, self.frame_shapes)
+        frame_shapes = {name: frame.shape for name, frame in data.frames.items()}
+        if self.num_observations and frame_shapes != self.frame_shapes:
+            raise StepError(
+                self.episode_id, step, f"images {frame_shapes}, earlier steps {self.frame_shapes}"
+            )
         state_shape = None if data.state is None else data.state.shape
         if self.num_observations and state_shape != self.state_shape:
             raise StepError(
@@ -438,10 +470,10 @@ class EpisodeBuilder:
                 step,
                 f"action has {data.action.size} values, earlier steps {self.actions[0].size}",
             )
-        self.state_shape, self.frame_shape = state_shape, frame_shape
+        self.state_shape, self.frame_shapes = state_shape, frame_shapes
         self.num_observations += 1
-        if data.frame is not None:
-            self.frames.append(data.frame)
+        for name, frame in data.frames.items():
+            self.frames.setdefault(name, []).append(frame)
         if data.state is not None:
             self.states.append(data.state)
         if data.action is not None:

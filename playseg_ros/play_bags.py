@@ -39,7 +39,7 @@ from playseg_ros.messages import (
     segment_from_annotation,
     stamp_ns,
 )
-from playseg_ros.typestore import playseg_typestore
+from playseg_ros.typestore import playseg_typestore, typestore_for
 
 STEPS_TOPIC = "/play/steps"
 ANNOTATIONS_TOPIC = "/play/annotations"
@@ -96,15 +96,11 @@ class DataInfo:
             instructions = tuple(json.loads(data.get("playseg.instructions", "[]")))
         except (json.JSONDecodeError, FeatureError, TypeError) as error:
             raise BagError(reader.path, f"metadata.yaml custom_data: {error}") from None
-        if features is not None and len(features.cameras) > 1:
-            raise BagError(
-                reader.path, f"custom_data declares {features.cameras}; a PlayStep carries one camera"
-            )
         return cls(features, data.get("playseg.domain") or None, instructions)
 
     @property
     def camera(self) -> str:
-        """The feature name of the PlaySteps' image."""
+        """The feature name of a PlayStep's image when the step names none (one camera: the first declared)."""
         return self.features.cameras[0] if self.features and self.features.cameras else DEFAULT_CAMERA
 
     def conform(self, episode: Episode, bag: Path) -> Episode:
@@ -186,7 +182,6 @@ def _check_topics(reader: BagReader, required: Collection[str]) -> None:
     for topic in required:
         if topic not in present:
             raise BagError(reader.path, f"topic missing (the bag has {sorted(present)})", topic)
-    store = playseg_typestore()
     for topic, actual in present.items():
         expected = TOPIC_TYPES.get(topic)
         if expected is None:
@@ -194,15 +189,17 @@ def _check_topics(reader: BagReader, required: Collection[str]) -> None:
         if actual != expected:
             raise BagError(reader.path, f"message type is {actual!r}, expected {expected!r}", topic)
         digest = reader.topic_hash(topic)
-        if digest.startswith("RIHS01_") and digest != store.hash_rihs01(expected):
+        if typestore_for(expected, digest) is None:
             raise BagError(
-                reader.path, f"{expected} in the bag has another definition (type hash {digest})", topic
+                reader.path, f"{expected} in the bag has an unknown definition (type hash {digest})", topic
             )
 
 
 def _deserialize(reader: BagReader, data: bytes, topic: str) -> Any:
+    """One message, decoded with the definition the bag recorded (today's or an earlier one)."""
+    store = typestore_for(TOPIC_TYPES[topic], reader.topic_hash(topic)) or playseg_typestore()
     try:
-        return playseg_typestore().deserialize_cdr(data, TOPIC_TYPES[topic])
+        return store.deserialize_cdr(data, TOPIC_TYPES[topic])
     except Exception as error:  # rosbags raises assorted errors for malformed CDR
         raise BagError(reader.path, f"cannot deserialize message: {error}", topic) from error
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import sys
 from functools import cache
 from pathlib import Path
+from typing import Any
 
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
@@ -53,3 +54,81 @@ def playseg_typestore() -> Typestore:
         types.update(get_types_from_msg(msg_text(name), f"playseg_msgs/msg/{name}"))
     store.register(types)
     return store
+
+
+PLAY_STEP_BEFORE_CAMERAS = """\
+std_msgs/Header header
+string episode_id
+uint32 step
+sensor_msgs/Image observation
+float32[] state
+uint32[] state_shape
+float32[] action
+bool episode_end
+"""
+"""PlayStep as bags recorded before it carried several cameras hold it (no camera_names,
+extra_observations): kept so that those bags still read."""
+
+
+@cache
+def earlier_typestores() -> tuple[Typestore, ...]:
+    """Typestores of earlier playseg_msgs definitions that bags may still hold, newest first."""
+    store = get_typestore(Stores.ROS2_KILTED)
+    types = {}
+    for name in PLAYSEG_MSG_TYPES:
+        text = PLAY_STEP_BEFORE_CAMERAS if name == "PlayStep" else msg_text(name)
+        types.update(get_types_from_msg(text, f"playseg_msgs/msg/{name}"))
+    store.register(types)
+    return (store,)
+
+
+@cache
+def typestore_for(type_name: str, type_hash: str) -> Typestore | None:
+    """The typestore whose ``type_name`` has the RIHS01 ``type_hash`` a bag records: today's definitions
+    or an earlier one; today's for a bag that records no hash; None when no known definition matches."""
+    if not type_hash.startswith("RIHS01_"):
+        return playseg_typestore()
+    for store in (playseg_typestore(), *earlier_typestores()):
+        if store.hash_rihs01(type_name) == type_hash:
+            return store
+    return None
+
+
+def _as_current(value: Any, old: Typestore, new: Typestore) -> Any:
+    """A message object of ``old``'s classes rebuilt with ``new``'s: fields both define are copied
+    (nested messages rebuilt alike), fields only ``new`` defines get their empty value (today's added
+    fields are all sequences or strings)."""
+    type_name = getattr(value, "__msgtype__", None)
+    if type_name is None:
+        if isinstance(value, list):
+            return [_as_current(item, old, new) for item in value]
+        return value  # numbers, strings, numpy arrays
+    _, fields = new.fielddefs[type_name]
+    values = {}
+    for name, (node_type, _) in fields:
+        if hasattr(value, name):
+            values[name] = _as_current(getattr(value, name), old, new)
+        elif node_type == _SEQUENCE:
+            values[name] = []
+        elif node_type == _BASE:
+            values[name] = ""
+        else:
+            raise ValueError(f"{type_name}.{name}: no value for a field earlier definitions lack")
+    return new.types[type_name](**values)
+
+
+_BASE, _SEQUENCE = 1, 4  # rosbags' Nodetype values of a base type and a sequence
+
+
+def as_current_cdr(data: bytes, type_name: str, type_hash: str) -> bytes:
+    """A recorded message's CDR in today's definition of ``type_name`` (re-encoded when the bag holds
+    an earlier one), so a bag from before a definition changed still plays to today's subscribers;
+    ValueError when the recorded definition is unknown."""
+    store = typestore_for(type_name, type_hash)
+    current = playseg_typestore()
+    if store is None:
+        raise ValueError(f"{type_name}: unknown definition (type hash {type_hash})")
+    if store is current:
+        return data
+    message = _as_current(store.deserialize_cdr(data, type_name), store, current)
+    return bytes(current.serialize_cdr(message, type_name))

@@ -91,3 +91,42 @@ def test_core_does_not_import_rclpy() -> None:
     code += "bad = [m for m in sys.modules if m.split('.')[0] in ('rclpy', 'playseg_ros')]\n"
     code += "assert not bad, bad\n"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def _two_camera_step(kind):
+    from playseg_ros.messages import play_step_message
+
+    rng = np.random.default_rng(0)
+    frames = {
+        "observation.images.front": rng.integers(0, 256, (6, 8, 3), dtype=np.uint8),
+        "observation.images.wrist": rng.integers(0, 256, (4, 4, 3), dtype=np.uint8),
+    }
+    return frames, play_step_message("ep", 0, frames, None, np.ones(2, np.float32), 0, kind=kind)
+
+
+@pytest.mark.parametrize("kind_name", ["ROSBAGS", "RCLPY"])
+def test_a_playstep_carries_every_camera_by_name(kind_name: str) -> None:
+    from playseg_ros import messages
+    from playseg_ros.messages import StepError, step_from_message
+
+    kind = getattr(messages, kind_name)
+    frames, msg = _two_camera_step(kind)
+    assert list(msg.camera_names) == list(frames) and len(msg.extra_observations) == 1
+    data = step_from_message(msg)
+    assert list(data.frames) == list(frames)
+    for name, frame in frames.items():
+        np.testing.assert_array_equal(data.frames[name], frame)
+    with pytest.raises(
+        StepError, match=r"camera observation.images.wrist: extra_observations\[0\] is 4x4, expected 5x5"
+    ):
+        step_from_message(msg, {"observation.images.wrist": (5, 5, 3)})
+    _, msg = _two_camera_step(kind)
+    msg.camera_names = ["observation.images.front"]
+    with pytest.raises(StepError, match="episode 'ep' step 0: camera_names has 1 names for 2 images"):
+        step_from_message(msg)
+    msg.camera_names = ["observation.images.front", "observation.images.front"]
+    with pytest.raises(StepError, match="names must be non-empty and distinct"):
+        step_from_message(msg)
+    msg.camera_names = []
+    with pytest.raises(StepError, match="1 extra_observations but no camera_names"):
+        step_from_message(msg)

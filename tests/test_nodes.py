@@ -362,6 +362,28 @@ def test_bag_player_fast_delivers_every_message_in_order(
         assert g[: len(w)] == w and len(g) - len(w) < 4 and not any(g[len(w) :]), f"message {i} differs"
 
 
+def test_bag_player_plays_a_bag_of_an_earlier_playstep_definition_in_todays(
+    procs: Processes, peer: RosPeer, tmp_path: Path
+) -> None:
+    """tests/data/play_bag_v1 holds PlayStep as it was before camera names: played, it decodes as today's."""
+    bag = Path(__file__).parent / "data" / "play_bag_v1"
+    want = [step for episode in read_play_bag(bag) for step in range(episode.num_steps + 1)]
+    frames = {e.episode_id: e.images[CAMERA] for e in read_play_bag(bag)}
+    received: list[PlayStep] = []
+    peer.node.create_subscription(PlayStep, "/play/steps", received.append, qos.PLAY_STEPS)
+    player, log = procs.node(
+        "bag_player", "player", bag=bag, rate=0.0, wait_for_subscribers=1, topics=["/play/steps"]
+    )
+    assert peer.spin_until(lambda: len(received) >= len(want) or player.poll() is not None, 60)
+    peer.spin_until(lambda: len(received) >= len(want), 5)
+    assert player.wait(timeout=30) == 0, log.read_text()
+    assert [msg.step for msg in received] == want
+    for msg in received:
+        assert list(msg.camera_names) == [] and len(msg.extra_observations) == 0
+        frame = np.frombuffer(bytes(msg.observation.data), np.uint8).reshape(64, 64, 3)
+        np.testing.assert_array_equal(frame, frames[msg.episode_id][msg.step])
+
+
 def test_bag_player_rate_1_takes_the_recorded_duration(
     procs: Processes, peer: RosPeer, tmp_path: Path
 ) -> None:

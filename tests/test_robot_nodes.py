@@ -1,4 +1,4 @@
-"""Robot-shaped play (a 96x128 camera, a 7-D state, 7-D continuous actions) through the segmenter and the
+"""Robot-shaped play (two 96x128 cameras, a 7-D state, 7-D continuous actions) through the segmenter and the
 trainer (generic `bc` policy) as real processes on real DDS; both nodes through every lifecycle transition
 in every state, answering their services."""
 
@@ -16,7 +16,7 @@ from lifecycle_msgs.srv import ChangeState, GetAvailableTransitions, GetState
 from node_procs import Processes, RosPeer, stop, wait_for_log
 from playseg_msgs.msg import LabelledSegment, PlayStep, TrainerStatus
 from playseg_msgs.srv import EvaluatePolicy, Retrain, SaveBuffer
-from test_robot_segmentation import FRONT, INSTRUCTIONS, robot_episode, robot_features
+from test_robot_segmentation import FRONT, INSTRUCTIONS, WRIST, robot_episode, robot_features
 
 from playseg_core.augment.buffer import AugmentationBuffer
 from playseg_core.ps.model import PSModel, load_model, save_model
@@ -27,7 +27,7 @@ from playseg_ros.messages import RCLPY, episode_step_message
 from playseg_ros.play_bags import DataInfo, write_play_bag
 
 Check = Callable[[object], bool]
-FEATURES = robot_features({FRONT: (96, 128)}, state=True)
+FEATURES = robot_features({FRONT: (96, 128), WRIST: (96, 128)}, state=True)
 
 
 def _robot_model(path: Path, episodes: list) -> Path:
@@ -86,7 +86,10 @@ def test_robot_play_goes_through_the_segmenter_and_a_bc_trainer_over_dds(
         (s.start, s.end, s.instruction) for s in offline
     ]
     last = segments[-1].steps[-1]
-    assert (last.observation.height, last.observation.width) == (96, 128)
+    assert list(last.camera_names) == [FRONT, WRIST]
+    for image, camera in zip([last.observation, *last.extra_observations], (FRONT, WRIST), strict=True):
+        frame = np.frombuffer(bytes(image.data), np.uint8).reshape(96, 128, 3)
+        np.testing.assert_array_equal(frame, play.images[camera][-1])
     np.testing.assert_array_equal(np.asarray(last.state), play.state[-1])
     np.testing.assert_array_equal(np.asarray(segments[0].steps[0].action), play.actions[0])
 
@@ -110,7 +113,8 @@ def test_robot_play_goes_through_the_segmenter_and_a_bc_trainer_over_dds(
         assert len(buffer) == len(segments)
         for clip in buffer:
             start, end = clip.segment.start, clip.segment.end
-            np.testing.assert_array_equal(clip.images[FRONT], play.images[FRONT][start : end + 1])
+            for camera in (FRONT, WRIST):
+                np.testing.assert_array_equal(clip.images[camera], play.images[camera][start : end + 1])
             np.testing.assert_array_equal(clip.state, play.state[start : end + 1])
             np.testing.assert_array_equal(clip.actions, play.actions[start:end])
 

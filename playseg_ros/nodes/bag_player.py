@@ -25,6 +25,7 @@ from playseg_ros import qos
 from playseg_ros.bag import BagReader
 from playseg_ros.nodes.common import declare, require, run_node
 from playseg_ros.ros_types import message_class
+from playseg_ros.typestore import as_current_cdr, playseg_typestore, typestore_for
 
 
 class BagPlayerNode(Node):
@@ -54,6 +55,17 @@ class BagPlayerNode(Node):
         for topic, type_name in self.topic_types.items():
             profile = qos.ANNOTATIONS if type_name.endswith("/Annotation") else qos.PLAY_STEPS
             self.publishers_by_topic[topic] = self.create_publisher(message_class(type_name), topic, profile)
+        # playseg_msgs recorded in an earlier definition are re-encoded in today's as they are played.
+        self.earlier_definition: dict[str, tuple[str, str]] = {}
+        for topic, type_name in self.topic_types.items():
+            digest = self.reader.topic_hash(topic)
+            if type_name.startswith("playseg_msgs/"):
+                store = typestore_for(type_name, digest)
+                require(
+                    store is not None, self, f"{topic} in {self.bag}: unknown {type_name} (hash {digest})"
+                )
+                if store is not playseg_typestore():
+                    self.earlier_definition[topic] = (type_name, digest)
         self.wait_topics = [t for t in wait_topics if t] or [
             t for t, ty in self.topic_types.items() if ty == "playseg_msgs/msg/PlayStep"
         ]
@@ -76,7 +88,10 @@ class BagPlayerNode(Node):
                     first_log = message.log_time_ns if first_log is None else first_log
                     due = started + (message.log_time_ns - first_log) / 1e9 / self.rate
                     time.sleep(max(0.0, due - time.monotonic()))
-                self.publishers_by_topic[message.topic].publish(message.data)
+                data = message.data
+                if message.topic in self.earlier_definition:
+                    data = as_current_cdr(data, *self.earlier_definition[message.topic])
+                self.publishers_by_topic[message.topic].publish(data)
                 self.published += 1
             self.get_logger().info(f"played {self.published} messages from {self.bag}")
         except Exception as exc:  # noqa: BLE001 -- reported, then the node ends with exit code 1

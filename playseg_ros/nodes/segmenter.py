@@ -73,7 +73,7 @@ class SegmenterNode(ReleasingLifecycleNode):
         self._sub = None
         self._pub = None  # created in on_configure, destroyed in on_cleanup, as the timer
         self._timer = None
-        self._frame_shape = None
+        self._frame_shapes: dict[str, tuple[int, ...]] = {}  # by camera name, from the model
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:
@@ -84,10 +84,13 @@ class SegmenterNode(ReleasingLifecycleNode):
             torch.set_num_threads(self.threads)
             self.model, _ = load_model(self.model_path, kinds=("ps",))
             self.min_len = self.min_len or self.model.cfg.min_len
-            cameras = self.model.cfg.features.cameras
-            require(len(cameras) <= 1, self, f"the model reads {cameras}; a PlayStep carries one camera")
+            features = self.model.cfg.features
+            cameras = features.cameras
+            # A PlayStep without camera names carries one camera: the model's first.
             self.camera = cameras[0] if cameras else DEFAULT_CAMERA
-            self._frame_shape = self.model.cfg.features[cameras[0]].shape if cameras else None
+            self._frame_shapes = {name: features[name].shape for name in cameras}
+            if cameras:
+                self._frame_shapes[""] = features[cameras[0]].shape
             self._pub = self.create_publisher(LabelledSegment, self.segments_topic, qos.SEGMENTS)
             self._timer = self.create_timer(min(5.0, self.episode_timeout_s / 2), self._drop_silent_episodes)
         except Exception as exc:  # any configuration problem: report it, stay unconfigured (retryable)
@@ -144,7 +147,7 @@ class SegmenterNode(ReleasingLifecycleNode):
             self.finished.add(msg.episode_id)
 
     def _segment_step(self, msg: PlayStep) -> None:
-        data = step_from_message(msg, self._frame_shape)
+        data = step_from_message(msg, self._frame_shapes)
         episode = self.episodes.get(data.episode_id)
         if episode is None:
             # Step 0 of an id seen before starts that episode anew (a replayed bag): documented rule.

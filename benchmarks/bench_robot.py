@@ -1,0 +1,168 @@
+"""Robot-shaped Play Segmentation: segmentation throughput against the reference's way, and training time
+and peak memory for 2,000 annotated segments.
+
+    .venv/bin/python benchmarks/bench_robot.py throughput [--steps 3000] [--reference-steps 150]
+        [--max-len 100] [--threads 1]
+    .venv/bin/python benchmarks/bench_robot.py train [--segments 2000] [--epochs 1] [--threads 2]
+
+Data: a 96x96 camera (image_cnn), a 7-D state (state_mlp), 7-D continuous actions (continuous_action).
+Speed and memory do not depend on the pixel values, so each episode's frames are one random frame
+broadcast over its steps (no memory of their own: the figures are the model's and the training loop's);
+states and actions are random, segments 20-100 steps long.
+
+throughput: a randomly initialised model at L_max 100; `segment_episode` on one long episode (steps/s,
+one core) and `reference_style_segment` (the whole model re-run on every prefix, the paper's DP with
+Python loops) on a shorter one; both must give the same segmentation on the shorter episode. The ratio is
+a lower bound: on an episode shorter than L_max the reference's way runs fewer and shorter prefixes per
+step than it would on a long one (its cost per step grows with L_max squared).
+train: `train_ps` for ``--epochs`` epochs over the segments (16 per batch); the seconds per optimiser step
+extrapolate to the default budget (16 epochs or 3,200 steps, whichever is more). Each mode runs in its
+own process, so peak RSS is that process's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import time
+
+import numpy as np
+import torch
+from reference_style import reference_style_segment
+
+from playseg_core.data.episode import Episode, Segment
+from playseg_core.data.features import ACTION, STATE, Feature, Features
+from playseg_core.ps.model import PSModel
+from playseg_core.ps.segmentation import segment_episode
+from playseg_core.ps.training import TrainConfig, epochs_to_train, model_config_for, segment_bounds, train_ps
+
+CAMERA = "observation.images.front"
+FEATURES = Features.of(
+    [
+        Feature(CAMERA, "image", "uint8", (96, 96, 3)),
+        Feature(STATE, "state", "float32", (7,), names=tuple(f"joint_{i}" for i in range(7))),
+        Feature(ACTION, "action", "float32", (7,), low=(-1.0,) * 7, high=(1.0,) * 7),
+    ],
+    fps=10.0,
+)
+INSTRUCTIONS = [f"task {i}" for i in range(16)]
+
+
+def robot_episode(seed: int, num_segments: int) -> Episode:
+    """``num_segments`` labelled segments of 20-100 steps in a row."""
+    rng = np.random.default_rng(seed)
+    lengths = rng.integers(20, 101, size=num_segments)
+    bounds = np.concatenate([[0], np.cumsum(lengths)])
+    steps = int(bounds[-1])
+    frame = rng.integers(0, 256, size=(96, 96, 3), dtype=np.uint8)
+    segments = [
+        Segment(int(a), int(b), INSTRUCTIONS[int(rng.integers(len(INSTRUCTIONS)))])
+        for a, b in zip(bounds, bounds[1:], strict=False)
+    ]
+    return Episode(
+        f"robot-{seed}",
+        rng.normal(size=(steps, 7)).astype(np.float32),
+        {CAMERA: np.broadcast_to(frame, (steps + 1, 96, 96, 3))},
+        rng.normal(size=(steps + 1, 7)).astype(np.float32),
+        segments,
+    )
+
+
+def peak_rss_mb() -> int:
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+
+
+def throughput(args: argparse.Namespace) -> None:
+    torch.set_num_threads(args.threads)
+    long_episode, short_episode = robot_episode(0, args.steps // 60), robot_episode(1, 3)
+    short_episode = Episode(  # cut to --reference-steps: the reference's way is quadratic in L_max
+        "short",
+        short_episode.actions[: args.reference_steps],
+        {CAMERA: short_episode.images[CAMERA][: args.reference_steps + 1]},
+        short_episode.state[: args.reference_steps + 1],
+    )
+    torch.manual_seed(0)
+    config = model_config_for(
+        FEATURES, None, len(INSTRUCTIONS), max_len=args.max_len, episodes=[long_episode]
+    )
+    model = PSModel(config, INSTRUCTIONS).eval()
+    segment_episode(model, short_episode)  # warm-up
+
+    began = time.perf_counter()
+    segment_episode(model, long_episode)
+    ours = time.perf_counter() - began
+    ours_rate = long_episode.num_steps / ours
+    print(
+        f"ours: {long_episode.num_steps} steps at L_max {args.max_len} in {ours:.1f} s = {ours_rate:.0f} steps/s "
+        f"on {args.threads} thread(s) (target >= 1,000); peak RSS {peak_rss_mb()} MB"
+    )
+    began = time.perf_counter()
+    ours_short = segment_episode(model, short_episode)
+    ours_short_s = time.perf_counter() - began
+    began = time.perf_counter()
+    reference = reference_style_segment(model, short_episode)
+    reference_s = time.perf_counter() - began
+    same = [(s.start, s.end, s.instruction) for s in ours_short] == [
+        (s.start, s.end, s.instruction) for s in reference
+    ]
+    reference_rate = short_episode.num_steps / reference_s
+    print(
+        f"reference way: {short_episode.num_steps} steps in {reference_s:.1f} s = {reference_rate:.1f} steps/s "
+        f"(ours on the same episode: {short_episode.num_steps / ours_short_s:.0f} steps/s); "
+        f"same segmentation: {same}"
+    )
+    print(
+        f"ratio (ours on the long episode / reference way): {ours_rate / reference_rate:.0f}x (target >= 100x)"
+    )
+
+
+def train(args: argparse.Namespace) -> None:
+    per_episode = 50
+    episodes = [robot_episode(seed, per_episode) for seed in range(-(-args.segments // per_episode))]
+    val = [robot_episode(10_000, 10)]
+    num_segments = sum(len(e.segments) for e in episodes)
+    bounds = segment_bounds(episodes)
+    config = model_config_for(
+        FEATURES, None, len(INSTRUCTIONS), max_len=bounds.max_len, episodes=episodes, min_len=bounds.min_len
+    )
+    cfg = TrainConfig(
+        epochs=args.epochs, min_steps=0, k_max=bounds.k_max, num_threads=args.threads, progress=False,
+        log_epochs=False,
+    )  # fmt: skip
+    steps_per_epoch = -(-num_segments // cfg.segments_per_batch)
+    before = peak_rss_mb()
+    result = train_ps(episodes, val, INSTRUCTIONS, cfg, config)
+    optimiser_steps = steps_per_epoch * args.epochs
+    per_step = result.seconds / optimiser_steps
+    default_steps = steps_per_epoch * epochs_to_train(TrainConfig(), steps_per_epoch)
+    print(
+        f"{num_segments} segments ({sum(e.num_steps for e in episodes)} steps), L_min/L_max/k_max "
+        f"{bounds.min_len}/{bounds.max_len}/{bounds.k_max}, {args.threads} thread(s)"
+    )
+    print(
+        f"{args.epochs} epoch(s) = {optimiser_steps} optimiser steps (validation included) in {result.seconds:.0f} s "
+        f"= {per_step:.2f} s/step; the default budget ({default_steps} steps) ~ {default_steps * per_step / 60:.0f} min"
+    )
+    print(f"peak RSS {peak_rss_mb()} MB (data and model before training: {before} MB)")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    sub = parser.add_subparsers(dest="mode", required=True)
+    speed = sub.add_parser("throughput")
+    speed.add_argument("--steps", type=int, default=3000)
+    speed.add_argument("--reference-steps", type=int, default=150)
+    speed.add_argument("--max-len", type=int, default=100)
+    speed.add_argument("--threads", type=int, default=1)
+    fit = sub.add_parser("train")
+    fit.add_argument("--segments", type=int, default=2000)
+    fit.add_argument("--epochs", type=int, default=1)
+    fit.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    throughput(args) if args.mode == "throughput" else train(args)
+
+
+if __name__ == "__main__":
+    main()
