@@ -24,6 +24,10 @@ EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError)
 """What bad input or output raises: ValueError covers BagError, DatasetError, FeatureError and
 CheckpointError; OSError a missing, unreadable or unwritable path or a full disk."""
 
+SEGMENTATION_METHODS = ("ps", "unloc", "tridet", "random", "changepoint")
+"""`--method` of train and segment: the names of playseg_core.baselines.registry.METHODS (listed here so
+`playseg --help` need not import torch; tests/test_baselines_cli.py checks they agree)."""
+
 DEFAULT_DOMAIN = "babyai"
 """The domain `playseg generate` plays in unless told otherwise (the sample bags' domain)."""
 
@@ -163,6 +167,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         args.overwrite,
         {"min_len": args.min_len, "max_len": args.max_len, "k_max": args.k_max},
         args.encoder,
+        args.method,
     )
 
 
@@ -183,6 +188,8 @@ def _cmd_segment(args: argparse.Namespace) -> int:
         args.min_len,
         args.overwrite,
         args.keep_incomplete,
+        args.method,
+        args.seed,
     )
 
 
@@ -229,6 +236,13 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
         help="step encoder of a feature instead of the default: image_cnn, state_mlp, discrete_action, "
         "continuous_action, a domain's kind (e.g. babyai.grid_tiles), or none (not read); repeatable",
     )
+    train.add_argument(
+        "--method",
+        default="ps",
+        choices=SEGMENTATION_METHODS,
+        help="ps (default), or a baseline (docs/baselines.md): unloc, tridet, random or changepoint "
+        "(the last two train the labelling model); --epochs, --lr, --batch-segments apply to each",
+    )
     train.set_defaults(func=_cmd_train)
     calibrate = sub.add_parser(
         "calibrate", help="re-choose a PS model's end bias and label threshold on a dataset's val split"
@@ -238,7 +252,7 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     calibrate.add_argument("--out", help="write the calibrated checkpoint here instead")
     calibrate.set_defaults(func=_cmd_calibrate)
     segment = sub.add_parser("segment", help="cut play into labelled segments with a trained PS model")
-    segment.add_argument("--model", required=True, help="PS checkpoint from `playseg train`")
+    segment.add_argument("--model", required=True, help="checkpoint from `playseg train` (of --method)")
     segment.add_argument("--input", required=True, help="dataset directory or play bag directory")
     segment.add_argument(
         "--out", required=True, help="output dataset directory (plus OUT/segments_bag for bags)"
@@ -254,6 +268,13 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
         help="also segment an episode that a bag cuts off before its end (a recovered recording); by default "
         "it is reported and skipped",
     )
+    segment.add_argument(
+        "--method",
+        default="ps",
+        choices=SEGMENTATION_METHODS,
+        help="the method --model was trained for with `playseg train --method` (default ps)",
+    )
+    segment.add_argument("--seed", type=int, default=0, help="seed of the random windows (not ps)")
     segment.set_defaults(func=_cmd_segment)
     evaluate = sub.add_parser("evaluate", help="metrics of segmented play against the ground truth")
     evaluate.add_argument("--pred", required=True, help="output of `playseg segment`")

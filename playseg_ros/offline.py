@@ -124,14 +124,17 @@ def train(
     overwrite: bool = False,
     bounds: dict[str, int | None] | None = None,
     encoders: list[str] | None = None,
+    method: str = "ps",
 ) -> int:
-    """Train the PS model (and optionally the stand-alone labeller) on a dataset's train/val splits.
+    """Train the PS model (and optionally the stand-alone labeller) on a dataset's train/val splits,
+    or another segmentation method (``method``, playseg_core/baselines/registry.py).
 
     ``bounds`` (min_len, max_len, k_max; None = derived, see `segment_bounds`) and ``encoders``
     (``FEATURE=KIND`` overrides of the step encoders) come from the command line.
 
     The outputs are checked before training starts (a model is never trained only to be lost).
     """
+    from playseg_core.baselines.registry import get_method
     from playseg_core.ps.calibration import calibrate_ps_model
     from playseg_core.ps.model import save_model
     from playseg_core.ps.training import (
@@ -142,6 +145,9 @@ def train(
         train_ps,
     )
 
+    get_method(method)  # an unknown method fails before anything is read
+    if labeller and method != "ps":
+        raise ValueError(f"--labeller: only with --method ps (method {method} writes what it needs to --out)")
     dataset = _open_dataset(data)
     check_output_file(out, overwrite)
     if labeller:
@@ -158,6 +164,10 @@ def train(
     if epochs is not None:  # asked for exactly this many epochs
         cfg = replace(cfg, min_steps=0)
     features, read_actions = _action_features(actions, dataset.features)
+    if method != "ps":
+        given = {"seed": seed, "epochs": epochs, "lr": lr, "batch_size": batch_segments}
+        training = (dataset, train_eps, val_eps, features, read_actions, bounds, encoders)
+        return _train_method(method, data, out, training, given)
     model_cfg = model_config_for(
         features,
         dataset.domain,
@@ -199,6 +209,23 @@ def train(
         save_model(labeller, lab.model, {"train": asdict(cfg), "history": lab.history})
         final = lab.history[-1].get("val", lab.history[-1]["train"])
         print(f"{labeller}: labeller, val accuracy {final['label_accuracy']:.3f}, {lab.seconds:.0f} s")
+    return 0
+
+
+def _train_method(method: str, data: str, out: str, training: tuple, given: dict) -> int:
+    """`playseg train --method` for a method other than PS: the same data, options and output."""
+    from playseg_core.baselines.common import TrainingData, TrainOptions
+    from playseg_core.baselines.registry import train_segmenter
+
+    dataset, train_eps, val_eps, features, read_actions, bounds, encoders = training
+    overrides = _encoder_overrides(encoders or [])
+    inputs = TrainingData(
+        train_eps, val_eps, list(dataset.instructions), features, dataset.domain, read_actions, overrides,
+        dict(bounds or {}),
+    )  # fmt: skip
+    trained = train_segmenter(method, inputs, TrainOptions(**given))  # unset options: the method's defaults
+    trained.save(Path(out), {"method": method, "dataset": str(Path(data).resolve())})
+    print(f"{out}: {trained.report}; peak RSS {_peak_rss_mb():.0f} MB")
     return 0
 
 
@@ -263,14 +290,18 @@ def segment(
     min_len: int | None,
     overwrite: bool,
     keep_incomplete: bool = False,
+    method: str = "ps",
+    seed: int = 0,
 ) -> int:
     """Segment every episode of the input; write a dataset of labelled segments (and a bag for bags).
 
+    ``method`` is the segmentation method the checkpoint is for (playseg_core/baselines/registry.py);
+    ``seed`` draws the random windows of the methods that use them.
     Streams: one episode in memory at a time, the segment bag written as the segments come.
     """
+    from playseg_core.baselines.common import SegmentOptions
+    from playseg_core.baselines.registry import load_segmenter
     from playseg_core.data.dataset import DatasetWriter
-    from playseg_core.ps.model import load_model
-    from playseg_core.ps.segmentation import segment_episode
 
     if min_len is not None and min_len < 1:
         raise ValueError(f"--min-len must be >= 1, got {min_len}")
@@ -278,15 +309,15 @@ def segment(
     if not source.exists():
         raise FileNotFoundError(f"--input {source}: no such bag or dataset")
     _check_not_inside(Path(out), source)
-    model, extra = load_model(model_path, kinds=("ps",))
-    min_len = min_len or model.cfg.min_len
-    cameras = model.cfg.features.cameras
+    model = load_segmenter(method, model_path, SegmentOptions(min_len=min_len, seed=seed))
+    cameras = model.features.cameras
     camera = cameras[0] if len(cameras) == 1 else None
     episodes, info, kind = _input_episodes(source, splits, camera, keep_incomplete)
     if info.features is not None:
-        model.cfg.check_features(info.features, f"model {model_path}")
-    threshold = float(extra.get("calibration", {}).get("threshold", 0.0))
+        model.check_features(info.features, f"model {model_path}")
+    threshold = model.label_threshold
     meta = {"segmented_by": str(model_path), "source": str(source), "label_threshold": threshold}
+    meta |= {"method": method, "tiles": model.tiles}  # evaluate: only precision and label accuracy if not
     instructions = info.instructions or tuple(model.instructions)
     unknown = sorted(set(model.instructions) - set(instructions))
     if unknown:
@@ -305,7 +336,7 @@ def segment(
             """Segment episode by episode, writing each to the dataset; yield the confident clips."""
             nonlocal steps, count
             for episode in episodes:
-                segments = segment_episode(model, episode, min_len=min_len)
+                segments = model.segment(episode)
                 writer.add(episode.with_segments(segments), "play", extra={"source": kind})
                 steps += episode.num_steps
                 count += len(segments)
@@ -355,6 +386,16 @@ def evaluate(pred: str, truth: str, out_json: str | None, plot: str | None, num_
         raise ValueError(f"--pred {pred}: none of its episodes is in --truth {truth}")
     results = evaluate_metrics(pred_by_id, truth_by_id, steps_by_id)
     print(format_metrics_table(results))
+    segmented_by = predicted.info.get("meta", {})
+    if segmented_by.get("tiles") is False:  # a window method (unloc, tridet): its segments leave gaps
+        from playseg_core.baselines.common import covered_metrics
+
+        results |= covered_metrics(pred_by_id, truth_by_id, steps_by_id)
+        print(
+            f"method {segmented_by.get('method')} cuts single segments out of windows: read segment precision "
+            f"and label accuracy on the {results['covered_steps']} steps its segments cover, "
+            f"{results['covered_label_accuracy']:.3f} (recall and the label accuracy above count the gaps)"
+        )
     json_path = Path(out_json) if out_json else Path(pred) / "metrics.json"
     json_path.write_text(json.dumps(results, indent=2, sort_keys=True))
     print(f"metrics: {json_path}")

@@ -13,7 +13,7 @@ import math
 import sys
 import time
 import zlib
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -65,7 +65,7 @@ class TrainOptions:
     batch_size: int | None = None
     lr: float | None = None
     max_seconds: float | None = None
-    num_threads: int = 1
+    num_threads: int | None = None  # torch threads while training (None: as set)
     log_every: int = 0  # print a loss line every so many steps (0: never)
 
     def steps_for(self, num_segments: int, batch_size: int, default_steps: int) -> int:
@@ -233,7 +233,8 @@ def fit(
     """AdamW with a one-cycle schedule for ``steps`` steps (or until ``max_seconds``). ``loss_of_batch
     (rng, training)`` draws a batch and returns its loss; with ``training`` False, from the val split.
     The val loss (``val_batches`` fixed batches) is measured at the end."""
-    torch.set_num_threads(options.num_threads)
+    if options.num_threads:
+        torch.set_num_threads(options.num_threads)
     rng = np.random.default_rng(options.seed)
     optimizer = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     schedule = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=lr, total_steps=steps, pct_start=0.05)
@@ -288,3 +289,17 @@ def step_encoders_for(data: TrainingData) -> tuple[list[EncoderSpec], Features]:
         overrides=data.encoder_overrides,
     )
     return config.encoders, config.features
+
+
+def covered_metrics(
+    pred_by_episode: Mapping[str, Sequence[Segment]],
+    truth_by_episode: Mapping[str, Sequence[Segment]],
+    num_steps_by_episode: Mapping[str, int],
+) -> dict[str, float | int]:
+    """``covered_label_accuracy`` and ``covered_steps`` over episodes (micro-averaged), as
+    ps.metrics.evaluate reports the rest."""
+    total = LabelCounts(0, 0)
+    for episode_id, truth in truth_by_episode.items():
+        pred = pred_by_episode.get(episode_id, [])
+        total += covered_label_accuracy(pred, truth, num_steps_by_episode[episode_id])
+    return {"covered_label_accuracy": total.accuracy, "covered_steps": total.total}

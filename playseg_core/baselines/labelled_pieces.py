@@ -13,6 +13,8 @@ from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from playseg_core.baselines.common import TrainingData, TrainOptions
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.ps.labelling import label_segments
@@ -27,7 +29,8 @@ def train_labelling_model(
 
     train_eps = data.annotated()
     bounds = segment_bounds(train_eps, data.domain, **data.bounds)
-    cfg = TrainConfig(seed=options.seed, k_max=bounds.k_max, num_threads=options.num_threads, progress=False)
+    threads = options.num_threads or torch.get_num_threads()
+    cfg = TrainConfig(seed=options.seed, k_max=bounds.k_max, num_threads=threads, progress=False)
     cfg = replace(cfg, log_epochs=bool(options.log_every))
     if options.epochs is not None:
         cfg = replace(cfg, epochs=options.epochs, min_steps=0)

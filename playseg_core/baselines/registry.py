@@ -16,6 +16,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from playseg_core.baselines.changepoint import load_changepoint_segmenter, train_changepoint
 from playseg_core.baselines.common import (
     Segmenter,
@@ -61,7 +63,8 @@ def train_play_segmentation(data: TrainingData, options: TrainOptions) -> Traine
 
     train_eps = data.annotated()
     bounds = segment_bounds(train_eps, data.domain, **data.bounds)
-    cfg = TrainConfig(seed=options.seed, k_max=bounds.k_max, num_threads=options.num_threads, progress=False)
+    threads = options.num_threads or torch.get_num_threads()
+    cfg = TrainConfig(seed=options.seed, k_max=bounds.k_max, num_threads=threads, progress=False)
     cfg = replace(cfg, log_epochs=bool(options.log_every))
     if options.epochs is not None:
         cfg = replace(cfg, epochs=options.epochs, min_steps=0)
