@@ -150,3 +150,15 @@ def test_a_segment_received_again_is_stored_once(tmp_path, episodes):
     reopened.add(clip)
     assert len(reopened.buffer) == 2 and reopened.duplicates == 1
     reopened.close()
+
+
+def test_a_success_change_is_called_a_gain_only_beyond_two_standard_errors() -> None:
+    from playseg_core.augment.policy import describe_success_change, success_difference_noise
+
+    noise = success_difference_noise(0.5, 0.5, 512)
+    assert abs(noise - (2 * 0.25 / 512) ** 0.5) < 1e-12
+    assert "no measurable change" in describe_success_change(0.523, 0.539, 512)
+    assert "a gain beyond" in describe_success_change(0.50, 0.60, 512)
+    assert "a drop beyond" in describe_success_change(0.60, 0.50, 512)
+    assert "no measurable change" not in describe_success_change(0.50, 0.60, 10_000)
+    assert "no measurable change" in describe_success_change(0.50, 0.60, 20)  # few episodes: noisy

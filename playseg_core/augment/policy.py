@@ -51,6 +51,24 @@ class PolicyEvaluation:
     episode_success: list[bool] = field(default_factory=list)
 
 
+def success_difference_noise(before: float, after: float, num_episodes: int) -> float:
+    """One standard error of the difference of two success rates, each measured on ``num_episodes``
+    episodes (binomial, treated as independent; conservative for the same fixed episodes)."""
+    variance = before * (1.0 - before) / num_episodes + after * (1.0 - after) / num_episodes
+    return float(np.sqrt(variance))
+
+
+def describe_success_change(before: float, after: float, num_episodes: int) -> str:
+    """A policy's success before -> after, and whether the change is beyond two standard errors."""
+    noise = success_difference_noise(before, after, num_episodes)
+    change = after - before
+    if abs(change) <= 2.0 * noise:
+        verdict = "no measurable change at this scale (within 2 standard errors)"
+    else:
+        verdict = "a gain beyond 2 standard errors" if change > 0 else "a drop beyond 2 standard errors"
+    return f"{before:.3f} -> {after:.3f} ({change:+.3f}; one standard error {noise:.3f}: {verdict})"
+
+
 class InstructionPolicy(Protocol):
     """An instruction-following policy: a batch of observations and instructions -> a batch of actions."""
 
