@@ -1,70 +1,128 @@
-"""The paper's simple baselines, scored like PS: random windows and ground-truth relabelling.
+"""The paper's segmentation baselines next to PS: training time, segmentation throughput and quality.
 
-    .venv/bin/python benchmarks/bench_baselines.py --data data/ps10k --labeller models/labeller.pt
+    .venv/bin/python benchmarks/bench_baselines.py --data /tmp/babyai_small --models build/baselines \\
+        --methods unloc,tridet,random,changepoint --ps-model models/ps.pt --max-seconds 540
 
-Both use the stand-alone labelling model (`playseg train --labeller`):
-- random windows: each episode cut into consecutive windows of 2..22 steps (uniform), each labelled by
-  the labeller (the paper's "Random" baseline);
-- ground-truth relabelling: the true segments, labelled by the labeller (its boundaries are perfect by
-  construction; its label accuracy is the labeller's accuracy on held-out play).
-UnLoc and TriDet need CLIP / I3D features and are not reproduced here.
+Each method of playseg_core.baselines.registry is trained on the dataset's train/val splits (budget:
+``--steps METHOD=N``, the method's default otherwise, stopped after ``--max-seconds``), saved to
+MODELS/<method>.pt (an existing file is reused with ``--reuse``: no training time then), and segments
+the ``--split`` episodes; ``--ps-model`` adds a trained PS checkpoint. Printed per method: training
+seconds, segmentation throughput (steps/s, encoding included), the number of segments, boundary
+precision (segment ends, exact), segment precision (start, end and label all right), label accuracy
+over all steps and over the steps the segments cover, and boundary recall where the method covers the
+trajectory. A ground-truth relabelling row (the true segments labelled by the labelling model of the
+random-window baseline) gives the labelling model's own accuracy. The changepoint baseline reuses that
+labelling model when MODELS/random.pt exists (its training time is then PELT's penalty search only). The paper's BabyAI figures are
+printed alongside (precision and label accuracy; DESIGN.md "Paper figures to beat").
 """
 
 from __future__ import annotations
 
 import argparse
+import time
+from pathlib import Path
 
-import numpy as np
 import torch
 
+from playseg_core.baselines.changepoint import train_changepoint
+from playseg_core.baselines.common import SegmentOptions, TrainingData, TrainOptions, covered_metrics
+from playseg_core.baselines.labelled_pieces import label_pieces, load_labeller
+from playseg_core.baselines.registry import METHODS, get_method, load_segmenter
 from playseg_core.data.dataset import PlayDataset
-from playseg_core.ps.labelling import label_segments
 from playseg_core.ps.metrics import evaluate
-from playseg_core.ps.model import LabelModel, load_model
+
+PAPER = {"ps": (0.826, 0.516), "unloc": (0.283, 0.353), "tridet": (0.338, 0.323)}
+"""The paper's BabyAI table: (precision, label accuracy)."""
 
 
-def random_windows(
-    num_steps: int, rng: np.random.Generator, shortest: int = 2, longest: int = 22
-) -> list[tuple[int, int]]:
-    """Consecutive windows of random length covering [0, num_steps); the last one may be shorter."""
-    spans, start = [], 0
-    while start < num_steps:
-        end = min(num_steps, start + int(rng.integers(shortest, longest + 1)))
-        spans.append((start, end))
-        start = end
-    return spans
+def _budgets(items: list[str]) -> dict[str, int]:
+    budgets = {}
+    for item in items:
+        method, _, steps = item.partition("=")
+        get_method(method)
+        budgets[method] = int(steps)
+    return budgets
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    parser.add_argument("--data", required=True)
-    parser.add_argument("--labeller", required=True, help="labelling-model checkpoint")
+    parser.add_argument("--data", required=True, help="a playseg dataset with train/val and the --split")
+    parser.add_argument("--models", default="build/baselines", help="where the checkpoints are written")
+    parser.add_argument("--methods", default="unloc,tridet,random,changepoint")
+    parser.add_argument("--ps-model", help="a trained PS checkpoint to compare with")
     parser.add_argument("--split", default="test")
+    parser.add_argument("--steps", action="append", default=[], metavar="METHOD=N", help="training steps")
+    parser.add_argument("--max-seconds", type=float, help="stop each training after this long")
+    parser.add_argument("--reuse", action="store_true", help="load MODELS/<method>.pt where it exists")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
-    torch.set_num_threads(2)
-    model, _ = load_model(args.labeller)
-    if not isinstance(model, LabelModel):
-        raise SystemExit(f"{args.labeller}: not a labelling-model checkpoint")
-    episodes = list(PlayDataset.open(args.data).episodes(args.split, truth=True))
+    torch.set_num_threads(args.threads)
+    budgets = _budgets(args.steps)
+    dataset = PlayDataset.open(args.data)
+    episodes = list(dataset.episodes(args.split, truth=True))
     truth = {e.episode_id: e.segments for e in episodes}
     steps = {e.episode_id: e.num_steps for e in episodes}
-    rng = np.random.default_rng(args.seed)
-    runs = {
-        "random windows 2..22": {
-            e.episode_id: label_segments(model, e, random_windows(e.num_steps, rng)) for e in episodes
-        },
-        "ground truth relabelled": {
-            e.episode_id: label_segments(model, e, [(s.start, s.end) for s in e.segments]) for e in episodes
-        },
-    }
-    print(f"{len(episodes)} episodes of {args.data} split {args.split}; exact boundaries, final included")
-    print(f"{'baseline':<26}{'precision':>10}{'recall':>8}{'F1':>7}{'label acc':>11}")
-    for name, pred in runs.items():
+    data = TrainingData(
+        train=list(dataset.episodes("train")),
+        val=list(dataset.episodes("val")),
+        instructions=list(dataset.instructions),
+        features=dataset.features,
+        domain=dataset.domain,
+    )
+    models = Path(args.models)
+    models.mkdir(parents=True, exist_ok=True)
+    runs: list[tuple[str, float | None, object]] = []
+    for name in [m for m in args.methods.split(",") if m]:
+        path = models / f"{name}.pt"
+        seconds = None
+        if not (args.reuse and path.exists()):
+            options = TrainOptions(seed=args.seed, steps=budgets.get(name), max_seconds=args.max_seconds)
+            if name == "changepoint" and (models / "random.pt").exists():
+                # The same labelling model as the random windows: only PELT's penalty is chosen here.
+                trained = train_changepoint(data, options, labeller=load_labeller(models / "random.pt"))
+            else:
+                trained = get_method(name).train(data, options)
+            trained.save(path, {"method": name, "dataset": str(Path(args.data).resolve())})
+            seconds = trained.seconds
+            print(f"{name}: {trained.report}", flush=True)
+        runs.append((name, seconds, load_segmenter(name, path, SegmentOptions(seed=args.seed))))
+    if args.ps_model:
+        runs.insert(0, ("ps", None, load_segmenter("ps", args.ps_model)))
+
+    total_steps = sum(steps.values())
+    print(f"\n{len(episodes)} episodes ({total_steps} steps) of {args.data} split {args.split}")
+    header = (
+        f"{'method':<22}{'train s':>8}{'steps/s':>9}{'segs':>6}{'end P':>7}{'seg P':>7}{'label':>7}"
+        f"{'covered':>8}{'end R':>7}   paper P / label"
+    )
+    print(header)
+    relabel_model = None
+    for name, seconds, segmenter in runs:
+        began = time.perf_counter()
+        pred = {e.episode_id: segmenter.segment(e) for e in episodes}
+        rate = total_steps / (time.perf_counter() - began)
+        m = evaluate(pred, truth, steps) | covered_metrics(pred, truth, steps)
+        recall = f"{m['boundary_recall_tol0']:>7.3f}" if METHODS[name].tiles else f"{'-':>7}"
+        paper = "{:.3f} / {:.3f}".format(*PAPER[name]) if name in PAPER else ""
+        trained = f"{seconds:>8.0f}" if seconds is not None else f"{'-':>8}"
+        print(
+            f"{name:<22}{trained}{rate:>9.0f}{m['pred_segments']:>6}{m['boundary_precision_tol0']:>7.3f}"
+            f"{m['segment_precision']:>7.3f}{m['label_accuracy']:>7.3f}{m['covered_label_accuracy']:>8.3f}"
+            f"{recall}   {paper}",
+            flush=True,
+        )
+        if name == "random":
+            relabel_model = segmenter.model
+    if relabel_model is not None:
+        pred = {
+            e.episode_id: label_pieces(relabel_model, e, [(s.start, s.end) for s in e.segments])
+            for e in episodes
+        }
         m = evaluate(pred, truth, steps)
         print(
-            f"{name:<26}{m['boundary_precision_tol0']:>10.3f}{m['boundary_recall_tol0']:>8.3f}"
-            f"{m['boundary_f1_tol0']:>7.3f}{m['label_accuracy']:>11.3f}"
+            f"{'ground truth relabelled':<22}{'-':>8}{'-':>9}{m['pred_segments']:>6}{1.0:>7.3f}"
+            f"{m['segment_precision']:>7.3f}{m['label_accuracy']:>7.3f}{m['label_accuracy']:>8.3f}{1.0:>7.3f}"
         )
 
 

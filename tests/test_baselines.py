@@ -49,8 +49,8 @@ FEATURES = Features.of(
 def synthetic_episode(seed: int, steps: int = 60, lengths: tuple[int, int] = (3, 7)) -> Episode:
     """Segments of ``lengths`` steps up to about ``steps``; the state shows the instruction (columns
     0-2), a sign that flips at every boundary (column 3) and the progress through the segment, 0 at its
-    first step and 1 at its last (column 4: a piece of a segment shows it is one); column 5 and the
-    actions are noise."""
+    first step and 1 at its last (column 4: a piece of a segment shows it is one); column 5 is noise;
+    the action is mostly the instruction's index (80%), else random."""
     rng = np.random.default_rng(seed)
     bounds, labels = [0], []
     while bounds[-1] < steps:
@@ -67,7 +67,10 @@ def synthetic_episode(seed: int, steps: int = 60, lengths: tuple[int, int] = (3,
         state[start : end + (end == num_steps), 3] += 1.0 if index % 2 else -1.0
         state[start:end, 4] += np.linspace(0.0, 1.0, end - start)
         segments.append(Segment(start, end, INSTRUCTIONS[label]))
-    actions = rng.integers(0, 3, size=(num_steps, 1)).astype(np.float32)
+    # Mostly the instruction's own action, sometimes another.
+    typical = np.repeat(labels, np.diff(bounds))
+    actions = np.where(rng.random(num_steps) < 0.8, typical, rng.integers(0, 3, num_steps))
+    actions = actions.reshape(num_steps, 1).astype(np.float32)
     return Episode(f"synthetic-{seed}", actions, {}, state, segments)
 
 
@@ -101,7 +104,13 @@ def scores(segmenter, episodes: list[Episode]) -> dict[str, float]:
 def test_cropping_keeps_one_class_run_long_enough() -> None:
     background = 9
     assert crop_background([9, 9, 2, 2, 2, 9], background, 1) == (2, 5, 2)
-    assert crop_background([2, 2, 2], background, 3) == (0, 3, 2)
+    # The paper's rule keeps a run that touches the window's edge; the closed rule (default) does not:
+    # it may go on beyond the window, and no training window has one.
+    assert crop_background([2, 2, 2], background, 3, closed=False) == (0, 3, 2)
+    assert crop_background([9, 2, 2], background, 1, closed=False) == (1, 3, 2)
+    assert crop_background([2, 2, 2], background, 3) is None
+    assert crop_background([9, 2, 2], background, 1) is None
+    assert crop_background([2, 2, 9], background, 1) is None
     assert crop_background([9, 2, 2, 9], background, 3) is None  # too short
     assert crop_background([9, 2, 1, 2, 9], background, 1) is None  # two classes remain
     assert crop_background([9, 2, 9, 2, 9], background, 1) is None  # background inside is not cropped
@@ -244,3 +253,15 @@ def test_random_windows_tile_with_annotated_lengths_and_labelled_well(tmp_path: 
     assert segmenter.segment(test[0]) != load_segmenter("random", path, SegmentOptions(seed=4)).segment(
         test[0]
     )
+
+
+def test_ps_trains_and_segments_through_the_registry(tmp_path: Path) -> None:
+    """One epoch: the plumbing (the CLI's PS path is offline.py's own, tested elsewhere)."""
+    trained = get_method("ps").train(synthetic_data(train=6, val=2), TrainOptions(epochs=1))
+    path = trained.save(tmp_path / "ps.pt", {"note": 1})
+    segmenter = load_segmenter("ps", path, SegmentOptions(min_len=2))
+    episode = synthetic_episode(200)
+    segments = segmenter.segment(episode)
+    assert segments[0].start == 0 and segments[-1].end == episode.num_steps
+    assert all(s.length >= 2 for s in segments) and segmenter.tiles
+    assert segmenter.label_threshold == trained.segmenter.label_threshold

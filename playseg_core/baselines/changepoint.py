@@ -12,6 +12,7 @@ chosen on the annotated training episodes (best boundary F1, a grid search), unl
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -157,9 +158,15 @@ def train_changepoint(
     options: TrainOptions,
     signal: str = "state_action",
     penalty_factor: float | None = None,
+    labeller: tuple[LabelModel | PSModel, dict[str, Any]] | None = None,
 ) -> TrainedSegmenter:
-    """Train the labelling model; choose PELT's penalty factor on the annotated training episodes."""
-    model, meta, seconds = train_labelling_model(data, options)
+    """Train the labelling model (or take ``labeller``: a trained model and its meta); choose PELT's
+    penalty factor on the annotated training episodes."""
+    began = time.perf_counter()
+    if labeller is None:
+        model, meta, _ = train_labelling_model(data, options)
+    else:
+        model, meta = labeller[0], {**labeller[1], "labeller_reused": True}
     min_size = model.cfg.min_len
     tuned_f1 = None
     if penalty_factor is None:
@@ -171,9 +178,10 @@ def train_changepoint(
         return save_labeller(path, model, {**meta, **extra})
 
     segmenter = ChangepointSegmenter(model, penalty_factor, signal, min_size, SegmentOptions())
+    seconds = time.perf_counter() - began
     chosen = "given" if tuned_f1 is None else f"train boundary F1 {tuned_f1:.3f}"
     text = (
-        f"labelling model (val accuracy {meta['val_label_accuracy']:.3f}) + PELT on {signal}, penalty "
+        f"labelling model (val accuracy {meta.get('val_label_accuracy', float('nan')):.3f}) + PELT on {signal}, penalty "
         f"{penalty_factor:.3g} x width ({chosen}); {seconds:.0f} s"
     )
     return TrainedSegmenter(segmenter, save, seconds, text)

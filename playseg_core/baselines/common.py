@@ -230,14 +230,21 @@ def fit(
     name: str,
     val_batches: int = 0,
 ) -> FitReport:
-    """AdamW with a one-cycle schedule for ``steps`` steps (or until ``max_seconds``). ``loss_of_batch
+    """AdamW with warm-up and cosine decay for ``steps`` steps (or until ``max_seconds``). ``loss_of_batch
     (rng, training)`` draws a batch and returns its loss; with ``training`` False, from the val split.
     The val loss (``val_batches`` fixed batches) is measured at the end."""
     if options.num_threads:
         torch.set_num_threads(options.num_threads)
     rng = np.random.default_rng(options.seed)
     optimizer = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
-    schedule = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=lr, total_steps=steps, pct_start=0.05)
+    warmup = max(1, steps // 20)
+
+    def factor(step: int) -> float:  # linear warm-up over 5% of the steps, then a cosine to zero
+        if step < warmup:
+            return (step + 1) / warmup
+        return 0.5 * (1 + math.cos(math.pi * (step - warmup) / max(1, steps - warmup)))
+
+    schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
     began, losses, history = time.perf_counter(), [], []
     model.train()
     done = 0
