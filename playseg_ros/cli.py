@@ -333,6 +333,35 @@ def _add_convert_command(sub: argparse._SubParsersAction) -> None:
     convert.set_defaults(func=_cmd_convert)
 
 
+def _cmd_experiment(args: argparse.Namespace) -> int:
+    from playseg_core.experiment.runner import run_experiment
+
+    conditions = [c for c in args.conditions.split(",") if c] if args.conditions else None
+    kwargs = {"conditions": conditions} if conditions else {}
+    run_experiment(args.domain, args.scale, args.seeds, args.out, args.workers, **kwargs)
+    return 0
+
+
+def _add_experiment_command(sub: argparse._SubParsersAction) -> None:
+    experiment = sub.add_parser(
+        "experiment",
+        help="the paper's augmentation experiment: policies on the start split plus what each condition adds",
+    )
+    experiment.add_argument("domain", help="a domain with an experiment (e.g. babyai)")
+    experiment.add_argument(
+        "--scale", default="small", help="the domain's experiment size (e.g. tiny, small, paper)"
+    )
+    experiment.add_argument("--seeds", type=int, default=3, help="policy seeds per condition (default 3)")
+    experiment.add_argument("--out", required=True, help="output directory; rerunning it resumes")
+    experiment.add_argument("--workers", type=int, default=2, help="parallel generation and policy runs")
+    experiment.add_argument(
+        "--conditions",
+        help="comma-separated subset, in table order (default: gt_start,gt_2x,gt_4x,gt_100,oracle_relabel,"
+        "random_relabel,ps; also unloc, tridet, changepoint)",
+    )
+    experiment.set_defaults(func=_cmd_experiment)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="playseg",
@@ -349,6 +378,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_up_command(sub)
     _add_segmentation_commands(sub)
     _add_convert_command(sub)
+    _add_experiment_command(sub)
     return parser
 
 

@@ -59,3 +59,51 @@ def generate_dataset(
 
 
 __all__ = ["DOMAIN", "POLICIES", "PRESET_NAMES", "SEGMENT_BOUNDS", "generate_dataset", "step_encoders"]
+
+
+def _experiment() -> Any:
+    from playseg_core.experiment.runner import ExperimentScale, ExperimentSpec
+
+    return ExperimentSpec(
+        policy="babyai.film",
+        scales={
+            "tiny": ExperimentScale(
+                "tiny",
+                0.25,
+                {"steps": 20, "batch_size": 32, "channels": 16},
+                8,
+                segmenter_steps=30,
+                description="for tests: seconds per run, figures mean nothing",
+            ),
+            "small": ExperimentScale(
+                "small",
+                0.10,
+                {"steps": 600, "batch_size": 128, "channels": 32},
+                256,
+                segmenter_steps=1200,
+                description="~320 annotated start segments of a 3,200-segment pool",
+            ),
+            "paper": ExperimentScale(
+                "paper",
+                0.10,
+                {"steps": 3000, "batch_size": 256, "channels": 64},
+                512,
+                description="the paper's: 10,000 annotated of a 100,000-segment pool",
+            ),
+        },  # fmt: skip
+        paper={
+            "gt_start": (0.544, 0.009),
+            "gt_100": (0.907, 0.026),
+            "oracle_relabel": (0.843, 0.032),
+            "ps": (0.702, 0.023),
+            "unloc": (0.583, 0.020),
+            "tridet": (0.261, 0.134),
+            "random_relabel": (0.053, 0.006),
+        },  # fmt: skip
+        paper_only={"GT - 25%": (0.645, 0.020), "GT - 50%": (0.805, 0.025)},
+        paper_source="(BabyAI augmentation table, 8 seeds; start split = GT - 10%)",
+    )
+
+
+EXPERIMENT = _experiment()
+"""The augmentation experiment on BabyAI (`playseg experiment babyai`, playseg_core/experiment)."""

@@ -1,0 +1,298 @@
+"""Runs the augmentation experiment for one domain and scale, caching every stage under ``out``:
+
+    out/data/                 the domain's generated dataset: train (= the annotated start split), val,
+                              play (the rest of the pool, ground truth kept for the gt_* conditions), test
+    out/models/<method>.pt    each segmentation method trained on the start split (baselines/registry.py)
+    out/added/<cond>.json     the segments each condition adds from play
+    out/runs/<cond>-seed<s>.json   one policy trained and evaluated: success, segments, time
+    out/results.md, out/*.png the table next to the paper's figures and the plots (report.py)
+
+A stage whose file exists is not run again, and every file appears only when complete, so an
+interrupted run resumes where it stopped. Policy runs of different conditions and seeds are independent
+and run in a process pool (``workers``); each uses one torch thread, so a run's result depends on its
+seed only, not on the number of workers.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+from playseg_core.augment.policy import load_policy_learner, torch_threads
+from playseg_core.augment.retraining import annotated_clips
+from playseg_core.data.dataset import PlayDataset, is_dataset
+from playseg_core.data.episode import Episode
+from playseg_core.data.features import Features
+from playseg_core.domains import load_domain
+from playseg_core.experiment.conditions import (
+    CONDITIONS,
+    SEGMENTER_CONDITIONS,
+    AddedSegments,
+    check_conditions,
+    ground_truth_added,
+)
+
+EVAL_SEED = 1_000_000
+"""First seed of the fixed evaluation episodes (disjoint from play generation), the same for every run."""
+RUN_THREADS = 1
+"""Torch threads of one policy run, whatever the number of workers: a run's result depends on its seed only."""
+
+
+@dataclass(frozen=True)
+class ExperimentScale:
+    """One size of the experiment: the domain's generation preset, the start split's share of the pool,
+    the budgets."""
+
+    preset: str
+    start_share: float
+    policy: dict[str, Any]  # the policy learner's settings (steps, batch_size, ...); the seed is the run's
+    eval_episodes: int
+    segmenter_steps: int | None = None  # optimizer steps of each segmentation method (None: its default)
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class ExperimentSpec:
+    """What a domain declares to take part (its ``EXPERIMENT``): the policy it trains, its scales, and
+    the paper's figures (condition -> (mean, std)); ``paper_only`` rows have no condition here."""
+
+    policy: str
+    scales: dict[str, ExperimentScale]
+    paper: dict[str, tuple[float, float]] = field(default_factory=dict)
+    paper_only: dict[str, tuple[float, float]] = field(default_factory=dict)
+    paper_source: str = ""
+
+    @classmethod
+    def of_domain(cls, domain: str) -> ExperimentSpec:
+        spec = getattr(load_domain(domain), "EXPERIMENT", None)
+        if not isinstance(spec, cls):
+            raise ValueError(f"domain {domain!r} has no experiment (its package defines no EXPERIMENT)")
+        return spec
+
+    def scale(self, name: str) -> ExperimentScale:
+        if name not in self.scales:
+            raise ValueError(f"--scale {name!r}: this domain has {', '.join(self.scales)}")
+        return self.scales[name]
+
+
+@dataclass
+class ExperimentData:
+    """The start split (annotated train), its val split, and play with its ground truth."""
+
+    start: list[Episode]
+    val: list[Episode]
+    play: list[Episode]
+    instructions: list[str]
+    features: Features
+    domain: str | None
+
+    @classmethod
+    def open(cls, path: Path) -> ExperimentData:
+        dataset = PlayDataset.open(path)
+        return cls(
+            list(dataset.episodes("train")),
+            list(dataset.episodes("val")),
+            list(dataset.episodes("play", truth=True)),
+            list(dataset.instructions),
+            dataset.features,
+            dataset.domain,
+        )
+
+    @property
+    def start_segments(self) -> int:
+        return sum(len(episode.segments) for episode in self.start)
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """Everything one policy run needs (picklable, for the process pool)."""
+
+    out: str
+    condition: str
+    seed: int
+    policy: str
+    policy_config: dict[str, Any]
+    eval_episodes: int
+    threads: int
+
+
+def run_experiment(
+    domain: str,
+    scale_name: str,
+    seeds: int,
+    out: str | Path,
+    workers: int = 1,
+    conditions: Sequence[str] = CONDITIONS,
+    log: Callable[[str], None] = print,
+) -> list[dict[str, Any]]:
+    """Every condition x seed of the experiment (cached stages skipped); returns the run rows and writes
+    the report."""
+    from playseg_core.experiment.report import write_report
+
+    if seeds < 1 or workers < 1:
+        raise ValueError(f"--seeds and --workers must be >= 1, got {seeds} and {workers}")
+    spec = ExperimentSpec.of_domain(domain)
+    scale = spec.scale(scale_name)
+    conditions = check_conditions(conditions)
+    out = Path(out)
+    began = time.perf_counter()
+    data_dir = _ensure_data(out, domain, scale, workers, log)
+    data = ExperimentData.open(data_dir)
+    log(
+        f"data {data_dir}: start split {len(data.start)} episodes ({data.start_segments} segments), "
+        f"play {len(data.play)} episodes ({sum(len(e.segments) for e in data.play)} ground-truth segments)"
+    )
+    added = {condition: _ensure_added(out, condition, data, scale, log) for condition in conditions}
+    runs = [
+        RunSettings(str(out), condition, seed, spec.policy, scale.policy, scale.eval_episodes, RUN_THREADS)
+        for condition in conditions
+        for seed in range(seeds)
+    ]
+    rows = _run_policies(runs, workers, log)
+    write_report(out, spec, scale_name, rows, data, added)
+    log(f"experiment done in {time.perf_counter() - began:.0f} s: {out / 'results.md'}")
+    return rows
+
+
+def _ensure_data(out: Path, domain: str, scale: ExperimentScale, workers: int, log) -> Path:
+    path = out / "data"
+    if is_dataset(path):
+        return path
+    log(f"generating {domain} play, preset {scale.preset!r}, start split {scale.start_share:.0%} ...")
+    out.mkdir(parents=True, exist_ok=True)
+    load_domain(domain).generate_dataset(
+        path, scale.preset, seed=0, workers=workers, progress=False, annotated_share=scale.start_share
+    )
+    return path
+
+
+def ensure_segmenter(out: Path, method: str, data: ExperimentData, scale: ExperimentScale, log) -> Any:
+    """The segmentation method trained on the start split (cached in out/models), loaded back."""
+    from playseg_core.baselines.common import SegmentOptions, TrainingData, TrainOptions
+    from playseg_core.baselines.registry import get_method
+
+    chosen = get_method(method)
+    path = out / "models" / f"{method}.pt"
+    if not path.exists():
+        log(f"training {method} on the start split ...")
+        training = TrainingData(data.start, data.val, data.instructions, data.features, data.domain)
+        trained = chosen.train(training, TrainOptions(seed=0, steps=scale.segmenter_steps, num_threads=2))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        partial = path.with_name(f".{path.name}.partial")
+        trained.save(partial, {"experiment": {"start_segments": data.start_segments}})
+        os.replace(partial, path)
+        log(f"  {trained.report} -> {path}")
+    return chosen.load(path, SegmentOptions(seed=0))
+
+
+def _ensure_added(
+    out: Path, condition: str, data: ExperimentData, scale: ExperimentScale, log
+) -> AddedSegments:
+    path = out / "added" / f"{condition}.json"
+    if path.exists():
+        return AddedSegments.load(path)
+    if condition.startswith("gt_"):
+        added = ground_truth_added(condition, data.play, data.start_segments)
+    elif condition == "oracle_relabel":
+        from playseg_core.baselines.labelled_pieces import label_pieces
+
+        labeller = ensure_segmenter(out, "random", data, scale, log).model  # random windows' labeller
+        added = AddedSegments(
+            condition,
+            {
+                episode.episode_id: label_pieces(
+                    labeller, episode, [(s.start, s.end) for s in episode.segments]
+                )
+                for episode in data.play
+            },
+        )
+    else:
+        segmenter = ensure_segmenter(out, SEGMENTER_CONDITIONS.get(condition, condition), data, scale, log)
+        began = time.perf_counter()
+        by_episode = {}
+        for episode in data.play:
+            found = segmenter.segment(episode.with_segments([]))  # the segmenter never sees the truth
+            by_episode[episode.episode_id] = [s for s in found if s.confidence >= segmenter.label_threshold]
+        added = AddedSegments(condition, by_episode)
+        log(f"  {condition}: {added.count} segments kept from play in {time.perf_counter() - began:.0f} s")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    added.save(path)
+    return added
+
+
+def training_clips(data: ExperimentData, added: AddedSegments) -> list:
+    """The start split's annotated clips, then the added segments' clips in play order."""
+    clips = annotated_clips(data.start)
+    for episode in data.play:
+        segments = added.by_episode.get(episode.episode_id)
+        if segments:
+            clips += annotated_clips([episode.with_segments(segments)])
+    return clips
+
+
+def run_policy(settings: RunSettings) -> dict[str, Any]:
+    """Train and evaluate one policy (cached in out/runs); the row of the results table."""
+    out = Path(settings.out)
+    path = out / "runs" / f"{settings.condition}-seed{settings.seed}.json"
+    if path.exists():
+        return json.loads(path.read_text())
+    data = ExperimentData.open(out / "data")
+    added = AddedSegments.load(out / "added" / f"{settings.condition}.json")
+    clips = training_clips(data, added)
+    config = {**settings.policy_config, "seed": settings.seed}
+    learner = load_policy_learner(settings.policy, config, features=data.features)
+    began = time.perf_counter()
+    with torch_threads(settings.threads):
+        model, report = learner.train(clips)
+        evaluation = learner.evaluate(model, settings.eval_episodes, EVAL_SEED)
+    row = {
+        "condition": settings.condition,
+        "seed": settings.seed,
+        "segments": len(clips),
+        "added_segments": added.count,
+        "success": None if evaluation is None else evaluation.success_rate,
+        "eval_episodes": 0 if evaluation is None else evaluation.num_episodes,
+        "val_loss": report.val_loss,
+        "val_accuracy": report.val_accuracy,
+        "train_loss": report.final_loss,
+        "seconds": time.perf_counter() - began,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.name}.partial")
+    partial.write_text(json.dumps(row, indent=2))
+    os.replace(partial, path)
+    return row
+
+
+def _run_policies(runs: list[RunSettings], workers: int, log) -> list[dict[str, Any]]:
+    cached = [
+        run for run in runs if (Path(run.out) / "runs" / f"{run.condition}-seed{run.seed}.json").exists()
+    ]
+    log(f"policy runs: {len(runs)} ({len(cached)} cached), {workers} worker(s)")
+    if workers == 1:
+        rows = []
+        for run in runs:
+            rows.append(run_policy(run))
+            _log_row(rows[-1], log)
+        return rows
+    # spawn: a fresh interpreter per worker (forking a process that already ran torch can deadlock)
+    with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn")) as pool:
+        rows = []
+        for row in pool.map(run_policy, runs):
+            rows.append(row)
+            _log_row(row, log)
+    return rows
+
+
+def _log_row(row: dict[str, Any], log) -> None:
+    figure = "no simulator" if row["success"] is None else f"success {row['success']:.3f}"
+    log(
+        f"  {row['condition']} seed {row['seed']}: {row['segments']} segments, {figure} ({row['seconds']:.0f} s)"
+    )

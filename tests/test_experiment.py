@@ -1,0 +1,93 @@
+"""`playseg experiment` at the tiny scale: every condition gives a row and the plots exist; a rerun
+computes nothing again; a policy run depends on its seed only."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from playseg_core.experiment.conditions import AddedSegments, check_conditions, ground_truth_added
+from playseg_core.experiment.runner import ExperimentData
+from playseg_ros.cli import main as cli_main
+
+CONDITIONS = "gt_start,gt_2x,gt_100,oracle_relabel,random_relabel"
+
+
+@pytest.fixture(scope="module")
+def experiment(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("experiment")
+    argv = ["experiment", "babyai", "--scale", "tiny", "--seeds", "2", "--out", str(out)]
+    assert cli_main([*argv, "--workers", "2", "--conditions", CONDITIONS]) == 0
+    return out
+
+
+def test_every_condition_and_seed_gives_a_row_and_the_report_has_table_and_plots(experiment: Path) -> None:
+    table = (experiment / "results.md").read_text()
+    for condition in CONDITIONS.split(","):
+        assert f"| {condition} |" in table
+        for seed in (0, 1):
+            row = json.loads((experiment / "runs" / f"{condition}-seed{seed}.json").read_text())
+            assert row["condition"] == condition and row["seed"] == seed
+            assert 0.0 <= row["success"] <= 1.0 and row["eval_episodes"] == 8
+    assert "0.544 +- 0.009" in table  # the paper's start split, next to ours
+    for plot in ("success.png", "lengths.png", "labels.png"):
+        assert (experiment / plot).stat().st_size > 1000
+
+
+def test_conditions_add_what_they_say(experiment: Path) -> None:
+    data = ExperimentData.open(experiment / "data")
+    start = data.start_segments
+    truth = {(e.episode_id, s.start, s.end) for e in data.play for s in e.segments}
+    rows = {
+        c: json.loads((experiment / "runs" / f"{c}-seed0.json").read_text()) for c in CONDITIONS.split(",")
+    }
+    assert rows["gt_start"]["segments"] == start and rows["gt_start"]["added_segments"] == 0
+    assert rows["gt_2x"]["segments"] == 2 * start
+    assert rows["gt_100"]["added_segments"] == len(truth)
+    oracle = AddedSegments.load(experiment / "added" / "oracle_relabel.json")
+    spans = {(episode, s.start, s.end) for episode, found in oracle.by_episode.items() for s in found}
+    assert spans == truth  # the true cuts, labels from the labelling model
+    random = AddedSegments.load(experiment / "added" / "random_relabel.json")
+    assert random.count > 0 and {s.instruction for f in random.by_episode.values() for s in f} <= set(
+        data.instructions
+    )
+
+
+def test_a_rerun_computes_nothing_again_and_a_run_depends_on_its_seed_only(experiment: Path, capsys) -> None:
+    runs = experiment / "runs"
+    before = {p.name: p.stat().st_mtime_ns for p in runs.iterdir()}
+    models = {p.name: p.stat().st_mtime_ns for p in (experiment / "models").iterdir()}
+    first = json.loads((runs / "gt_2x-seed1.json").read_text())
+    (runs / "gt_2x-seed1.json").unlink()  # computed again, in one worker this time
+    argv = ["experiment", "babyai", "--scale", "tiny", "--seeds", "2", "--out", str(experiment)]
+    assert cli_main([*argv, "--workers", "1", "--conditions", CONDITIONS]) == 0
+    assert f"policy runs: {2 * len(CONDITIONS.split(','))} ({2 * len(CONDITIONS.split(',')) - 1} cached)" in (
+        capsys.readouterr().out
+    )
+    after = {p.name: p.stat().st_mtime_ns for p in runs.iterdir()}
+    assert {k: v for k, v in after.items() if k != "gt_2x-seed1.json"} == {
+        k: v for k, v in before.items() if k != "gt_2x-seed1.json"
+    }
+    assert {p.name: p.stat().st_mtime_ns for p in (experiment / "models").iterdir()} == models
+    again = json.loads((runs / "gt_2x-seed1.json").read_text())
+    for key in ("success", "train_loss", "segments"):
+        assert again[key] == first[key], key
+
+
+def test_ground_truth_conditions_and_unknown_names() -> None:
+    from playseg_core.data.episode import Episode, Segment
+
+    play = [
+        Episode(f"e{i}", np.zeros((6, 1), np.float32), segments=[Segment(0, 2, "a"), Segment(2, 6, "b")])
+        for i in range(3)
+    ]  # 6 segments
+    assert ground_truth_added("gt_start", play, 2).count == 0
+    assert ground_truth_added("gt_2x", play, 2).count == 2
+    assert ground_truth_added("gt_4x", play, 2).count == 6
+    assert ground_truth_added("gt_4x", play, 3).count == 6  # no more than play holds
+    assert ground_truth_added("gt_100", play, 1).count == 6
+    with pytest.raises(ValueError, match=r"unknown conditions \['gt_3x'\]"):
+        check_conditions(["ps", "gt_3x"])
