@@ -288,7 +288,7 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
 def _cmd_convert(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from playseg_ros.convert import convert, inspect_text, load_mapping
+    from playseg_ros.convert import SegmentationSpec, convert, inspect_text, load_mapping
 
     if args.inspect:
         if len(args.bags) != 1 or args.out or args.mapping:
@@ -297,10 +297,14 @@ def _cmd_convert(args: argparse.Namespace) -> int:
         return 0
     if not args.out:
         raise ValueError("--out is required (the dataset directory to write)")
+    if args.method and not args.segment:
+        raise ValueError("--method names the method of the --segment model; give --segment MODEL")
     mapping = load_mapping(args.mapping) if args.mapping else None
+    segmentation = SegmentationSpec.of(args.segment, args.method or "ps") if args.segment else None
     summary = convert(
-        args.bags, args.out, mapping, args.workers, args.overwrite, not args.quiet, output_format=args.format
-    )
+        args.bags, args.out, mapping, args.workers, args.overwrite, not args.quiet, output_format=args.format,
+        segmentation=segmentation,
+    )  # fmt: skip
     for report in summary.reports:
         for note in report.notes:
             print(f"{report.bag.name}: {note}", file=sys.stderr)
@@ -323,6 +327,15 @@ def _add_convert_command(sub: argparse._SubParsersAction) -> None:
         default="playseg",
         choices=["playseg", "lerobot"],
         help="a playseg dataset or LeRobot v3.0",
+    )
+    convert.add_argument(
+        "--segment",
+        metavar="MODEL",
+        help="segment the unannotated episodes with this checkpoint (kept: segments whose label confidence "
+        "reaches its calibrated threshold); annotated episodes keep their human labels",
+    )
+    convert.add_argument(
+        "--method", choices=SEGMENTATION_METHODS, help="the --segment checkpoint's method (default: ps)"
     )
     convert.add_argument("--workers", type=int, default=1, help="bags converted in parallel (processes)")
     convert.add_argument("--overwrite", action="store_true", help="convert every bag again into a new --out")

@@ -276,7 +276,13 @@ def test_mapping_converts_frames_states_actions_and_segments(tmp_path: Path, lay
         (3, 12, "pick up the cup"),
         (12, 25, "put the cup down"),
     ]
-    assert summary.totals() == {"episodes": 1, "steps": 29, "segments": 2, "dropped_steps": 0}
+    assert summary.totals() == {
+        "episodes": 1,
+        "steps": 29,
+        "segments": 2,
+        "model_segments": 0,
+        "dropped_steps": 0,
+    }
 
 
 @pytest.mark.parametrize("camera", ["png", "bgr8", "mono8"])

@@ -2,7 +2,7 @@
 
 mapping.py (the YAML mapping), source.py (reading bags through rosbags), alignment.py (other topics onto
 the step clock), decode.py (messages to feature rows), annotations.py (time labels to segments), build.py
-(one bag to episodes), run.py (many bags, a process pool, resuming, merging), inspect.py (``--inspect``).
+(one bag to episodes), segmenting.py (``--segment``: a model labels the unannotated episodes), run.py (many bags, a process pool, resuming, merging), inspect.py (``--inspect``).
 See docs/convert.md.
 """
 
@@ -10,6 +10,7 @@ from playseg_ros.convert.errors import ConvertError, MappingError
 from playseg_ros.convert.inspect import inspect_text
 from playseg_ros.convert.mapping import ConvertMapping, load_mapping
 from playseg_ros.convert.run import BagReport, ConvertSummary, convert
+from playseg_ros.convert.segmenting import SegmentationSpec
 
 __all__ = [
     "BagReport",
@@ -17,6 +18,7 @@ __all__ = [
     "ConvertMapping",
     "ConvertSummary",
     "MappingError",
+    "SegmentationSpec",
     "convert",
     "inspect_text",
     "load_mapping",

@@ -9,7 +9,7 @@ Resuming: ``OUT``'s meta/info.json lists the bags it holds (path and a fingerpri
 mapping's digest; a rerun skips those bags, and bags whose part is finished, and converts the rest. A bag
 that fails is reported in one line and skipped; the others convert and are merged, and the run exits
 non-zero. Episodes with annotations land in the ``train`` split (with their segments), the others in
-``play``. ``--format lerobot`` keeps that dataset as ``.<OUT>.playseg`` and exports it to ``OUT`` as a
+``play`` (with ``--segment MODEL``, with the model's segments: segmenting.py). ``--format lerobot`` keeps that dataset as ``.<OUT>.playseg`` and exports it to ``OUT`` as a
 LeRobot v3.0 dataset (lerobot.py).
 """
 
@@ -33,6 +33,7 @@ from playseg_core.data.features import Features
 from playseg_ros.convert.build import convert_bag
 from playseg_ros.convert.errors import ConvertError
 from playseg_ros.convert.mapping import ConvertMapping
+from playseg_ros.convert.segmenting import SegmentationSpec, segment_unannotated
 from playseg_ros.convert.source import bag_size, find_bags, fingerprint, is_play_bag
 
 OutputFormat = Literal["playseg", "lerobot"]
@@ -52,6 +53,7 @@ class BagRecordJson(TypedDict):
 class ConvertMetaJson(TypedDict):
     mapping_digest: str | None
     mapping: NotRequired[str | None]
+    segmentation: NotRequired[dict[str, Any] | None]  # SegmentationSpec.describe() and the label threshold
     bags: dict[str, BagRecordJson]  # by the bag's absolute path
 
 
@@ -61,6 +63,7 @@ class BagTask:
     fingerprint: str
     part: Path
     mapping: ConvertMapping | None
+    segmentation: SegmentationSpec | None = None
 
 
 @dataclass
@@ -73,6 +76,7 @@ class BagReport:
     episodes: int = 0
     steps: int = 0
     segments: int = 0
+    model_segments: int = 0  # of ``segments``: given by the --segment model (the rest are human labels)
     dropped_steps: int = 0
     notes: list[str] = field(default_factory=list)
     bytes: int = 0
@@ -95,7 +99,7 @@ class ConvertSummary:
         done = [r for r in self.reports if r.status in ("converted", "finished")]
         return {
             key: sum(getattr(r, key) for r in done)
-            for key in ("episodes", "steps", "segments", "dropped_steps")
+            for key in ("episodes", "steps", "segments", "model_segments", "dropped_steps")
         }
 
     def text(self) -> str:
@@ -103,8 +107,9 @@ class ConvertSummary:
         return (
             f"{self.out}: {len(self.reports)} bags: {self.count('converted') + self.count('finished')} converted, "
             f"{self.count('skipped')} skipped (already in the dataset), {self.count('failed')} failed; "
-            f"{totals['episodes']} episodes, {totals['steps']} steps, {totals['segments']} segments, "
-            f"{totals['dropped_steps']} dropped steps"
+            f"{totals['episodes']} episodes, {totals['steps']} steps, {totals['segments']} segments"
+            + (f" ({totals['model_segments']} by the model)" if totals["model_segments"] else "")
+            + f", {totals['dropped_steps']} dropped steps"
         )
 
 
@@ -150,13 +155,23 @@ def convert_one(task: BagTask) -> BagReport:
             raise ConvertError(
                 task.bag, f"no episode left ({dropped} steps dropped: {'; '.join(notes) or 'empty'})"
             )
+        predicted: set[str] = set()  # ids of the episodes the model segmented
+        if task.segmentation is not None:
+            annotated = {e.episode_id for e in episodes if e.segments}
+            segmented = segment_unannotated(task.bag, episodes, features, task.segmentation)
+            episodes, report.model_segments = segmented.episodes, segmented.model_segments
+            predicted = {e.episode_id for e in episodes} - annotated
+            notes = report.notes = notes + segmented.notes
         instructions = sorted({s.instruction for e in episodes for s in e.segments if s.instruction})
         meta = {CONVERT_META: {"bag": str(task.bag), "fingerprint": task.fingerprint,
                                "mapping_digest": task.mapping.digest if task.mapping else None,
+                               "segmentation_digest": _digest(task.segmentation),
+                               "model_segments": report.model_segments,
                                "notes": notes, "dropped_steps": dropped}}  # fmt: skip
         with DatasetWriter(task.part, instructions, meta=meta, overwrite=True, features=features) as writer:
             for episode in episodes:
-                writer.add(episode, split_of(episode), extra={"bag": str(task.bag)})
+                split = "play" if episode.episode_id in predicted else split_of(episode)
+                writer.add(episode, split, extra={"bag": str(task.bag)})
                 report.episodes += 1
                 report.steps += episode.num_steps
                 report.segments += len(episode.segments)
@@ -179,6 +194,10 @@ def _play_bag_episodes(task: BagTask) -> tuple[list[Episode], Features | None, l
     return episodes, info.features, notes, 0
 
 
+def _digest(segmentation: SegmentationSpec | None) -> str | None:
+    return segmentation.digest if segmentation is not None else None
+
+
 def _one_line(error: BaseException) -> str:
     return " ".join((str(error) or type(error).__name__).split())
 
@@ -192,8 +211,11 @@ def convert(
     progress: bool = True,
     on_report: Callable[[BagReport], None] | None = None,
     output_format: OutputFormat = "playseg",
+    segmentation: SegmentationSpec | None = None,
 ) -> ConvertSummary:
     """Convert the bags named by ``inputs`` into the playseg dataset ``out`` (see the module docstring).
+
+    With ``segmentation`` the unannotated episodes are segmented by its model (segmenting.py).
 
     With ``output_format="lerobot"`` the playseg dataset is kept next to ``out`` as ``.<OUT>.playseg``
     (what a rerun resumes from) and exported to ``out`` as a LeRobot v3.0 dataset (lerobot.py) whenever
@@ -212,7 +234,7 @@ def convert(
     bags = find_bags(inputs)
     if not bags:
         raise ValueError(f"{', '.join(map(str, inputs))}: no bags found")
-    previous = _previous_dataset(out, mapping, overwrite)
+    previous = _previous_dataset(out, mapping, overwrite, segmentation)
     done = {} if previous is None else convert_meta(previous)["bags"]  # type: ignore[index]
     reports: dict[Path, BagReport] = {}
     tasks: list[BagTask] = []
@@ -221,7 +243,7 @@ def convert(
         if done.get(str(bag), {}).get("fingerprint") == stamp:
             reports[bag] = BagReport(bag, "skipped")
             continue
-        task = BagTask(bag, stamp, part_path(out, bag), mapping)
+        task = BagTask(bag, stamp, part_path(out, bag), mapping, segmentation)
         if _finished_part(task) is not None:
             reports[bag] = _report_of_part(task)
             continue
@@ -233,7 +255,7 @@ def convert(
     ordered = [reports[bag] for bag in bags]
     merged = [r for r in ordered if r.status in ("converted", "finished")]
     if merged:
-        _merge(out, previous, [(r, part_path(out, r.bag)) for r in merged], mapping)
+        _merge(out, previous, [(r, part_path(out, r.bag)) for r in merged], mapping, segmentation)
     if parts_dir(out).is_dir() and not any(parts_dir(out).iterdir()):
         parts_dir(out).rmdir()  # every part merged: nothing left to resume from
     if (
@@ -245,7 +267,9 @@ def convert(
     return ConvertSummary(export_to or out, ordered, time.perf_counter() - started)
 
 
-def _previous_dataset(out: Path, mapping: ConvertMapping | None, overwrite: bool) -> PlayDataset | None:
+def _previous_dataset(
+    out: Path, mapping: ConvertMapping | None, overwrite: bool, segmentation: SegmentationSpec | None = None
+) -> PlayDataset | None:
     """The dataset an earlier run left at ``out`` (None with ``overwrite`` or when there is none)."""
     if not out.exists():
         return None
@@ -266,6 +290,13 @@ def _previous_dataset(out: Path, mapping: ConvertMapping | None, overwrite: bool
             f"{out}: converted with another mapping ({meta.get('mapping')}); convert again with --overwrite, "
             "or choose another --out"
         )
+    earlier = (meta.get("segmentation") or {}).get("digest")
+    if earlier != _digest(segmentation):
+        what = f"segmented by {meta['segmentation']['model']}" if earlier else "not segmented by a model"
+        raise ValueError(
+            f"{out}: {what} ({'--segment differs' if segmentation else 'no --segment given'}); convert "
+            "again with --overwrite, or choose another --out"
+        )
     return dataset
 
 
@@ -280,6 +311,8 @@ def _finished_part(task: BagTask) -> PlayDataset | None:
     digest = task.mapping.digest if task.mapping else None
     if meta.get("fingerprint") != task.fingerprint or meta.get("mapping_digest") != digest:
         return None
+    if meta.get("segmentation_digest") != _digest(task.segmentation):
+        return None
     return part
 
 
@@ -289,7 +322,8 @@ def _report_of_part(task: BagTask) -> BagReport:
     counts = part.info["counts"]
     return BagReport(
         task.bag, "finished", episodes=counts["episodes"], steps=counts["steps"], segments=counts["segments"],
-        dropped_steps=int(meta.get("dropped_steps", 0)), notes=list(meta.get("notes", [])),
+        model_segments=int(meta.get("model_segments", 0)), dropped_steps=int(meta.get("dropped_steps", 0)),
+        notes=list(meta.get("notes", [])),
     )  # fmt: skip
 
 
@@ -333,6 +367,7 @@ def _merge(
     previous: PlayDataset | None,
     parts: list[tuple[BagReport, Path]],
     mapping: ConvertMapping | None,
+    segmentation: SegmentationSpec | None = None,
 ) -> None:
     """Write ``out`` from the previous dataset's bags (those not converted again) and the new parts; a part
     whose features differ from the dataset's fails its bag (reported), the rest are merged."""
@@ -364,6 +399,7 @@ def _merge(
         CONVERT_META: {
             "mapping_digest": mapping.digest if mapping else None,
             "mapping": str(mapping.path) if mapping else None,
+            "segmentation": _segmentation_meta(segmentation),
             "bags": bags,
         }  # fmt: skip
     }
@@ -385,6 +421,14 @@ def _merge(
     for _, report in sources:
         assert report is not None
         shutil.rmtree(part_path(out, report.bag), ignore_errors=True)
+
+
+def _segmentation_meta(segmentation: SegmentationSpec | None) -> dict[str, Any] | None:
+    if segmentation is None:
+        return None
+    from playseg_ros.convert.segmenting import label_threshold
+
+    return {**segmentation.describe(), "label_threshold": label_threshold(segmentation)}
 
 
 def _unique_id(episode: Episode, bag: str, used: set[str]) -> Episode:

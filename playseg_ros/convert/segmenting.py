@@ -1,0 +1,125 @@
+"""`playseg convert --segment MODEL`: the unannotated episodes of a bag cut into labelled segments by a
+segmentation model (playseg_core/baselines/registry.py: ps, unloc, tridet, random, changepoint).
+
+Which episodes: an episode without any human annotation is segmented; its segments are stored with
+their label confidence and segment log-score, keeping only those whose confidence reaches the model's
+calibrated ``label_threshold`` (0 for an uncalibrated checkpoint: all), and it stays in the ``play``
+split (the segments are predictions, not ground truth). An episode with at least one human annotation,
+even one covering a few of its steps, is **not** segmented: it keeps exactly its human segments (in
+``train``), and its unannotated stretches stay unlabelled; a note says how many of its steps the
+annotations cover. Mixing predicted and human labels inside one episode would make predictions look
+like ground truth to `playseg train`.
+
+The model is loaded once per process (a worker converts many bags) and checked against each bag's
+features; a bag the model cannot read fails with the bag and the feature named.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from playseg_core.data.episode import Episode
+from playseg_core.data.features import Features
+from playseg_ros.convert.errors import ConvertError
+
+if TYPE_CHECKING:
+    from playseg_core.baselines.common import Segmenter
+
+
+@dataclass(frozen=True)
+class SegmentationSpec:
+    """Which model segments the unannotated episodes: checkpoint, method, the seed of methods that draw
+    random windows, and a digest of all three (a dataset segmented by another model is not resumed)."""
+
+    model: Path
+    method: str
+    seed: int
+    digest: str
+
+    @classmethod
+    def of(cls, model: str | Path, method: str = "ps", seed: int = 0) -> SegmentationSpec:
+        """The spec of checkpoint ``model``; FileNotFoundError / ValueError (one line) before any bag is
+        read when the file or the method is wrong."""
+        from playseg_core.baselines.registry import get_method  # torch: only when segmenting
+
+        get_method(method)
+        path = Path(model).resolve()
+        if not path.is_file():
+            raise FileNotFoundError(f"--segment {model}: no such checkpoint file")
+        digest = hashlib.sha256()
+        with open(path, "rb") as file:
+            for block in iter(lambda: file.read(1 << 20), b""):
+                digest.update(block)
+        digest.update(f"|{method}|{seed}".encode())
+        return cls(path, method, seed, digest.hexdigest())
+
+    def describe(self) -> dict[str, object]:
+        """What a dataset's meta.convert records about the segmentation."""
+        return {"model": str(self.model), "method": self.method, "seed": self.seed, "digest": self.digest}
+
+
+@cache
+def _loaded(spec: SegmentationSpec) -> Segmenter:
+    from playseg_core.baselines.common import SegmentOptions
+    from playseg_core.baselines.registry import get_method
+
+    return get_method(spec.method).load(spec.model, SegmentOptions(seed=spec.seed))
+
+
+def load_segmenter(spec: SegmentationSpec) -> Segmenter:
+    """The segmenter of ``spec``, loaded once per process."""
+    return _loaded(spec)
+
+
+@dataclass
+class SegmentedEpisodes:
+    episodes: list[Episode]
+    segmented: int  # episodes the model segmented
+    model_segments: int  # segments it gave that reached the threshold (stored)
+    below_threshold: int  # segments it gave that did not (not stored)
+    notes: list[str]
+
+
+def segment_unannotated(
+    bag: Path, episodes: list[Episode], features: Features | None, spec: SegmentationSpec
+) -> SegmentedEpisodes:
+    """``episodes`` with every unannotated one segmented by the model of ``spec`` (see the module
+    docstring); ConvertError naming the bag when the model cannot read its features."""
+    segmenter = load_segmenter(spec)
+    if features is not None:
+        try:
+            segmenter.check_features(features, f"model {spec.model}")
+        except ValueError as error:
+            raise ConvertError(bag, str(error)) from None
+    threshold = segmenter.label_threshold
+    result = SegmentedEpisodes([], 0, 0, 0, [])
+    for episode in episodes:
+        if episode.segments:
+            covered = sum(s.length for s in episode.segments)
+            if covered < episode.num_steps:
+                result.notes.append(
+                    f"episode {episode.episode_id!r}: annotated ({len(episode.segments)} segment(s), "
+                    f"{covered} of {episode.num_steps} steps); kept its human labels, not segmented"
+                )
+            result.episodes.append(episode)
+            continue
+        segments = segmenter.segment(episode)
+        kept = [s for s in segments if s.confidence >= threshold]
+        result.segmented += 1
+        result.model_segments += len(kept)
+        result.below_threshold += len(segments) - len(kept)
+        result.episodes.append(episode.with_segments(kept))
+    if result.below_threshold:
+        result.notes.append(
+            f"segmented by {spec.model.name}: {result.below_threshold} segment(s) below the label "
+            f"threshold {threshold:.3f} not stored"
+        )
+    return result
+
+
+def label_threshold(spec: SegmentationSpec) -> float:
+    return float(load_segmenter(spec).label_threshold)
