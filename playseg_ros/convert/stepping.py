@@ -1,0 +1,423 @@
+"""The steps of a mapping built from topic samples, one step at a time: the ONE implementation of the
+step clock, alignment, decoding, drops, episodes and actions, shared by `playseg convert` (build.py adds a
+whole bag's samples, then calls `finish`) and the live adapter node (nodes/topic_adapter.py adds
+messages as they arrive and takes the steps decided so far).
+
+The rules (docs/convert.md, "Alignment"):
+
+- Step clock: the primary's samples are thinned to the mapping's fps (a sample is taken when at least
+  one period, less half the primary's typical interval, has passed since the last one taken). The
+  typical interval is the median of the primary's first `TYPICAL_INTERVALS` intervals (live, the clock
+  starts once that many have arrived). A gap longer than a period and a half counts the steps it should
+  have held as dropped (unless it ends an episode with ``split: gap``).
+- A step at time t is **decided** once every feature's topic has a sample later than t + that feature's
+  tolerance (no sample within the tolerance can still come, given a topic arrives in time order), or
+  the input has ended. Each feature is then aligned (alignment.py) and decoded (decode.py); a step where
+  any feature has no sample within its tolerance is dropped, never filled in.
+- Episodes: a kept step starts a new episode after a pause longer than ``gap_s`` since the previous kept
+  step (``split: gap``), or when a marker lies in (previous kept step, this step] (``split: marker``).
+  An episode with fewer than ``min_steps`` actions is dropped whole.
+- Actions: step k's action is the action feature aligned at step k, or derived from step k+1's
+  observation (``derive``); the last observation of an episode has none. So a step is handed out once
+  the next kept step of its episode is known (or the episode ended), and not before its episode has
+  ``min_steps`` actions (a short episode is never half published).
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from playseg_core.data.features import ACTION, Feature, Features
+from playseg_ros.convert.alignment import Alignment, align
+from playseg_ros.convert.decode import IMAGE_TYPES, DecodeError, NumericDecoder, decode_image
+from playseg_ros.convert.errors import ConvertError
+from playseg_ros.convert.mapping import ConvertMapping, DerivedAction, TopicFeature
+
+TYPICAL_INTERVALS = 16
+"""The primary's typical interval is the median of this many of its first intervals."""
+
+
+@dataclass
+class BuiltStep:
+    """One observation of an episode, with the action taken after it (None on the episode's last)."""
+
+    episode: int  # index among the episodes kept so far (0, 1, ...)
+    step: int  # index within its episode
+    time_ns: int
+    observation: dict[str, np.ndarray]  # feature name -> row (cameras (H, W, 3) uint8, state float32)
+    action: np.ndarray | None
+    last: bool
+
+
+@dataclass
+class TopicBuffer:
+    """One topic's samples in time order (equal times keep their arrival order)."""
+
+    msgtype: str = ""
+    stamps: list[int] = field(default_factory=list)
+    messages: list[Any] = field(default_factory=list)
+    latest: int | None = None  # the latest time seen (pruning never lowers it)
+    _array: np.ndarray | None = None
+
+    def add(self, stamp: int, msg: Any) -> None:
+        index = bisect.bisect_right(self.stamps, stamp)
+        self.stamps.insert(index, stamp)
+        self.messages.insert(index, msg)
+        self.latest = stamp if self.latest is None else max(self.latest, stamp)
+        self._array = None
+
+    @property
+    def array(self) -> np.ndarray:
+        if self._array is None:
+            self._array = np.asarray(self.stamps, dtype=np.int64)
+        return self._array
+
+    def prune(self, before_ns: int) -> None:
+        """Forget samples older than ``before_ns`` (no undecided step can match them)."""
+        cut = bisect.bisect_left(self.stamps, before_ns)
+        if cut:
+            del self.stamps[:cut], self.messages[:cut]
+            self._array = None
+
+
+class FeatureReader:
+    """One feature's row at a step: the aligned sample(s) of its topic, decoded. Remembers the schema
+    (image size; the numeric decoder made from the topic's first message)."""
+
+    def __init__(self, feature: TopicFeature, source: Path | str) -> None:
+        self.feature, self.source = feature, source
+        self.decoder: NumericDecoder | None = None
+        self.image_shape: tuple[int, ...] | None = None
+
+    def match(self, step_ns: int, buffer: TopicBuffer) -> Alignment:
+        return align(np.array([step_ns]), buffer.array, self.feature.align, self.feature.tolerance_ns)
+
+    def decode(self, alignment: Alignment, buffer: TopicBuffer) -> np.ndarray:
+        lo, hi = int(alignment.lo[0]), int(alignment.hi[0])
+        if self.feature.is_image:
+            return self._image(buffer, lo)
+        if self.decoder is None:  # sizes, joint order and names from the topic's first message
+            self.decoder = self._decoded(buffer, 0, lambda m: NumericDecoder.of_first(
+                m, buffer.msgtype, self.feature.fields, self.feature.joints))  # fmt: skip
+        pair = np.stack([self._decoded(buffer, i, self.decoder.decode) for i in (lo, hi)])
+        # the same arithmetic as Alignment.take over a whole topic: row 0 is lo, row 1 is hi
+        single = Alignment(np.array([0]), np.array([1]), alignment.weight, alignment.matched)
+        return single.take(pair)[0]
+
+    def _image(self, buffer: TopicBuffer, i: int) -> np.ndarray:
+        if buffer.msgtype not in IMAGE_TYPES:
+            raise ConvertError(
+                self.source, f"type {buffer.msgtype} is not an image ({' or '.join(IMAGE_TYPES)})", self.topic
+            )
+        image = self._decoded(buffer, i, lambda m: decode_image(m, buffer.msgtype, self.feature.resize))
+        if self.image_shape is None:
+            self.image_shape = image.shape
+        elif image.shape != self.image_shape:
+            h, w = self.image_shape[:2]
+            raise ConvertError(
+                self.source,
+                f"image of {image.shape[1]}x{image.shape[0]}, earlier ones {w}x{h} "
+                "(resize to one size: 'resize')",
+                self.topic,
+                time_ns=buffer.stamps[i],
+            )
+        return image
+
+    @property
+    def topic(self) -> str:
+        return self.feature.topic
+
+    def _decoded(self, buffer: TopicBuffer, i: int, decode: Callable[[Any], Any]) -> Any:
+        try:
+            return decode(buffer.messages[i])
+        except DecodeError as error:
+            raise ConvertError(self.source, str(error), self.topic, error.field, buffer.stamps[i]) from None
+
+    def schema(self) -> Feature:
+        feature = self.feature
+        if feature.is_image:
+            shape = self.image_shape or (*(feature.resize[::-1] if feature.resize else (0, 0)), 3)
+            return Feature(feature.name, "image", "uint8", tuple(shape))
+        if self.decoder is None:
+            raise ConvertError(self.source, "no messages", self.topic)
+        size = self.decoder.size
+        for bound, key in ((feature.low, "low"), (feature.high, "high")):
+            if bound is not None and len(bound) != size:
+                raise ConvertError(
+                    self.source, f"mapping gives {len(bound)} {key} bounds for {size} values", self.topic
+                )
+        kind = "action" if feature.name == ACTION else "state"
+        return Feature(
+            feature.name, kind, "float32", (size,), self.decoder.names, low=feature.low, high=feature.high
+        )
+
+
+class StepClock:
+    """The primary's samples taken as steps (the rule in the module docstring), one sample at a time."""
+
+    def __init__(self, period_ns: int, typical_ns: int, episode_gap_ns: int | None) -> None:
+        self.period, self.episode_gap = period_ns, episode_gap_ns
+        self.slack = min(typical_ns // 2, period_ns // 2)
+        self.last: int | None = None
+        self.missing = 0
+        self.first_gap: int | None = None
+
+    def offer(self, stamp: int) -> bool:
+        if self.last is None:
+            self.last = stamp
+            return True
+        since = stamp - self.last
+        if since < self.period - self.slack:
+            return False
+        long_gap = since > self.period + self.period // 2
+        if long_gap and (self.episode_gap is None or since <= self.episode_gap):
+            self.missing += round(since / self.period) - 1
+            self.first_gap = self.first_gap if self.first_gap is not None else self.last
+        self.last = stamp
+        return True
+
+
+def typical_interval(stamps: list[int], period_ns: int) -> int:
+    intervals = np.diff(np.asarray(stamps[: TYPICAL_INTERVALS + 1], dtype=np.int64))
+    return int(np.median(intervals)) if len(intervals) else period_ns
+
+
+@dataclass
+class _Kept:
+    time_ns: int
+    rows: dict[str, np.ndarray]
+
+
+class StepBuilder:
+    """Topic samples in, decided steps out (see the module docstring).
+
+    ``add`` a sample of any topic the mapping reads; ``take`` the steps decided since; ``finish`` when the
+    input ended (decides everything left). ``drop_bad`` (live): a message that cannot be decoded drops
+    its step, with a note, instead of failing the whole input (ConvertError naming ``source``, topic,
+    field and time, as a bag does)."""
+
+    def __init__(self, mapping: ConvertMapping, source: Path | str, drop_bad: bool = False) -> None:
+        self.mapping, self.source, self.drop_bad = mapping, source, drop_bad
+        self.features = mapping.topic_features
+        self.readers = {f.name: FeatureReader(f, source) for f in self.features}
+        self.buffers: dict[str, TopicBuffer] = {f.topic: TopicBuffer() for f in self.features}
+        self.primary = mapping.features[mapping.primary]
+        self.markers: list[int] = []
+        self.finished = False
+        self._clock: StepClock | None = None
+        self._primary_waiting: list[int] = []  # primary times before the clock knows the typical interval
+        self._candidates: deque[int] = deque()  # step times taken by the clock, not yet decided
+        self._episode: list[_Kept] = []  # the current episode's kept steps not yet handed out (+ the last)
+        self._episode_length = 0  # kept observations of the current episode
+        self._episode_index = 0
+        self._handed_out = 0  # steps of the current episode handed out
+        self._last_kept: int | None = None
+        self._out: list[BuiltStep] = []
+        self.unmatched: dict[str, list[int]] = {}  # feature -> [count, first time]
+        self.bad: list[str] = []  # live: steps dropped for a message that could not be decoded
+        self.unmatched_steps = 0  # steps where some feature had no sample within its tolerance
+        self.short_episodes = 0
+        self.short_steps = 0
+
+    # -- input ------------------------------------------------------------------------------------
+
+    def add(self, topic: str, stamp: int, msg: Any, msgtype: str = "") -> None:
+        if topic == self.mapping.marker_topic:
+            bisect.insort(self.markers, stamp)
+        buffer = self.buffers.get(topic)
+        if buffer is not None:
+            buffer.msgtype = buffer.msgtype or msgtype
+            buffer.add(stamp, msg)
+        if topic == self.primary.topic:
+            self._primary_sample(stamp)
+
+    def add_sorted(self, topic: str, stamps: list[int], messages: list[Any], msgtype: str) -> None:
+        """All of a topic's samples at once, in time order (a bag): the same as adding them one by one."""
+        if topic == self.mapping.marker_topic:
+            self.markers = sorted([*self.markers, *stamps])
+        buffer = self.buffers.get(topic)
+        if buffer is not None and stamps:
+            if buffer.stamps:
+                raise ValueError(f"add_sorted: topic {topic} has samples already")
+            buffer.msgtype = buffer.msgtype or msgtype
+            buffer.stamps, buffer.messages = list(stamps), list(messages)
+            buffer.latest, buffer._array = max(stamps), None
+        if topic == self.primary.topic:
+            for stamp in stamps:
+                self._primary_sample(stamp)
+
+    def _primary_sample(self, stamp: int) -> None:
+        if self._clock is None:
+            self._primary_waiting.append(stamp)
+            if len(self._primary_waiting) > TYPICAL_INTERVALS:
+                self._start_clock()
+        elif self._clock.offer(stamp):
+            self._candidates.append(stamp)
+
+    def _start_clock(self) -> None:
+        gap = self.mapping.gap_ns if self.mapping.split == "gap" else None
+        typical = typical_interval(self._primary_waiting, self.mapping.period_ns)
+        self._clock = StepClock(self.mapping.period_ns, typical, gap)
+        for stamp in self._primary_waiting:
+            if self._clock.offer(stamp):
+                self._candidates.append(stamp)
+        self._primary_waiting = []
+
+    # -- output -----------------------------------------------------------------------------------
+
+    def take(self) -> list[BuiltStep]:
+        """The steps decided since the last call, in order."""
+        while self._candidates and self._decidable(self._candidates[0]):
+            self._decide(self._candidates.popleft())
+        out, self._out = self._out, []
+        return out
+
+    def finish(self) -> list[BuiltStep]:
+        """The input ended: decide every remaining step and end the last episode."""
+        self.finished = True
+        if self._clock is None and self._primary_waiting:
+            self._start_clock()
+        out = self.take()
+        self._end_episode()
+        return out + self.take()
+
+    def prune(self) -> None:
+        """Live: forget samples no undecided step can match (bounded memory)."""
+        oldest = self._candidates[0] if self._candidates else None
+        if oldest is None:
+            return
+        for feature in self.features:
+            self.buffers[feature.topic].prune(oldest - feature.tolerance_ns - 1)
+
+    @property
+    def dropped_steps(self) -> int:
+        missing = self._clock.missing if self._clock else 0
+        return missing + self.unmatched_steps + self.short_steps + len(self.bad)
+
+    def notes(self) -> list[str]:
+        notes = []
+        if self._clock and self._clock.missing:
+            first = (self._clock.first_gap or 0) / 1e9
+            notes.append(
+                f"primary clock: {self._clock.missing} step(s) missing in gaps, first after {first:.3f}"
+            )
+        for feature in self.features:
+            if feature.name in self.unmatched:
+                count, first = self.unmatched[feature.name]
+                notes.append(
+                    f"{feature.name} ({feature.topic}): {count} step(s) without a sample within "
+                    f"{feature.tolerance_ns / 1e6:g} ms ({feature.align}); dropped, "
+                    f"first at {first / 1e9:.3f}"
+                )
+        if self.short_episodes:
+            notes.append(
+                f"{self.short_episodes} episode(s) with fewer than {self.mapping.min_steps} steps; dropped"
+            )
+        return notes + self.bad
+
+    def schema(self) -> Features:
+        """The features of the steps (known once a step was decoded)."""
+        schemas = [self.readers[f.name].schema() for f in self.features]
+        action = self.mapping.action
+        if isinstance(action, DerivedAction):
+            source = next(f for f in schemas if f.name == action.of)
+            schemas.append(
+                Feature(
+                    ACTION, "action", "float32", source.shape, source.names, low=action.low, high=action.high
+                )
+            )
+        return Features.of(schemas, self.mapping.fps)
+
+    # -- deciding ---------------------------------------------------------------------------------
+
+    def _decidable(self, step_ns: int) -> bool:
+        if self.finished:
+            return True
+        for feature in self.features:
+            latest = self.buffers[feature.topic].latest
+            if latest is None or latest <= step_ns + feature.tolerance_ns:
+                return False
+        return True
+
+    def _decide(self, step_ns: int) -> None:
+        alignments = {}
+        matched = True
+        for feature in self.features:
+            alignment = self.readers[feature.name].match(step_ns, self.buffers[feature.topic])
+            alignments[feature.name] = alignment
+            if not alignment.matched[0]:
+                matched = False
+                count = self.unmatched.setdefault(feature.name, [0, step_ns])
+                count[0] += 1
+        if not matched:
+            self.unmatched_steps += 1
+            return
+        try:
+            rows = {
+                f.name: self.readers[f.name].decode(alignments[f.name], self.buffers[f.topic])
+                for f in self.features
+            }
+        except ConvertError as error:
+            if not self.drop_bad:
+                raise
+            self.bad.append(f"step at {step_ns / 1e9:.3f} dropped: {error}")
+            return
+        self._keep(_Kept(step_ns, rows))
+
+    def _keep(self, kept: _Kept) -> None:
+        if self._last_kept is not None and self._starts_episode(self._last_kept, kept.time_ns):
+            self._end_episode()
+        self._last_kept = kept.time_ns
+        self._episode.append(kept)
+        self._episode_length += 1
+        if self._episode_length >= self.mapping.min_steps + 1:  # the episode will be kept: hand out
+            while len(self._episode) > 1:
+                self._hand_out(self._episode[0], self._episode[1])
+                self._episode.pop(0)
+
+    def _starts_episode(self, previous_ns: int, step_ns: int) -> bool:
+        if self.mapping.split == "gap" and self.mapping.gap_ns is not None:
+            return step_ns - previous_ns > self.mapping.gap_ns
+        if self.mapping.split == "marker":
+            i = bisect.bisect_left(self.markers, previous_ns + 1)
+            return i < len(self.markers) and self.markers[i] <= step_ns
+        return False
+
+    def _end_episode(self) -> None:
+        if not self._episode:
+            return
+        if self._episode_length >= self.mapping.min_steps + 1:
+            while len(self._episode) > 1:
+                self._hand_out(self._episode[0], self._episode[1])
+                self._episode.pop(0)
+            self._hand_out(self._episode[0], None)
+            self._episode_index += 1
+        else:
+            self.short_episodes += 1
+            self.short_steps += self._episode_length
+        self._episode, self._episode_length, self._handed_out = [], 0, 0
+
+    def _hand_out(self, kept: _Kept, following: _Kept | None) -> None:
+        action = None
+        if following is not None:
+            derived = self.mapping.action
+            if isinstance(derived, DerivedAction):
+                now, then = kept.rows[derived.of], following.rows[derived.of]
+                action = then - now if derived.derive == "delta" else then
+            else:
+                action = kept.rows[ACTION]
+            action = np.ascontiguousarray(action, dtype=np.float32)
+        observation = {name: kept.rows[name] for name in self.mapping.features}
+        self._out.append(
+            BuiltStep(
+                self._episode_index, self._handed_out, kept.time_ns, observation, action, following is None
+            )
+        )
+        self._handed_out += 1
