@@ -26,6 +26,7 @@ setup(
             "playseg-trainer = playseg_ros.nodes.trainer:main",
             "playseg-play-source = playseg_ros.babyai.play_source:main",
             "playseg-bag-player = playseg_ros.nodes.bag_player:main",
+            "playseg-topic-adapter = playseg_ros.nodes.topic_adapter:main",
         ],
     },
 )

@@ -32,6 +32,7 @@ NODE_KINDS: dict[str, str] = {
     "segmenter": "playseg_ros.nodes.segmenter",
     "trainer": "playseg_ros.nodes.trainer",
     "bag_player": "playseg_ros.nodes.bag_player",
+    "topic_adapter": "playseg_ros.nodes.topic_adapter",  # a robot's standard topics -> PlaySteps
     "play_source": "playseg_ros.babyai.play_source",  # a domain's node: its bot's play
 }
 """Node kind in a graph config -> the module whose ``main`` runs it."""

@@ -80,6 +80,7 @@ class RobotBag:
     silence: tuple[float, float] | None = None  # no message of any topic in [a, b) seconds
     markers: list[float] = field(default_factory=list)  # std_msgs/Empty on /episode_start
     joints: tuple[str, ...] = JOINTS
+    stamped_commands: bool = False  # TwistStamped (a header: the same time live as recorded) instead of Twist
 
     def camera_times(self) -> list[int]:
         return [ns(i / CAMERA_HZ) for i in range(round(self.seconds * CAMERA_HZ))]
@@ -133,7 +134,9 @@ class RobotBag:
             msg = types["geometry_msgs/msg/Twist"](
                 linear=Vector3(x=x, y=y, z=0.0), angular=Vector3(x=0.0, y=0.0, z=z)
             )
-            out.append(("/cmd_vel", "geometry_msgs/msg/Twist", t, msg))
+            if self.stamped_commands:
+                msg = types["geometry_msgs/msg/TwistStamped"](header=header(t), twist=msg)
+            out.append(("/cmd_vel", f"geometry_msgs/msg/Twist{'Stamped' * self.stamped_commands}", t, msg))
         if "playseg_msgs/msg/TimedAnnotation" in types:
             for start, end, text in self.labels:
                 t = ns(end)

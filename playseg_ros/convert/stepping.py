@@ -297,6 +297,11 @@ class StepBuilder:
             self.buffers[feature.topic].prune(oldest - feature.tolerance_ns - 1)
 
     @property
+    def episodes_kept(self) -> int:
+        """Episodes handed out to their last step."""
+        return self._episode_index
+
+    @property
     def dropped_steps(self) -> int:
         missing = self._clock.missing if self._clock else 0
         return missing + self.unmatched_steps + self.short_steps + len(self.bad)

@@ -1,0 +1,132 @@
+"""The mapping live: topic messages in, PlaySteps (and step-numbered annotations) out, through the same
+`StepBuilder` as `playseg convert` (stepping.py). No ROS graph here: nodes/topic_adapter.py feeds it.
+
+A *stream* is what `playseg convert` calls a bag: messages until the input falls silent for the node's
+``idle_timeout_s`` (or the node is deactivated). Its episodes are numbered as a bag's are
+(``<episode_id>:<k>``, k counting on over streams), step by step as the builder decides them. Message
+times follow the mapping's ``clock`` as in a bag: ``header`` takes ``header.stamp`` when set; a message
+without one (and ``clock: receive``) takes the time the adapter received it, which matches a recording
+only live, not when a bag is replayed (use stamped messages, e.g. TwistStamped, to replay bags).
+
+Human labels: ``playseg_msgs/TimedAnnotation`` messages on the mapping's annotation topic are turned into
+step ranges of the episode holding them (annotations.py, as convert does) when that episode ends.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from playseg_core.data.episode import Segment
+from playseg_core.data.features import STATE
+from playseg_ros.convert.annotations import TimedLabel, segments_of_episodes
+from playseg_ros.convert.errors import ConvertError
+from playseg_ros.convert.mapping import ConvertMapping
+from playseg_ros.convert.source import message_time
+from playseg_ros.convert.stepping import BuiltStep, StepBuilder
+
+
+@dataclass
+class LiveStep:
+    """One PlayStep's content: observation ``step`` of episode ``episode_id``."""
+
+    episode_id: str
+    step: int
+    time_ns: int
+    frames: dict[str, np.ndarray]  # camera feature name -> (H, W, 3) uint8, in the mapping's order
+    state: np.ndarray | None
+    action: np.ndarray | None  # None on the episode's last step (episode_end)
+
+
+@dataclass
+class LiveOutput:
+    steps: list[LiveStep] = field(default_factory=list)
+    annotations: list[tuple[str, Segment]] = field(default_factory=list)  # (episode id, segment)
+    notes: list[str] = field(default_factory=list)
+
+
+class LiveMapping:
+    """Feed it messages (`add`), collect what is decided; `end_stream` when the input fell silent."""
+
+    def __init__(self, mapping: ConvertMapping, episode_id: str, source: str = "live") -> None:
+        self.mapping, self.prefix, self.source = mapping, episode_id, source
+        self.episodes_done = 0  # episodes of earlier streams
+        self.steps_published = 0
+        self._new_stream()
+
+    def _new_stream(self) -> None:
+        self.builder = StepBuilder(self.mapping, self.source, drop_bad=True)
+        self.labels: list[TimedLabel] = []
+        self._open_times: list[int] = []  # step times of the episode being handed out
+        self._notes_seen = 0
+
+    @property
+    def topics(self) -> list[str]:
+        return self.mapping.topics
+
+    def add(self, topic: str, msgtype: str, msg: Any, received_ns: int) -> LiveOutput:
+        """One message; what it decided."""
+        out = LiveOutput()
+        if topic == self.mapping.annotation_topic:
+            self.labels.append(_label(msg))
+        if topic in self.builder.buffers or topic == self.mapping.marker_topic:
+            stamp = message_time(msg, received_ns, self.mapping.clock == "header")
+            try:
+                self.builder.add(topic, stamp, msg, msgtype)
+                self._collect(self.builder.take(), out)
+            except ConvertError as error:  # a bad topic (e.g. not an image): reported, the stream goes on
+                out.notes.append(str(error))
+            self.builder.prune()
+        self._new_notes(out)
+        return out
+
+    def end_stream(self) -> LiveOutput:
+        """The input fell silent: decide the rest, end the last episode; the next message starts anew."""
+        out = LiveOutput()
+        try:
+            self._collect(self.builder.finish(), out)
+        except ConvertError as error:
+            out.notes.append(str(error))
+        self._new_notes(out)
+        out.notes += [f"stream ended: {note}" for note in self.drop_notes()]
+        self.episodes_done += self.builder.episodes_kept
+        self._new_stream()
+        return out
+
+    def _collect(self, built: list[BuiltStep], out: LiveOutput) -> None:
+        for step in built:
+            episode_id = f"{self.prefix}:{self.episodes_done + step.episode}"
+            frames = {name: step.observation[name] for name, f in self.mapping.features.items() if f.is_image}
+            state = step.observation.get(STATE)
+            out.steps.append(LiveStep(episode_id, step.step, step.time_ns, frames, state, step.action))
+            self.steps_published += 1
+            self._open_times.append(step.time_ns)
+            if step.last:
+                self._label_episode(episode_id, out)
+
+    def _label_episode(self, episode_id: str, out: LiveOutput) -> None:
+        times = np.asarray(self._open_times, dtype=np.int64)
+        self._open_times = []
+        if not self.labels:
+            return
+        (segments,), notes = segments_of_episodes([times], self.labels)
+        out.annotations += [(episode_id, segment) for segment in segments]
+        out.notes += [f"episode {episode_id!r}: {note}" for note in notes if "no step of any" not in note]
+        self.labels = [label for label in self.labels if label.end_ns > times[-1]]  # later episodes' labels
+
+    def _new_notes(self, out: LiveOutput) -> None:
+        bad = self.builder.bad
+        out.notes += bad[self._notes_seen :]
+        self._notes_seen = len(bad)
+
+    def drop_notes(self) -> list[str]:
+        """The stream's drop counts so far (per feature, primary gaps, short episodes)."""
+        return [n for n in self.builder.notes() if n not in self.builder.bad]
+
+
+def _label(msg: Any) -> TimedLabel:
+    start = int(msg.start.sec) * 1_000_000_000 + int(msg.start.nanosec)
+    end = int(msg.end.sec) * 1_000_000_000 + int(msg.end.nanosec)
+    return TimedLabel(start, end, str(msg.instruction))

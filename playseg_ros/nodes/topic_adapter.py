@@ -1,0 +1,199 @@
+"""topic_adapter: a robot's standard topics in, PlaySteps out, through a `playseg convert` mapping.
+
+It subscribes to the mapping's topics (Image/CompressedImage cameras, JointState, Twist or any numeric
+fields, TimedAnnotation labels, an episode marker) and runs the same step builder as `playseg convert`
+(playseg_ros/convert/live.py over convert/stepping.py): a step is published once every feature has a
+sample later than the step's time plus its tolerance, or dropped and reported (warning) when a feature
+has none within its tolerance; never invented. PlaySteps carry every camera by name (camera_names), the
+state and the action, so the segmenter needs no other input. The input falling silent for
+``idle_timeout_s`` ends the stream (as a bag's end: the last episode is closed); human labels become
+step-numbered ``Annotation``s when their episode ends.
+
+Lifecycle: configure reads the mapping and creates the publishers and the discovery/idle timer;
+activate subscribes to each mapping topic once a publisher reveals its type (or at once with
+``topic_types``); deactivate unsubscribes and ends the open stream; cleanup (and shutdown, error
+processing) destroys publishers, subscriptions and the timer.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from playseg_msgs.msg import Annotation, PlayStep
+from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
+from rclpy.serialization import deserialize_message
+
+from playseg_ros import qos
+from playseg_ros.convert.errors import MappingError
+from playseg_ros.convert.live import LiveMapping, LiveOutput
+from playseg_ros.convert.mapping import load_mapping
+from playseg_ros.messages import RCLPY, annotation_message, play_step_message
+from playseg_ros.nodes.common import ReleasingLifecycleNode, declare, require, run_node
+from playseg_ros.ros_types import message_class
+
+
+class TopicAdapterNode(ReleasingLifecycleNode):
+    def __init__(self) -> None:
+        super().__init__("topic_adapter")
+        self.mapping_path = declare(self, "mapping", "", "playseg convert mapping file (docs/convert.md)")
+        self.episode_id = declare(
+            self, "episode_id", "live", "episode ids are <episode_id>:<k>, as a bag's are <bag name>:<k>"
+        )
+        self.topic_types = declare(
+            self, "topic_types", [""], "TOPIC=pkg/msg/Type per mapping topic (empty: learnt from publishers)"
+        )
+        self.steps_topic = declare(self, "steps_topic", "/play/steps", "PlayStep output")
+        self.annotations_topic = declare(
+            self, "annotations_topic", "/play/annotations", "Annotation output ('' = off)"
+        )
+        self.reliability = declare(
+            self, "reliability", "reliable", "subscriptions: reliable | best_effort (a camera driver's)"
+        )
+        self.idle_timeout_s = declare(
+            self, "idle_timeout_s", 5.0, "no message for this long ends the stream (its last episode)"
+        )
+        self.live: LiveMapping | None = None
+        self._types: dict[str, str] = {}
+        self._subs: dict[str, Any] = {}
+        self._steps_pub = None
+        self._annotations_pub = None
+        self._timer = None
+        self._last_message = 0.0
+        self._stream_open = False
+        self.published = 0
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        try:
+            require(bool(self.mapping_path), self, "mapping must be set")
+            require(bool(self.episode_id), self, "episode_id must not be empty")
+            require(self.idle_timeout_s > 0, self, "idle_timeout_s must be > 0")
+            require(
+                self.reliability in ("reliable", "best_effort"), self, "reliability: reliable | best_effort"
+            )
+            try:
+                mapping = load_mapping(self.mapping_path)
+            except MappingError as error:
+                raise ValueError(f"{self.get_name()}: {error}") from None
+            given = {}
+            for item in (t for t in self.topic_types if t):
+                topic, sep, type_name = item.partition("=")
+                require(bool(sep and topic and type_name), self, f"topic_types entry {item!r}: TOPIC=TYPE")
+                given[topic] = type_name
+            unknown = sorted(set(given) - set(mapping.topics))
+            require(not unknown, self, f"topic_types names topics the mapping does not read: {unknown}")
+            self.live = LiveMapping(mapping, self.episode_id, source=self.get_name())
+            self._types = given
+            self._steps_pub = self.create_publisher(PlayStep, self.steps_topic, qos.PLAY_STEPS)
+            if self.annotations_topic:
+                self._annotations_pub = self.create_publisher(
+                    Annotation, self.annotations_topic, qos.ANNOTATIONS
+                )
+            self._timer = self.create_timer(0.1, self._tick, autostart=False)
+        except Exception as exc:  # any configuration problem: report it, stay unconfigured (retryable)
+            self.get_logger().error(str(exc) if isinstance(exc, ValueError) else f"configure failed: {exc!r}")
+            self.release()
+            return TransitionCallbackReturn.FAILURE
+        self.get_logger().info(
+            f"mapping {self.mapping_path}: {', '.join(self.live.topics)} -> {self.steps_topic}"
+        )
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._timer.reset()
+        self._subscribe_discovered()
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._timer.cancel()
+        self._unsubscribe()
+        self._end_stream()
+        return super().on_deactivate(state)
+
+    def release(self) -> None:
+        """Undo configure and activate, whatever got done of them; safe to call again."""
+        self._unsubscribe()
+        if self._timer is not None:
+            self.destroy_timer(self._timer)
+            self._timer = None
+        for name in ("_steps_pub", "_annotations_pub"):
+            publisher = getattr(self, name)
+            if publisher is not None:
+                self.destroy_publisher(publisher)
+                setattr(self, name, None)
+        self.live = None
+
+    def _unsubscribe(self) -> None:
+        for sub in self._subs.values():
+            self.destroy_subscription(sub)
+        self._subs.clear()
+
+    def _tick(self) -> None:
+        self._subscribe_discovered()
+        if self._stream_open and time.monotonic() - self._last_message > self.idle_timeout_s:
+            self._end_stream()
+
+    def _subscribe_discovered(self) -> None:
+        """Subscribe to each mapping topic once its type is known (given, or a publisher reveals it)."""
+        if self.live is None:
+            return
+        missing = [t for t in self.live.topics if t not in self._subs]
+        if not missing:
+            return
+        discovered = dict(self.get_topic_names_and_types())
+        profile = qos.recorder_qos(self.reliability)
+        for topic in missing:
+            type_name = self._types.get(topic) or (discovered.get(topic) or [None])[0]
+            if type_name is None:
+                continue
+            try:
+                msg_class = message_class(type_name)
+            except ValueError as error:
+                self.get_logger().error(f"{topic}: {error}; not subscribed")
+                self._subs[topic] = None
+                continue
+            self._types[topic] = type_name
+            # raw: deserialized here, so the receive time is taken before any work
+            self._subs[topic] = self.create_subscription(
+                msg_class, topic, lambda data, t=topic, c=msg_class: self._on_message(t, c, data), profile,
+                raw=True,
+            )  # fmt: skip
+            self.get_logger().info(f"subscribed to {topic} ({type_name})")
+
+    def _on_message(self, topic: str, msg_class: type, data: bytes) -> None:
+        received = self.get_clock().now().nanoseconds
+        self._last_message = time.monotonic()
+        self._stream_open = True
+        msg = deserialize_message(data, msg_class)
+        self._publish(self.live.add(topic, self._types[topic], msg, received))
+
+    def _end_stream(self) -> None:
+        if self.live is None or not self._stream_open:
+            return
+        self._stream_open = False
+        self._publish(self.live.end_stream(), ended=True)
+
+    def _publish(self, out: LiveOutput, ended: bool = False) -> None:
+        for note in out.notes:
+            self.get_logger().warning(note)
+        for step in out.steps:
+            msg = play_step_message(
+                step.episode_id, step.step, step.frames, step.state, step.action, step.time_ns,
+                kind=RCLPY,
+            )  # fmt: skip
+            self._steps_pub.publish(msg)
+            self.published += 1
+        if self._annotations_pub is not None:
+            for episode_id, segment in out.annotations:
+                stamp = self.get_clock().now().nanoseconds
+                self._annotations_pub.publish(annotation_message(episode_id, segment, stamp, kind=RCLPY))
+        if ended:
+            self.get_logger().info(f"stream ended: {self.published} steps published so far")
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(TopicAdapterNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

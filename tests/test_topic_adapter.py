@@ -1,0 +1,110 @@
+"""The mapping live: bag_player plays a rosbags-written bag of standard messages (30 Hz rgb8 Image, 100 Hz
+JointState with a gap, 10 Hz TwistStamped) into topic_adapter + segmenter, real processes on real DDS. The adapter's
+PlaySteps are the episode `playseg convert` makes of the same bag, and the segmenter's segments are the
+ones `playseg convert --segment` stores."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from node_procs import Processes, RosPeer, stop, wait_for_log
+from playseg_msgs.msg import LabelledSegment, PlayStep
+from test_convert import MAPPING, RobotBag, write_mapping, write_rosbag2
+from test_convert_segment import untrained_model
+
+from playseg_core.data.dataset import PlayDataset
+from playseg_core.ps.model import load_model
+from playseg_core.ps.segmentation import segment_episode
+from playseg_ros import qos
+from playseg_ros.cli import main
+
+CAMERA = "observation.images.front"
+TOPICS = ["/camera/image_raw", "/joint_states", "/cmd_vel"]
+
+
+def test_live_steps_and_segments_equal_playseg_convert_segment(
+    procs: Processes, peer: RosPeer, tmp_path: Path
+) -> None:
+    bag = write_rosbag2(
+        tmp_path / "robot", RobotBag(seconds=4.0, labels=[], stamped_commands=True, joint_gap=(1.05, 1.35))
+    )
+    action = {"topic": "/cmd_vel", "fields": ["twist.linear.x", "twist.linear.y", "twist.angular.z"]}
+    mapping = write_mapping(
+        tmp_path / "map.yaml", dict(MAPPING, features={**MAPPING["features"], "action": action})
+    )
+    quiet = ["--mapping", str(mapping), "--quiet"]
+    assert main(["convert", str(bag), "--out", str(tmp_path / "plain"), *quiet]) == 0
+    plain = PlayDataset.open(tmp_path / "plain")
+    episode = plain.episode(0)
+    probe, _ = load_model(untrained_model(tmp_path / "probe.pt", plain.features, episode))
+    threshold = float(np.median([s.confidence for s in segment_episode(probe, episode, probe.cfg.min_len)]))
+    model_path = untrained_model(tmp_path / "ps.pt", plain.features, episode, threshold)
+    assert (
+        main(["convert", str(bag), "--out", str(tmp_path / "data"), *quiet, "--segment", str(model_path)])
+        == 0
+    )
+    converted = PlayDataset.open(tmp_path / "data")
+    assert converted.info["meta"]["convert"]  # 3 steps (1.1 - 1.3 s) have no joint sample within 20 ms
+    assert episode.num_steps + 1 == 40 - 3
+    expected = converted.segments(0, truth=True)
+    assert expected and converted.records[0].episode_id == "robot:0"
+
+    steps: list[PlayStep] = []
+    segments: list[LabelledSegment] = []
+    peer.node.create_subscription(PlayStep, "/play/steps", steps.append, qos.PLAY_STEPS)
+    peer.node.create_subscription(LabelledSegment, "/segments", segments.append, qos.SEGMENTS)
+    segmenter, segmenter_log = procs.node(
+        "segmenter", "segmenter", model=str(model_path), min_confidence=threshold
+    )
+    adapter, adapter_log = procs.node(
+        "topic_adapter", "adapter", mapping=str(mapping), episode_id="robot", idle_timeout_s=3.0
+    )
+    # PlaySteps are volatile: play once the segmenter and this test listen to the adapter.
+    listening = lambda: peer.node.count_subscribers("/play/steps") >= 2  # noqa: E731
+    assert peer.spin_until(listening, 60), segmenter_log.read_text()[-2000:]
+    wait_for_log(adapter_log, r"topic_adapter\]: mapping", 30, adapter)
+    player, player_log = procs.node(
+        "bag_player",
+        "player",
+        bag=str(bag),
+        rate=0.0,
+        topics=TOPICS,
+        wait_for_subscribers=1,
+        wait_topics=TOPICS,
+    )
+    ended = lambda: any(s.episode_end for s in steps)  # noqa: E731
+    assert peer.spin_until(ended, 60), adapter_log.read_text()[-3000:] + player_log.read_text()[-2000:]
+    assert peer.spin_until(lambda: len(segments) >= len(expected), 30), (
+        [(s.start_step, s.end_step, s.instruction) for s in segments],
+        expected,
+        [(m.episode_id, m.step) for m in steps],
+        adapter_log.read_text()[-3000:],
+    )
+    peer.spin_until(lambda: False, 1.0)  # nothing more comes
+
+    # Same steps: the converted episode, step by step (frames, joint state, commands, times).
+    assert [s.step for s in steps] == list(range(episode.num_steps + 1))
+    assert {s.episode_id for s in steps} == {"robot:0"}
+    for t, msg in enumerate(steps):
+        assert list(msg.camera_names) == [CAMERA]
+        frame = np.frombuffer(bytes(msg.observation.data), np.uint8).reshape(episode.images[CAMERA].shape[1:])
+        np.testing.assert_array_equal(frame, episode.images[CAMERA][t])
+        np.testing.assert_array_equal(np.asarray(msg.state, np.float32), episode.state[t])
+        if t < episode.num_steps:
+            np.testing.assert_array_equal(np.asarray(msg.action, np.float32), episode.actions[t])
+    # Same segments: what convert --segment stored (the model's, filtered by its label threshold).
+    assert [(s.episode_id, s.start_step, s.end_step, s.instruction) for s in segments] == [
+        ("robot:0", s.start, s.end, s.instruction) for s in expected
+    ]
+    np.testing.assert_allclose(
+        [s.label_confidence for s in segments], [s.confidence for s in expected], atol=1e-4
+    )
+    # The steps without a joint sample were dropped and reported live too, once the stream ended.
+    assert (
+        "observation.state (/joint_states): 3 step(s) without a sample within 20 ms"
+        in adapter_log.read_text()
+    )
+    assert stop(adapter) == 0 and stop(segmenter) == 0
+    for log in (adapter_log, segmenter_log):
+        assert "Traceback" not in log.read_text()
