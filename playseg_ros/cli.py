@@ -303,7 +303,7 @@ def _cmd_convert(args: argparse.Namespace) -> int:
     segmentation = SegmentationSpec.of(args.segment, args.method or "ps") if args.segment else None
     summary = convert(
         args.bags, args.out, mapping, args.workers, args.overwrite, not args.quiet, output_format=args.format,
-        segmentation=segmentation,
+        segmentation=segmentation, engine=args.engine, address=args.address,
     )  # fmt: skip
     for report in summary.reports:
         for note in report.notes:
@@ -338,6 +338,13 @@ def _add_convert_command(sub: argparse._SubParsersAction) -> None:
         "--method", choices=SEGMENTATION_METHODS, help="the --segment checkpoint's method (default: ps)"
     )
     convert.add_argument("--workers", type=int, default=1, help="bags converted in parallel (processes)")
+    convert.add_argument(
+        "--engine",
+        default="local",
+        choices=["local", "ray"],
+        help="local: a process pool; ray: each bag a Ray task (a local Ray instance with --workers CPUs)",
+    )
+    convert.add_argument("--address", help="with --engine ray: the Ray cluster to join (e.g. ray://head:10001)")
     convert.add_argument("--overwrite", action="store_true", help="convert every bag again into a new --out")
     convert.add_argument(
         "--inspect", action="store_true", help="list BAG's topics and print a proposed mapping"

@@ -38,6 +38,8 @@ from playseg_ros.convert.source import bag_size, find_bags, fingerprint, is_play
 
 OutputFormat = Literal["playseg", "lerobot"]
 OUTPUT_FORMATS: tuple[OutputFormat, ...] = ("playseg", "lerobot")
+Engine = Literal["local", "ray"]
+ENGINES: tuple[Engine, ...] = ("local", "ray")
 CONVERT_META = "convert"
 """The key of meta/info.json's ``meta`` that records what a conversion put into a dataset."""
 
@@ -212,10 +214,13 @@ def convert(
     on_report: Callable[[BagReport], None] | None = None,
     output_format: OutputFormat = "playseg",
     segmentation: SegmentationSpec | None = None,
+    engine: Engine = "local",
+    address: str | None = None,
 ) -> ConvertSummary:
     """Convert the bags named by ``inputs`` into the playseg dataset ``out`` (see the module docstring).
 
-    With ``segmentation`` the unannotated episodes are segmented by its model (segmenting.py).
+    With ``segmentation`` the unannotated episodes are segmented by its model (segmenting.py). ``engine``
+    "ray" runs the bags as Ray tasks (ray_engine.py; ``address`` joins a cluster), with the same output.
 
     With ``output_format="lerobot"`` the playseg dataset is kept next to ``out`` as ``.<OUT>.playseg``
     (what a rerun resumes from) and exported to ``out`` as a LeRobot v3.0 dataset (lerobot.py) whenever
@@ -223,6 +228,10 @@ def convert(
     started = time.perf_counter()
     if workers < 1:
         raise ValueError(f"--workers must be >= 1, got {workers}")
+    if engine not in ENGINES:
+        raise ValueError(f"--engine {engine!r}: expected one of {', '.join(ENGINES)}")
+    if address is not None and engine != "ray":
+        raise ValueError("--address is the Ray cluster to join: give --engine ray")
     if output_format not in OUTPUT_FORMATS:
         raise ValueError(f"--format {output_format!r}: expected one of {', '.join(OUTPUT_FORMATS)}")
     from playseg_ros.convert.lerobot import export_lerobot, is_lerobot_dataset  # PyAV, pyarrow: only here
@@ -248,7 +257,7 @@ def convert(
             reports[bag] = _report_of_part(task)
             continue
         tasks.append(task)
-    for report in _run_tasks(tasks, workers, progress):
+    for report in _run_tasks(tasks, workers, progress, engine, address):
         reports[report.bag] = report
         if on_report is not None:
             on_report(report)
@@ -327,7 +336,9 @@ def _report_of_part(task: BagTask) -> BagReport:
     )  # fmt: skip
 
 
-def _run_tasks(tasks: list[BagTask], workers: int, progress: bool) -> list[BagReport]:
+def _run_tasks(
+    tasks: list[BagTask], workers: int, progress: bool, engine: Engine = "local", address: str | None = None
+) -> list[BagReport]:
     from tqdm import tqdm
 
     reports: list[BagReport] = []
@@ -335,6 +346,15 @@ def _run_tasks(tasks: list[BagTask], workers: int, progress: bool) -> list[BagRe
     bar = tqdm(total=total_bytes, unit="B", unit_scale=True, desc="convert", disable=not progress or not tasks,
                file=sys.stderr)  # fmt: skip
     try:
+        if engine == "ray" and tasks:
+            from playseg_ros.convert.ray_engine import run_ray_tasks  # Ray: only with this engine
+
+            def done(report: BagReport) -> None:
+                reports.append(report)
+                bar.update(report.bytes)
+                bar.set_postfix(failed=sum(r.status == "failed" for r in reports))
+
+            return run_ray_tasks(tasks, workers, address, done)
         if workers == 1 or len(tasks) <= 1:
             for task in tasks:
                 reports.append(convert_one(task))
