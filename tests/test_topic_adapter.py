@@ -8,10 +8,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
+from lifecycle_msgs.msg import State
 from node_procs import Processes, RosPeer, stop, wait_for_log
 from playseg_msgs.msg import LabelledSegment, PlayStep
 from test_convert import MAPPING, RobotBag, write_mapping, write_rosbag2
 from test_convert_segment import untrained_model
+from test_robot_nodes import LifecycleProbe
 
 from playseg_core.data.dataset import PlayDataset
 from playseg_core.ps.model import load_model
@@ -108,3 +111,35 @@ def test_live_steps_and_segments_equal_playseg_convert_segment(
     assert stop(adapter) == 0 and stop(segmenter) == 0
     for log in (adapter_log, segmenter_log):
         assert "Traceback" not in log.read_text()
+
+
+def test_every_transition_in_every_state(procs: Processes, peer: RosPeer, tmp_path: Path) -> None:
+    mapping = write_mapping(tmp_path / "map.yaml")
+    for shutdown_from in (State.PRIMARY_STATE_UNCONFIGURED, State.PRIMARY_STATE_ACTIVE):
+        node, log = procs.node(
+            "topic_adapter", f"adapter-{shutdown_from}", autostart=False, mapping=str(mapping)
+        )
+        LifecycleProbe(peer, "topic_adapter", {}).walk(shutdown_from)
+        assert node.poll() is None, log.read_text()[-3000:]
+        assert stop(node) == 0, log.read_text()[-3000:]
+        text = log.read_text()
+        assert "Traceback" not in text and "failed" not in text, text[-3000:]
+
+
+@pytest.mark.parametrize(
+    ("params", "message"),
+    [
+        ({}, "mapping must be set"),
+        ({"mapping": "/nonexistent/map.yaml"}, "mapping '/nonexistent/map.yaml': cannot read"),
+        ({"topic_types": ["/nope=std_msgs/msg/Empty"]}, "topic_types names topics the mapping does not read"),
+    ],
+)
+def test_bad_parameters_fail_configure_in_one_line(
+    procs: Processes, tmp_path: Path, params: dict, message: str
+) -> None:
+    if "topic_types" in params:
+        params = {**params, "mapping": str(write_mapping(tmp_path / "map.yaml"))}
+    node, log = procs.node("topic_adapter", "adapter", **params)
+    assert node.wait(timeout=60) == 1
+    text = log.read_text()
+    assert message in text and "Traceback" not in text, text
