@@ -114,7 +114,8 @@ class LiveMapping:
         (segments,), notes = segments_of_episodes([times], self.labels)
         out.annotations += [(episode_id, segment) for segment in segments]
         out.notes += [f"episode {episode_id!r}: {note}" for note in notes if "no step of any" not in note]
-        self.labels = [label for label in self.labels if label.end_ns > times[-1]]  # later episodes' labels
+        # a label starting in this episode belongs to it (cut at its end, as convert does); later ones wait
+        self.labels = [label for label in self.labels if label.start_ns > times[-1]]
 
     def _new_notes(self, out: LiveOutput) -> None:
         bad = self.builder.bad
