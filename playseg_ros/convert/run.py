@@ -23,7 +23,7 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal, NotRequired, TypedDict
 
@@ -243,6 +243,8 @@ def convert(
     bags = find_bags(inputs)
     if not bags:
         raise ValueError(f"{', '.join(map(str, inputs))}: no bags found")
+    if segmentation is not None and workers > 1 and segmentation.threads is None:
+        segmentation = replace(segmentation, threads=max(1, (os.cpu_count() or 1) // workers))
     previous = _previous_dataset(out, mapping, overwrite, segmentation)
     done = {} if previous is None else convert_meta(previous)["bags"]  # type: ignore[index]
     reports: dict[Path, BagReport] = {}

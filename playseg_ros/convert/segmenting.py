@@ -39,6 +39,7 @@ class SegmentationSpec:
     method: str
     seed: int
     digest: str
+    threads: int | None = None  # torch threads per worker (None: torch's default); not in the digest
 
     @classmethod
     def of(cls, model: str | Path, method: str = "ps", seed: int = 0) -> SegmentationSpec:
@@ -64,8 +65,13 @@ class SegmentationSpec:
 
 @cache
 def _loaded(spec: SegmentationSpec) -> Segmenter:
+    import torch
+
     from playseg_core.baselines.common import SegmentOptions
     from playseg_core.baselines.registry import get_method
+
+    if spec.threads is not None:  # several workers on few cores: one thread each, not cores x workers
+        torch.set_num_threads(spec.threads)
 
     return get_method(spec.method).load(spec.model, SegmentOptions(seed=spec.seed))
 
