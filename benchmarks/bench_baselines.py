@@ -10,7 +10,8 @@ the ``--split`` episodes; ``--ps-model`` adds a trained PS checkpoint. Printed p
 seconds, segmentation throughput (steps/s, encoding included), the number of segments, boundary
 precision (segment ends, exact), segment precision (start, end and label all right), label accuracy
 over all steps and over the steps the segments cover, and boundary recall where the method covers the
-trajectory. A ground-truth relabelling row (the true segments labelled by the labelling model of the
+trajectory. UnLoc is also scored with the paper's literal cropping ("open crop": the kept run may touch
+the window's edge). A ground-truth relabelling row (the true segments labelled by the labelling model of the
 random-window baseline) gives the labelling model's own accuracy. The changepoint baseline reuses that
 labelling model when MODELS/random.pt exists (its training time is then PELT's penalty search only). The paper's BabyAI figures are
 printed alongside (precision and label accuracy; DESIGN.md "Paper figures to beat").
@@ -19,6 +20,7 @@ printed alongside (precision and label accuracy; DESIGN.md "Paper figures to bea
 from __future__ import annotations
 
 import argparse
+import copy
 import time
 from pathlib import Path
 
@@ -27,7 +29,8 @@ import torch
 from playseg_core.baselines.changepoint import train_changepoint
 from playseg_core.baselines.common import SegmentOptions, TrainingData, TrainOptions, covered_metrics
 from playseg_core.baselines.labelled_pieces import label_pieces, load_labeller
-from playseg_core.baselines.registry import METHODS, get_method, load_segmenter
+from playseg_core.baselines.random_windows import RandomWindowSegmenter
+from playseg_core.baselines.registry import get_method, load_segmenter
 from playseg_core.data.dataset import PlayDataset
 from playseg_core.ps.metrics import evaluate
 
@@ -54,6 +57,16 @@ def main() -> None:
     parser.add_argument("--steps", action="append", default=[], metavar="METHOD=N", help="training steps")
     parser.add_argument("--max-seconds", type=float, help="stop each training after this long")
     parser.add_argument("--reuse", action="store_true", help="load MODELS/<method>.pt where it exists")
+    parser.add_argument(
+        "--labeller",
+        help="label the changepoint pieces (and random windows) with this labelling model or PS model",
+    )
+    parser.add_argument(
+        "--signal", default="state_action", help="changepoint signal: state_action, features, all"
+    )
+    parser.add_argument(
+        "--encoders-from", help="unloc and tridet read this PS / labeller checkpoint's step encoders, frozen"
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
@@ -69,6 +82,7 @@ def main() -> None:
         instructions=list(dataset.instructions),
         features=dataset.features,
         domain=dataset.domain,
+        encoders_from=args.encoders_from,
     )
     models = Path(args.models)
     models.mkdir(parents=True, exist_ok=True)
@@ -78,15 +92,30 @@ def main() -> None:
         seconds = None
         if not (args.reuse and path.exists()):
             options = TrainOptions(seed=args.seed, steps=budgets.get(name), max_seconds=args.max_seconds)
-            if name == "changepoint" and (models / "random.pt").exists():
+            if name == "changepoint" and args.labeller:
+                trained = train_changepoint(
+                    data, options, signal=args.signal, labeller=load_labeller(args.labeller)
+                )
+            elif name == "changepoint" and (models / "random.pt").exists():
                 # The same labelling model as the random windows: only PELT's penalty is chosen here.
-                trained = train_changepoint(data, options, labeller=load_labeller(models / "random.pt"))
+                labeller = load_labeller(models / "random.pt")
+                trained = train_changepoint(data, options, signal=args.signal, labeller=labeller)
             else:
                 trained = get_method(name).train(data, options)
             trained.save(path, {"method": name, "dataset": str(Path(args.data).resolve())})
             seconds = trained.seconds
             print(f"{name}: {trained.report}", flush=True)
+        if name == "random" and args.labeller and not (args.reuse and path.exists()):
+            raise SystemExit("--labeller: the random windows need their lengths; train random without it")
         runs.append((name, seconds, load_segmenter(name, path, SegmentOptions(seed=args.seed))))
+        if name == "random" and args.labeller:  # the same windows labelled by the given model
+            other = RandomWindowSegmenter(
+                load_labeller(args.labeller)[0],
+                runs[-1][2].shortest,
+                runs[-1][2].longest,
+                SegmentOptions(seed=args.seed),
+            )
+            runs.append(("random, --labeller", None, other))
     if args.ps_model:
         runs.insert(0, ("ps", None, load_segmenter("ps", args.ps_model)))
 
@@ -98,13 +127,20 @@ def main() -> None:
     )
     print(header)
     relabel_model = None
+    unloc = next((segmenter for name, _, segmenter in runs if name == "unloc"), None)
+    if unloc is not None:  # the paper's literal cropping too: a run may touch the window's edge
+        open_crop = copy.deepcopy(unloc)
+        open_crop.model.cfg.closed_crop = False
+        runs.append(("unloc", None, open_crop))
     for name, seconds, segmenter in runs:
+        if name == "unloc" and not segmenter.model.cfg.closed_crop:
+            name = "unloc (open crop)"
         began = time.perf_counter()
         pred = {e.episode_id: segmenter.segment(e) for e in episodes}
         rate = total_steps / (time.perf_counter() - began)
         m = evaluate(pred, truth, steps) | covered_metrics(pred, truth, steps)
-        recall = f"{m['boundary_recall_tol0']:>7.3f}" if METHODS[name].tiles else f"{'-':>7}"
-        paper = "{:.3f} / {:.3f}".format(*PAPER[name]) if name in PAPER else ""
+        recall = f"{m['boundary_recall_tol0']:>7.3f}" if segmenter.tiles else f"{'-':>7}"
+        paper = "{:.3f} / {:.3f}".format(*PAPER[name.split()[0]]) if name.split()[0] in PAPER else ""
         trained = f"{seconds:>8.0f}" if seconds is not None else f"{'-':>8}"
         print(
             f"{name:<22}{trained}{rate:>9.0f}{m['pred_segments']:>6}{m['boundary_precision_tol0']:>7.3f}"

@@ -168,6 +168,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         {"min_len": args.min_len, "max_len": args.max_len, "k_max": args.k_max},
         args.encoder,
         args.method,
+        args.encoders_from,
     )
 
 
@@ -242,6 +243,12 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
         choices=SEGMENTATION_METHODS,
         help="ps (default), or a baseline (docs/baselines.md): unloc, tridet, random or changepoint "
         "(the last two train the labelling model); --epochs, --lr, --batch-segments apply to each",
+    )
+    train.add_argument(
+        "--encoders-from",
+        metavar="CHECKPOINT",
+        help="unloc and tridet: read the step encoders of this PS or labeller checkpoint, frozen (the paper "
+        "gives its baselines pretrained features); default: their own, trained with them",
     )
     train.set_defaults(func=_cmd_train)
     calibrate = sub.add_parser(

@@ -125,6 +125,7 @@ def train(
     bounds: dict[str, int | None] | None = None,
     encoders: list[str] | None = None,
     method: str = "ps",
+    encoders_from: str | None = None,
 ) -> int:
     """Train the PS model (and optionally the stand-alone labeller) on a dataset's train/val splits,
     or another segmentation method (``method``, playseg_core/baselines/registry.py).
@@ -148,6 +149,8 @@ def train(
     get_method(method)  # an unknown method fails before anything is read
     if labeller and method != "ps":
         raise ValueError(f"--labeller: only with --method ps (method {method} writes what it needs to --out)")
+    if encoders_from and method not in ("unloc", "tridet"):
+        raise ValueError(f"--encoders-from: only with --method unloc or tridet, not {method}")
     dataset = _open_dataset(data)
     check_output_file(out, overwrite)
     if labeller:
@@ -166,7 +169,7 @@ def train(
     features, read_actions = _action_features(actions, dataset.features)
     if method != "ps":
         given = {"seed": seed, "epochs": epochs, "lr": lr, "batch_size": batch_segments}
-        training = (dataset, train_eps, val_eps, features, read_actions, bounds, encoders)
+        training = (dataset, train_eps, val_eps, features, read_actions, bounds, encoders, encoders_from)
         return _train_method(method, data, out, training, given)
     model_cfg = model_config_for(
         features,
@@ -217,11 +220,11 @@ def _train_method(method: str, data: str, out: str, training: tuple, given: dict
     from playseg_core.baselines.common import TrainingData, TrainOptions
     from playseg_core.baselines.registry import train_segmenter
 
-    dataset, train_eps, val_eps, features, read_actions, bounds, encoders = training
+    dataset, train_eps, val_eps, features, read_actions, bounds, encoders, encoders_from = training
     overrides = _encoder_overrides(encoders or [])
     inputs = TrainingData(
         train_eps, val_eps, list(dataset.instructions), features, dataset.domain, read_actions, overrides,
-        dict(bounds or {}),
+        dict(bounds or {}), encoders_from,
     )  # fmt: skip
     trained = train_segmenter(method, inputs, TrainOptions(**given))  # unset options: the method's defaults
     trained.save(Path(out), {"method": method, "dataset": str(Path(data).resolve())})

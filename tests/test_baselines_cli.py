@@ -86,3 +86,19 @@ def test_a_checkpoint_of_another_method_is_one_clear_line(dataset: Path, tmp_pat
     argv = ["train", "--method", "random", "--data", str(dataset), "--out", str(tmp_path / "r.pt")]
     assert cli_main([*argv, "--labeller", str(tmp_path / "l.pt")]) == 1
     assert "--labeller: only with --method ps" in capsys.readouterr().err
+
+
+def test_window_methods_can_read_a_trained_models_step_encoders(dataset: Path, tmp_path: Path) -> None:
+    """--encoders-from: the PS model's step encoders, frozen (their weights are the PS model's after
+    training), recorded in the baseline's checkpoint; other methods refuse the option."""
+    ps = tmp_path / "ps.pt"
+    assert cli_main(["train", "--data", str(dataset), "--out", str(ps), "--epochs", "1"]) == 0
+    model = tmp_path / "unloc.pt"
+    argv = ["train", "--method", "unloc", "--data", str(dataset), "--out", str(model), "--epochs", "2"]
+    assert cli_main([*argv, "--encoders-from", str(ps)]) == 0
+    pretrained, trained = read_checkpoint(ps), read_checkpoint(model, ("unloc",))
+    assert trained.meta["encoders_from"] == str(ps)
+    encoder_weights = {k: v for k, v in pretrained.state_dict.items() if k.startswith("encoders.")}
+    assert encoder_weights and all(torch.equal(trained.state_dict[k], v) for k, v in encoder_weights.items())
+    argv = ["train", "--method", "random", "--data", str(dataset), "--out", str(tmp_path / "r.pt")]
+    assert cli_main([*argv, "--encoders-from", str(ps)]) == 1

@@ -42,7 +42,7 @@ from playseg_core.ps.model import LabelModel, PSModel
 
 METHOD = "changepoint"
 SIGNALS = ("state_action", "features", "all")
-PENALTY_GRID = tuple(float(x) for x in np.geomspace(0.02, 20.0, 13))
+PENALTY_GRID = tuple(float(x) for x in np.geomspace(0.001, 20.0, 18))
 """Penalty factors tried (x the signal's width)."""
 
 

@@ -46,6 +46,10 @@ class TrainingData:
     read_actions: bool = True
     encoder_overrides: dict[str, str] = field(default_factory=dict)
     bounds: dict[str, int | None] = field(default_factory=dict)
+    # A trained PS or labelling checkpoint whose step encoders the window methods read, frozen (the
+    # paper gives TriDet the labelling model's features and UnLoc frozen CLIP features). None: their own,
+    # trained with them.
+    encoders_from: str | None = None
 
     def annotated(self) -> list[Episode]:
         episodes = [episode for episode in self.train if episode.segments]
@@ -284,8 +288,15 @@ def spec_json(specs: Sequence[EncoderSpec]) -> list[dict[str, Any]]:
 
 def step_encoders_for(data: TrainingData) -> tuple[list[EncoderSpec], Features]:
     """The step encoders PS would read ``data`` with (ps.encoders.choose_encoders via model_config_for),
-    and the features they read (the action always recorded), as a checkpoint stores them."""
+    and the features they read (the action always recorded), as a checkpoint stores them; with
+    ``data.encoders_from``, that checkpoint's (`freeze_pretrained_encoders` then loads their weights)."""
+    from playseg_core.ps.model import load_model
     from playseg_core.ps.training import model_config_for
+
+    if data.encoders_from:
+        model, _ = load_model(data.encoders_from, kinds=("ps", "labeller"))
+        model.cfg.check_features(data.features, f"--encoders-from {data.encoders_from}")
+        return model.cfg.encoders, model.cfg.features
 
     config = model_config_for(
         data.features,
@@ -310,3 +321,15 @@ def covered_metrics(
         pred = pred_by_episode.get(episode_id, [])
         total += covered_label_accuracy(pred, truth, num_steps_by_episode[episode_id])
     return {"covered_label_accuracy": total.accuracy, "covered_steps": total.total}
+
+
+def freeze_pretrained_encoders(encoders: StepEncoders, data: TrainingData) -> None:
+    """With ``data.encoders_from``: load that checkpoint's step-encoder weights into ``encoders`` and
+    freeze them (built from the same specs by `step_encoders_for`)."""
+    if not data.encoders_from:
+        return
+    from playseg_core.ps.model import load_model
+
+    model, _ = load_model(data.encoders_from, kinds=("ps", "labeller"))
+    encoders.load_state_dict(model.encoders.state_dict())
+    encoders.requires_grad_(False)

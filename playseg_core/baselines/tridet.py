@@ -41,6 +41,7 @@ from playseg_core.baselines.common import (
     episode_rng,
     fit,
     fixed_windows,
+    freeze_pretrained_encoders,
     step_encoders_for,
     training_window_rows,
     transition_tokens,
@@ -310,6 +311,7 @@ def train_tridet(
     cfg = cfg or TridetConfig.for_lengths(int(lengths.max()), bounds.min_len)
     specs, features = step_encoders_for(data)
     model = TridetModel(specs, features, data.instructions, cfg)
+    freeze_pretrained_encoders(model.encoders, data)
     classes = {text: i for i, text in enumerate(data.instructions)}
     fits = lambda seg: seg.length <= cfg.window  # noqa: E731 - a longer segment fits no window
     items = {True: [(e, s) for e in train_eps for s in e.segments if fits(s)]}
@@ -334,6 +336,7 @@ def train_tridet(
     steps = options.steps_for(len(items[True]), batch_size, default_steps=2000)
     report = fit(model, loss_of_batch, options, steps, options.lr or 1e-3, "tridet", val_batches=4)
     meta = {"train": asdict(options), "steps": report.steps, "fit_seconds": report.seconds}
+    meta["encoders_from"] = data.encoders_from
     meta |= {"train_loss": report.train_loss, "val_loss": report.val_loss, "history": report.history}
 
     def save(path: Path, extra: dict[str, Any]) -> Path:

@@ -35,6 +35,7 @@ from playseg_core.baselines.common import (
     encode_episode,
     episode_rng,
     fit,
+    freeze_pretrained_encoders,
     masked_cross_entropy,
     step_encoders_for,
     training_window_rows,
@@ -188,6 +189,7 @@ def train_unloc(
     cfg.length_counts = {int(v): int(c) for v, c in zip(values, counts, strict=True)}
     specs, features = step_encoders_for(data)
     model = UnlocModel(specs, features, data.instructions, cfg)
+    freeze_pretrained_encoders(model.encoders, data)
     classes = {text: i for i, text in enumerate(data.instructions)}
     items = {True: [(e, s) for e in train_eps for s in e.segments]}
     longest = max(cfg.length_counts)  # the position embeddings reach this far
@@ -207,6 +209,7 @@ def train_unloc(
     steps = options.steps_for(len(items[True]), batch_size, default_steps=2000)
     report = fit(model, loss_of_batch, options, steps, options.lr or 1e-3, "unloc", val_batches=4)
     meta = {"train": asdict(options), "steps": report.steps, "fit_seconds": report.seconds}
+    meta["encoders_from"] = data.encoders_from
     meta |= {"train_loss": report.train_loss, "val_loss": report.val_loss, "history": report.history}
     segmenter = UnlocSegmenter(model)
 
