@@ -131,7 +131,23 @@ class TopicAdapterNode(ReleasingLifecycleNode):
     def _tick(self) -> None:
         self._subscribe_discovered()
         if self._stream_open and time.monotonic() - self._last_message > self.idle_timeout_s:
-            self._end_stream()
+            # A process starved of CPU can run this timer before messages already queued in its readers:
+            # take those first, so a stream ends only when nothing of it is left.
+            if not self._take_queued():
+                self._end_stream()
+
+    def _take_queued(self) -> bool:
+        """Handle the messages waiting in the subscriptions' readers; whether there were any."""
+        taken = False
+        for topic, sub in list(self._subs.items()):
+            while sub is not None and self._subs.get(topic) is sub:
+                with sub.handle:  # as rclpy's executor takes a message
+                    message = sub.handle.take_message(sub.msg_type, sub.raw)
+                if message is None:
+                    break
+                sub.callback(message[0])
+                taken = True
+        return taken
 
     def _subscribe_discovered(self) -> None:
         """Subscribe to each mapping topic once its type is known (given, or a publisher reveals it)."""
