@@ -6,7 +6,10 @@ joints aligned 'nearest' and the commands 'previous'. The target is >= 1 GB per 
 (~17 MB/s; users ask for under 5 minutes per GB). Then the same data exported as LeRobot v3.0: frames
 encoded per second (h264 MP4 through PyAV).
 
-    .venv/bin/python benchmarks/bench_convert.py [--bags 4] [--seconds 4] [--dir /tmp/bench_convert]
+    .venv/bin/python benchmarks/bench_convert.py [--bags 4] [--seconds 4] [--dir /tmp/bench_convert] [--ray]
+
+``--ray`` also converts with ``--engine ray`` (a local Ray instance, 2 CPUs) and prints its time next to the
+local engine's with 2 workers: the cost of starting Ray on one machine.
 """
 
 from __future__ import annotations
@@ -89,6 +92,7 @@ def main() -> None:
     parser.add_argument("--bags", type=int, default=4)
     parser.add_argument("--seconds", type=float, default=4.0, help="recording length of each bag")
     parser.add_argument("--dir", default="/tmp/bench_convert")
+    parser.add_argument("--ray", action="store_true", help="also time --engine ray (2 CPUs)")
     args = parser.parse_args()
     root = Path(args.dir)
     shutil.rmtree(root, ignore_errors=True)
@@ -100,16 +104,17 @@ def main() -> None:
     print(f"wrote {args.bags} bags, {total / 1e6:.0f} MB, in {time.perf_counter() - started:.1f} s")
     (root / "map.yaml").write_text(yaml.safe_dump(MAPPING))
     mapping = load_mapping(root / "map.yaml")
-    for workers in (1, 2):
-        out = root / f"data_{workers}"
+    runs = [(1, "local"), (2, "local")] + ([(2, "ray")] if args.ray else [])
+    for workers, engine in runs:
+        out = root / f"data_{workers}_{engine}"
         started = time.perf_counter()
-        summary = convert([bags], out, mapping, workers=workers, progress=False)
+        summary = convert([bags], out, mapping, workers=workers, progress=False, engine=engine)
         seconds = time.perf_counter() - started
         assert not summary.failed, [r.error for r in summary.failed]
         steps = summary.totals()["steps"]
         rate = total / 1e6 / seconds
         print(
-            f"workers {workers}: {total / 1e6:.0f} MB in {seconds:.2f} s = {rate:.1f} MB/s "
+            f"{engine} workers {workers}: {total / 1e6:.0f} MB in {seconds:.2f} s = {rate:.1f} MB/s "
             f"({rate * 60 / 1000:.2f} GB/min, {rate * 60 / 1000 / workers:.2f} GB/min per worker; "
             f"{steps + len(PlayDataset.open(out))} frames)"
         )
@@ -117,7 +122,7 @@ def main() -> None:
             shutil.rmtree(out)
     # the LeRobot export of the same data: the MP4 encoding dominates
     started = time.perf_counter()
-    exported = export_lerobot(PlayDataset.open(root / "data_1"), root / "lerobot")
+    exported = export_lerobot(PlayDataset.open(root / "data_1_local"), root / "lerobot")
     seconds = time.perf_counter() - started
     print(
         f"lerobot export: {exported.frames} frames ({WIDTH}x{HEIGHT}, h264) in {seconds:.2f} s = "
