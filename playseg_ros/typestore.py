@@ -16,7 +16,7 @@ from typing import Any
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-PLAYSEG_MSG_TYPES = ("PlayStep", "Annotation", "LabelledSegment", "TrainerStatus")
+PLAYSEG_MSG_TYPES = ("PlayStep", "Annotation", "TimedAnnotation", "LabelledSegment", "TrainerStatus")
 _REPO_MSG_DIR = Path(__file__).resolve().parent.parent / "msg_defs" / "playseg_msgs" / "msg"
 
 
@@ -89,7 +89,7 @@ def typestore_for(type_name: str, type_hash: str) -> Typestore | None:
     if not type_hash.startswith("RIHS01_"):
         return playseg_typestore()
     for store in (playseg_typestore(), *earlier_typestores()):
-        if store.hash_rihs01(type_name) == type_hash:
+        if type_name in store.fielddefs and store.hash_rihs01(type_name) == type_hash:
             return store
     return None
 

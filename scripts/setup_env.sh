@@ -89,6 +89,8 @@ install_project() {
 step venv "$("$PYTHON" --version 2>&1)" create_venv
 step requirements "$(hash_of "$ROOT/requirements.txt")" install_requirements
 step fix-cmake "$(hash_of "$ROOT/requirements.txt")" fix_wheel_cmake_paths
-step playseg_msgs "$(hash_of "$ROOT/requirements.txt" "$ROOT"/msg_defs/playseg_msgs/CMakeLists.txt \
+# The interface build depends on the ROS 2 pins only: another Python package pinned does not rebuild it.
+ros_pins_key="$(grep -E '^(ros-kilted-|catkin-pkg)' "$ROOT/requirements.txt" | sha256sum | cut -c1-16)"
+step playseg_msgs "$ros_pins_key-$(hash_of "$ROOT"/msg_defs/playseg_msgs/CMakeLists.txt \
   "$ROOT"/msg_defs/playseg_msgs/package.xml "$ROOT"/msg_defs/playseg_msgs/msg/* "$ROOT"/msg_defs/playseg_msgs/srv/*)" build_msgs
 step project "$(hash_of "$ROOT/requirements.txt" "$ROOT/setup.py" "$ROOT/package.xml")" install_project

@@ -384,6 +384,37 @@ def test_bag_player_plays_a_bag_of_an_earlier_playstep_definition_in_todays(
         np.testing.assert_array_equal(frame, frames[msg.episode_id][msg.step])
 
 
+def test_bag_player_plays_a_standard_message_robot_bag_with_timed_annotations(
+    procs: Processes, peer: RosPeer, tmp_path: Path
+) -> None:
+    """Image, JointState, Twist and playseg_msgs TimedAnnotation topics, written by rosbags."""
+    from playseg_msgs.msg import TimedAnnotation
+
+    from playseg_ros.tabletop.bags import write_sample_bags
+
+    (written,) = write_sample_bags(tmp_path / "robot", episodes=1, annotated=1, image_size=32)
+    with BagReader(written.path) as reader:
+        want = {topic: 0 for topic in reader.topics}
+        for message in reader.messages():
+            want[message.topic] += 1
+    annotations = [t for t, ty in topic_info_types(written.path).items() if ty.endswith("/TimedAnnotation")]
+    assert len(annotations) == 1 and want[annotations[0]] > 0
+    received: list[TimedAnnotation] = []
+    peer.node.create_subscription(TimedAnnotation, annotations[0], received.append, qos.ANNOTATIONS)
+    player, log = procs.node(
+        "bag_player", "player", bag=written.path, rate=0.0, wait_for_subscribers=1, wait_topics=annotations
+    )
+    assert player.wait(timeout=60) == 0, log.read_text()
+    assert peer.spin_until(lambda: len(received) >= want[annotations[0]], 10)
+    assert all(msg.instruction for msg in received) and "Traceback" not in log.read_text()
+    assert f"played {sum(want.values())} messages" in log.read_text()
+
+
+def topic_info_types(bag: Path) -> dict[str, str]:
+    with BagReader(bag) as reader:
+        return dict(reader.topics)
+
+
 def test_bag_player_rate_1_takes_the_recorded_duration(
     procs: Processes, peer: RosPeer, tmp_path: Path
 ) -> None:
