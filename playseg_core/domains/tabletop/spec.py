@@ -66,6 +66,11 @@ ACTION_NAMES: tuple[str, str] = ("velocity_x", "velocity_y")
 STATE_NAMES: tuple[str, ...] = ("effector_x", "effector_y", "effector_velocity_x", "effector_velocity_y")
 """The proprioceptive state: the effector's position (m) and measured velocity (m/s)."""
 
+EVAL_STEP_BUDGET = 120
+"""Control steps (12 s) a policy has to complete a task in the simulator evaluation (evaluation.py):
+success = the task oracle says done within them. The teleoperator's own limit (`PlayConfig.max_task_steps`):
+it needs 42 steps at the median, 87 at the 95th percentile."""
+
 __all__ = [
     "ACTION_HIGH",
     "ACTION_LOW",
@@ -85,6 +90,7 @@ __all__ = [
     "EFFECTOR_RADIUS",
     "EFFECTOR_REACH",
     "EFFECTOR_TIME_CONSTANT",
+    "EVAL_STEP_BUDGET",
     "MAX_SPEED",
     "PHYSICS_SUBSTEPS",
     "SHAPES",

@@ -1,0 +1,70 @@
+"""The tabletop policy ``tabletop.bc``: the generic behaviour-cloning policy (augment/bc_policy.py: camera
+through image_cnn, state, instruction embedding, continuous velocity) trained as it is, evaluated in the
+tabletop simulator (evaluation.py) instead of not at all."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from playseg_core.augment.bc_policy import BCPolicy, BCPolicyLearner
+from playseg_core.augment.policy import PolicyTrainReport
+from playseg_core.data.episode import SegmentClip
+from playseg_core.data.features import Features
+from playseg_core.domains.tabletop.spec import DEFAULT_IMAGE_SIZE, DOMAIN, EVAL_STEP_BUDGET
+
+POLICY_NAME = f"{DOMAIN}.bc"
+
+
+@dataclass
+class TabletopPolicyLearner:
+    """`augment.policy.PolicyLearner` of ``tabletop.bc``: a ``bc`` learner for the tabletop's features
+    (camera of ``image_size`` pixels) and the simulator evaluation's step budget."""
+
+    bc: BCPolicyLearner
+    image_size: int = DEFAULT_IMAGE_SIZE
+    eval_max_steps: int = EVAL_STEP_BUDGET
+    name: str = POLICY_NAME
+
+    @classmethod
+    def from_config(cls, config: dict[str, Any]) -> TabletopPolicyLearner:
+        """From plain settings: ``image_size`` (the dataset's camera side, default 96), ``eval_max_steps``
+        (default spec.EVAL_STEP_BUDGET) and any setting of the ``bc`` policy (BCTrainConfig, ``channels``
+        = ``hidden``); ValueError naming an unknown or bad one."""
+        from playseg_core.domains.tabletop.play import PlayConfig  # the physics: only when built
+
+        config = dict(config)
+        image_size = int(config.pop("image_size", DEFAULT_IMAGE_SIZE))
+        eval_max_steps = int(config.pop("eval_max_steps", EVAL_STEP_BUDGET))
+        if eval_max_steps <= 0:
+            raise ValueError(f"policy {POLICY_NAME}: eval_max_steps must be > 0, got {eval_max_steps}")
+        features = PlayConfig(image_size=image_size).features  # ValueError naming a bad image size
+        return cls(BCPolicyLearner.from_config(config, features), image_size, eval_max_steps)
+
+    @property
+    def features(self) -> Features:
+        return self.bc.features
+
+    def train(
+        self, clips: Sequence[SegmentClip], progress: bool = False
+    ) -> tuple[BCPolicy, PolicyTrainReport]:
+        return self.bc.train(clips, progress)
+
+    def evaluate(self, policy: BCPolicy, num_episodes: int, seed: int) -> Any:
+        from playseg_core.domains.tabletop.evaluation import evaluate_policy
+
+        return evaluate_policy(
+            policy, num_episodes, seed, self.eval_max_steps, self.image_size,
+            num_threads=self.bc.settings.num_threads,
+        )  # fmt: skip
+
+    def save(self, path: Path, policy: BCPolicy, meta: dict[str, Any]) -> None:
+        self.bc.save(path, policy, {**meta, "learner": self.name})
+
+    def load(self, path: Path) -> tuple[BCPolicy, dict[str, Any]]:
+        return self.bc.load(path)
+
+
+__all__ = ["POLICY_NAME", "TabletopPolicyLearner"]

@@ -1,0 +1,152 @@
+"""The tabletop policy ``tabletop.bc`` and its simulator evaluation: fixed seeded starts, the oracle as
+the success test, the dataset's observation features, the same score for the same policy, one-line
+errors for bad settings."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from playseg_core.augment.policy import load_policy_learner
+from playseg_core.augment.retraining import annotated_clips
+from playseg_core.data.dataset import PlayDataset
+from playseg_core.data.features import STATE
+from playseg_core.domains import load_domain
+from playseg_core.domains.tabletop.evaluation import evaluate_policy, evaluation_episodes, evaluation_start
+from playseg_core.domains.tabletop.instructions import is_done, region_box, task_for
+from playseg_core.domains.tabletop.play import PlayConfig
+from playseg_core.domains.tabletop.render import Renderer
+from playseg_core.domains.tabletop.spec import CAMERA, EVAL_STEP_BUDGET, MAX_SPEED
+from playseg_core.experiment.runner import ExperimentSpec
+
+SEED = 1_000_000
+
+
+class StillPolicy:
+    """Never moves: no task may be given already done, so it must never succeed."""
+
+    def act(self, observations: Mapping[str, np.ndarray], instructions: Sequence[str]) -> np.ndarray:
+        return np.zeros((len(instructions), 2), np.float32)
+
+
+class ArmToRegion:
+    """Solves `move the arm to the {region}` by steering to the region's centre (reads the state only)."""
+
+    def act(self, observations: Mapping[str, np.ndarray], instructions: Sequence[str]) -> np.ndarray:
+        actions = np.zeros((len(instructions), 2), np.float32)
+        for row, text in enumerate(instructions):
+            task = task_for(text)
+            if task.family == "effector_to_region":
+                x0, y0, x1, y1 = region_box(task.region)
+                target = np.array([(x0 + x1) / 2, (y0 + y1) / 2], np.float32)
+                actions[row] = np.clip(3.0 * (target - observations[STATE][row, :2]), -MAX_SPEED, MAX_SPEED)
+        return actions
+
+
+class Recording:
+    """Random actions (seeded), keeping every observation and action it was given and chose."""
+
+    def __init__(self) -> None:
+        self.rng = np.random.default_rng(0)
+        self.observations: list[dict[str, np.ndarray]] = []
+        self.actions: list[np.ndarray] = []
+
+    def act(self, observations: Mapping[str, np.ndarray], instructions: Sequence[str]) -> np.ndarray:
+        self.observations.append({k: np.array(v) for k, v in observations.items()})
+        self.actions.append(
+            self.rng.uniform(-MAX_SPEED, MAX_SPEED, (len(instructions), 2)).astype(np.float32)
+        )
+        return self.actions[-1]
+
+
+def test_the_evaluation_starts_are_fixed_by_the_seed_and_not_done_at_the_start() -> None:
+    first, again, other = (
+        evaluation_episodes(30, SEED),
+        evaluation_episodes(30, SEED),
+        evaluation_episodes(30, 5),
+    )
+    assert first == again and first != other
+    assert len({episode.task.family for episode in first}) >= 3  # drawn as play draws them
+    for seed in (SEED, SEED + 7):
+        sim, episode = evaluation_start(seed)
+        assert not is_done(episode.task, sim.scene(), sim.scene())
+
+
+def test_the_oracle_decides_success_within_the_step_budget() -> None:
+    still = evaluate_policy(StillPolicy(), 24, SEED, max_steps=10)
+    assert still.num_successes == 0 and still.episode_steps == [10] * 24
+    seeking = evaluate_policy(ArmToRegion(), 24, SEED)
+    done, given = seeking.family_success["effector_to_region"]
+    assert given > 0 and done == given
+    arm_episodes = [
+        i for i, e in enumerate(evaluation_episodes(24, SEED)) if e.task.family == "effector_to_region"
+    ]
+    assert all(
+        seeking.episode_success[i] and seeking.episode_steps[i] < EVAL_STEP_BUDGET for i in arm_episodes
+    )
+    assert seeking.success_rate == seeking.num_successes / 24 >= given / 24
+
+
+def test_the_policy_sees_the_datasets_features_and_drives_the_simulator() -> None:
+    config = PlayConfig(image_size=32)
+    recording = Recording()
+    evaluate_policy(recording, 3, SEED, max_steps=5, image_size=32, batch_episodes=3)
+    features = config.features
+    for observations in recording.observations:
+        assert set(observations) == {CAMERA, STATE}
+        assert (
+            observations[CAMERA].shape[1:] == features[CAMERA].shape
+            and observations[CAMERA].dtype == np.uint8
+        )
+        assert (
+            observations[STATE].shape[1:] == features[STATE].shape and observations[STATE].dtype == np.float32
+        )
+    # Replaying episode 1's actions from its start reproduces every frame and state the policy saw.
+    sim, _ = evaluation_start(SEED + 1)
+    renderer = Renderer(32)
+    for observations, actions in zip(recording.observations, recording.actions, strict=True):
+        np.testing.assert_array_equal(observations[CAMERA][1], renderer.render(sim.scene()))
+        np.testing.assert_array_equal(observations[STATE][1], sim.state_vector())
+        sim.step(actions[1])
+
+
+@pytest.fixture(scope="module")
+def tiny_clips(tmp_path_factory: pytest.TempPathFactory) -> list:
+    out = tmp_path_factory.mktemp("tt") / "tiny"
+    load_domain("tabletop").generate_dataset(out, "tiny", seed=0, progress=False)
+    return annotated_clips(list(PlayDataset.open(out).episodes("train")))
+
+
+def test_the_same_policy_always_scores_the_same(tiny_clips: list, tmp_path: Path) -> None:
+    learner = load_policy_learner("tabletop.bc", {"steps": 15, "batch_size": 16, "eval_max_steps": 25})
+    assert learner.name == "tabletop.bc" and learner.features == PlayConfig().features
+    model, report = learner.train(tiny_clips)
+    assert report.steps == 15 and report.val_loss is not None
+    first, again = learner.evaluate(model, 12, SEED), learner.evaluate(model, 12, SEED)
+    assert first.num_episodes == 12 and first.max_steps == 25
+    assert (first.episode_success, first.episode_steps) == (again.episode_success, again.episode_steps)
+    learner.save(tmp_path / "policy.pt", model, {"note": "test"})
+    loaded, meta = learner.load(tmp_path / "policy.pt")
+    assert meta["learner"] == "tabletop.bc"
+    reloaded = learner.evaluate(loaded, 12, SEED)
+    assert (reloaded.episode_success, reloaded.episode_steps) == (first.episode_success, first.episode_steps)
+
+
+def test_bad_settings_fail_in_one_line() -> None:
+    with pytest.raises(ValueError, match="unknown settings \\['colour'\\]") as error:
+        load_policy_learner("tabletop.bc", {"colour": 1})
+    assert "\n" not in str(error.value)
+    with pytest.raises(ValueError, match="eval_max_steps must be > 0"):
+        load_policy_learner("tabletop.bc", {"eval_max_steps": 0})
+    with pytest.raises(ValueError, match="num_episodes"):
+        evaluate_policy(StillPolicy(), 0, SEED)
+
+
+def test_the_domain_declares_its_experiment() -> None:
+    spec = ExperimentSpec.of_domain("tabletop")
+    assert spec.policy == "tabletop.bc" and set(spec.scales) == {"tiny", "small", "paper"}
+    assert all(scale.start_share == 0.25 and scale.preset == name for name, scale in spec.scales.items())
+    assert spec.paper == {}  # CALVIN's figures count tasks in a row, not a success rate
