@@ -27,11 +27,14 @@ format: setup
 	$(VENV)/bin/ruff check --fix .
 
 # The sample bags in bags/ (see bags/README.md): the `sample` preset, seed 0, written as play bags and
-# copied into bags/. Deterministic: running it again gives byte-identical files.
+# copied into bags/, and the tabletop robot bags in bags/tabletop. Deterministic: running it again gives
+# byte-identical files.
 bags: setup
 	$(PY) -m playseg_ros.cli generate --preset sample --seed 0 --out build/sample --workers 2 --overwrite --quiet --bag
 	rm -rf bags/annotated bags/play bags/test
 	cp -r build/sample/bags/annotated build/sample/bags/play build/sample/bags/test bags/
+	# tabletop play as a robot records it (standard messages, docs/tabletop.md): one annotated bag, one not
+	$(PY) -m playseg_ros.tabletop.bags --out bags/tabletop --episodes 2 --annotated 1 --images jpeg --overwrite
 
 clean:
 	rm -rf build $(VENV) .pytest_cache
