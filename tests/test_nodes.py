@@ -26,7 +26,6 @@ from std_msgs.msg import String
 
 from playseg_core.augment.buffer import AugmentationBuffer
 from playseg_core.data.episode import Episode
-from playseg_core.data.features import DEFAULT_CAMERA
 from playseg_core.domains.babyai.play import PlayConfig, generate_episode
 from playseg_core.domains.babyai.spec import CAMERA
 from playseg_ros import qos
@@ -96,11 +95,11 @@ def test_recorder_sigint_finishes_bag_with_every_published_step(procs: Processes
     assert stop(recorder) == 0
     assert (out / "metadata.yaml").is_file() and not (tmp_path / "play.partial").exists()
 
-    recorded = read_play_bag(out)  # a recording declares no features: its image reads as DEFAULT_CAMERA
+    recorded = read_play_bag(out)  # a recording declares no features: its PlaySteps name the camera
     assert [e.episode_id for e in recorded] == [e.episode_id for e in episodes]
     for got, want in zip(recorded, episodes, strict=True):
         assert got.num_steps == want.num_steps
-        np.testing.assert_array_equal(got.images[DEFAULT_CAMERA], want.images[CAMERA])
+        np.testing.assert_array_equal(got.images[CAMERA], want.images[CAMERA])
         np.testing.assert_array_equal(got.state, want.state.astype(np.float32))
         np.testing.assert_array_equal(got.actions, want.actions)
         assert [(s.start, s.end, s.instruction) for s in got.segments] == [
@@ -214,9 +213,10 @@ def test_trainer_sigkill_and_restart_keeps_every_acknowledged_segment(
             )
             assert stored.segment.instruction == seg.instruction and stored.source == "test"
             np.testing.assert_array_equal(stored.actions, episode.actions[seg.start : seg.end])
-            # without base data declaring the camera, the trainer stores the image as DEFAULT_CAMERA
+            # without base data declaring the camera, the trainer stores the image under the name its
+            # PlaySteps give it
             frames = episode.images[CAMERA][seg.start : seg.end + 1]
-            np.testing.assert_array_equal(stored.images[DEFAULT_CAMERA], frames)
+            np.testing.assert_array_equal(stored.images[CAMERA], frames)
             np.testing.assert_array_equal(stored.state, episode.state[seg.start : seg.end + 1])
 
 
