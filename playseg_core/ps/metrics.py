@@ -35,7 +35,9 @@ __all__ = [
     "segment_matches",
 ]
 
-TOLERANCES: tuple[int, ...] = (0, 1, 2)
+TOLERANCES: tuple[int, ...] = (0, 1, 2, 5)
+"""Boundary tolerances every report gives (steps): exact, the reference's +-1 and +-2, and +-5 for robot
+data whose instructions last tens of steps."""
 
 
 def _ratio(numerator: int, denominator: int) -> float:
