@@ -282,10 +282,6 @@ def masked_cross_entropy(logits: torch.Tensor, target: torch.Tensor, valid: torc
     return F.cross_entropy(logits[valid], target[valid])
 
 
-def spec_json(specs: Sequence[EncoderSpec]) -> list[dict[str, Any]]:
-    return [spec.to_json() for spec in specs]
-
-
 def step_encoders_for(data: TrainingData) -> tuple[list[EncoderSpec], Features]:
     """The step encoders PS would read ``data`` with (ps.encoders.choose_encoders via model_config_for),
     and the features they read (the action always recorded), as a checkpoint stores them; with
