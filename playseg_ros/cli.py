@@ -351,7 +351,9 @@ def _add_convert_command(sub: argparse._SubParsersAction) -> None:
         choices=["local", "ray"],
         help="local: a process pool; ray: each bag a Ray task (a local Ray instance with --workers CPUs)",
     )
-    convert.add_argument("--address", help="with --engine ray: the Ray cluster to join (e.g. ray://head:10001)")
+    convert.add_argument(
+        "--address", help="with --engine ray: the Ray cluster to join (e.g. ray://head:10001)"
+    )
     convert.add_argument("--overwrite", action="store_true", help="convert every bag again into a new --out")
     convert.add_argument(
         "--inspect", action="store_true", help="list BAG's topics and print a proposed mapping"

@@ -53,7 +53,9 @@ class BagPlayerNode(Node):
         self.topic_types = {t: ty for t, ty in self.reader.topics.items() if not wanted or t in wanted}
         self.publishers_by_topic = {}
         for topic, type_name in self.topic_types.items():
-            profile = qos.ANNOTATIONS if type_name.endswith(("/Annotation", "/TimedAnnotation")) else qos.PLAY_STEPS
+            profile = (
+                qos.ANNOTATIONS if type_name.endswith(("/Annotation", "/TimedAnnotation")) else qos.PLAY_STEPS
+            )
             self.publishers_by_topic[topic] = self.create_publisher(message_class(type_name), topic, profile)
         # playseg_msgs recorded in an earlier definition are re-encoded in today's as they are played.
         self.earlier_definition: dict[str, tuple[str, str]] = {}
