@@ -106,3 +106,32 @@ def test_live_mapping_gives_the_converted_episodes(tmp_path: Path, case: str, or
     # the same drops, reported the same way once the stream ended
     dropped = [n.removeprefix("stream ended: ") for n in end.notes if n.startswith("stream ended: ")]
     assert dropped == [n for n in converted.notes if "step(s)" in n or "episode(s)" in n]
+
+
+def test_a_wrong_message_on_the_annotation_topic_and_a_late_label_are_reported(tmp_path: Path) -> None:
+    """Neither stops the stream: a message that is not a TimedAnnotation is a note naming the topic; a
+    label that arrives after its episode closed is not applied, and a note says so."""
+    from types import SimpleNamespace
+
+    bag = write_rosbag2(tmp_path / "robot", RobotBag(seconds=3.0, labels=[], silence=(1.0, 2.0)))
+    changes = {"episodes": {"split": "gap", "gap_s": 0.5}}
+    live = LiveMapping(load_mapping(write_mapping(tmp_path / "map.yaml", dict(MAPPING, **changes))), "robot")
+    messages = messages_of(bag)
+    first_time = messages[0][3]
+    wrong = SimpleNamespace(data="go")
+    notes = live.add("/annotations", "std_msgs/msg/String", wrong, first_time).notes
+    assert notes == [
+        "bag 'live', topic '/annotations': message type is 'std_msgs/msg/String', expected "
+        "'playseg_msgs/msg/TimedAnnotation'"
+    ]
+    cut = next(i for i, m in enumerate(messages) if m[3] > first_time + 2_500_000_000)  # episode 2 runs
+    for topic, msgtype, msg, received in messages[:cut]:
+        live.add(topic, msgtype, msg, received)
+    time = lambda ns: SimpleNamespace(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)  # noqa: E731
+    late = SimpleNamespace(start=time(first_time), end=time(first_time + 300_000_000), instruction="late")
+    later_notes = live.add("/annotations", "playseg_msgs/msg/TimedAnnotation", late, messages[cut][3]).notes
+    for topic, msgtype, msg, received in messages[cut:]:
+        later_notes += live.add(topic, msgtype, msg, received).notes
+    end = live.end_stream()
+    later_notes += end.notes
+    assert any("'late'" in n and "arrived after its episode closed: not applied" in n for n in later_notes)

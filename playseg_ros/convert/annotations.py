@@ -46,17 +46,22 @@ class TimedLabel:
     instruction: str
 
 
+def label_of(msg: Any) -> TimedLabel:
+    """The label a TimedAnnotation message carries (the caller checked its type: `check_label_type`)."""
+    start = int(msg.start.sec) * 1_000_000_000 + int(msg.start.nanosec)
+    end = int(msg.end.sec) * 1_000_000_000 + int(msg.end.nanosec)
+    return TimedLabel(start, end, str(msg.instruction))
+
+
+def check_label_type(bag: Path | str, topic: str, msgtype: str) -> None:
+    """ConvertError naming the topic unless its messages are TimedAnnotations."""
+    if msgtype != TIMED_ANNOTATION:
+        raise ConvertError(bag, f"message type is {msgtype!r}, expected {TIMED_ANNOTATION!r}", topic)
+
+
 def labels_from_topic(bag: Path, samples: TopicSamples) -> list[TimedLabel]:
-    if samples.msgtype != TIMED_ANNOTATION:
-        raise ConvertError(
-            bag, f"message type is {samples.msgtype!r}, expected {TIMED_ANNOTATION!r}", samples.topic
-        )
-    labels = []
-    for msg in samples.messages:
-        start = int(msg.start.sec) * 1_000_000_000 + int(msg.start.nanosec)
-        end = int(msg.end.sec) * 1_000_000_000 + int(msg.end.nanosec)
-        labels.append(TimedLabel(start, end, str(msg.instruction)))
-    return labels
+    check_label_type(bag, samples.topic, samples.msgtype)
+    return [label_of(msg) for msg in samples.messages]
 
 
 def sidecar_path(bag: Path, pattern: str) -> Path:

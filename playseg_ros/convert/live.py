@@ -21,7 +21,7 @@ import numpy as np
 
 from playseg_core.data.episode import Segment
 from playseg_core.data.features import STATE
-from playseg_ros.convert.annotations import TimedLabel, segments_of_episodes
+from playseg_ros.convert.annotations import TimedLabel, check_label_type, label_of, segments_of_episodes
 from playseg_ros.convert.errors import ConvertError
 from playseg_ros.convert.mapping import ConvertMapping
 from playseg_ros.convert.source import message_time
@@ -70,7 +70,11 @@ class LiveMapping:
         """One message; what it decided."""
         out = LiveOutput()
         if topic == self.mapping.annotation_topic:
-            self.labels.append(_label(msg))
+            try:
+                check_label_type(self.source, topic, msgtype)
+                self.labels.append(label_of(msg))
+            except ConvertError as error:  # reported; the stream goes on without this label
+                out.notes.append(str(error))
         if topic in self.builder.buffers or topic == self.mapping.marker_topic:
             stamp = message_time(msg, received_ns, self.mapping.clock == "header")
             try:
@@ -113,7 +117,15 @@ class LiveMapping:
             return
         (segments,), notes = segments_of_episodes([times], self.labels)
         out.annotations += [(episode_id, segment) for segment in segments]
+        # a label of no step of this episode may belong to a later one (kept below, not reported yet); one
+        # that ended before this episode began arrived after its own episode closed: reported
+        late = [label for label in self.labels if label.end_ns <= times[0]]
         out.notes += [f"episode {episode_id!r}: {note}" for note in notes if "no step of any" not in note]
+        out.notes += [
+            f"label {label.instruction!r} [{label.start_ns}, {label.end_ns}] ns arrived after its episode "
+            "closed: not applied"
+            for label in late
+        ]
         # a label starting in this episode belongs to it (cut at its end, as convert does); later ones wait
         self.labels = [label for label in self.labels if label.start_ns > times[-1]]
 
@@ -125,9 +137,3 @@ class LiveMapping:
     def drop_notes(self) -> list[str]:
         """The stream's drop counts so far (per feature, primary gaps, short episodes)."""
         return [n for n in self.builder.notes() if n not in self.builder.bad]
-
-
-def _label(msg: Any) -> TimedLabel:
-    start = int(msg.start.sec) * 1_000_000_000 + int(msg.start.nanosec)
-    end = int(msg.end.sec) * 1_000_000_000 + int(msg.end.nanosec)
-    return TimedLabel(start, end, str(msg.instruction))

@@ -180,8 +180,13 @@ class TopicAdapterNode(ReleasingLifecycleNode):
         received = self.get_clock().now().nanoseconds
         self._last_message = time.monotonic()
         self._stream_open = True
-        msg = deserialize_message(data, msg_class)
-        self._publish(self.live.add(topic, self._types[topic], msg, received))
+        try:
+            msg = deserialize_message(data, msg_class)
+            output = self.live.add(topic, self._types[topic], msg, received)
+        except Exception as exc:  # one bad message must not take the node down: reported, dropped
+            self.get_logger().error(f"{topic}: message dropped: {exc!r}")
+            return
+        self._publish(output)
 
     def _end_stream(self) -> None:
         if self.live is None or not self._stream_open:
