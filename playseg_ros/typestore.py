@@ -70,13 +70,31 @@ bool episode_end
 extra_observations): kept so that those bags still read."""
 
 
+TRAINER_STATUS_BEFORE_METRIC = """\
+std_msgs/Header header
+string state
+uint64 buffer_segments
+uint64 buffer_steps
+uint32 policy_version
+string checkpoint_path
+float32 last_eval_success_rate
+uint32 last_eval_episodes
+float32 last_train_loss
+string message
+"""
+"""TrainerStatus as bags recorded before it said which evaluation it reports (no last_eval_metric,
+last_eval_value)."""
+
+EARLIER_DEFINITIONS = {"PlayStep": PLAY_STEP_BEFORE_CAMERAS, "TrainerStatus": TRAINER_STATUS_BEFORE_METRIC}
+
+
 @cache
 def earlier_typestores() -> tuple[Typestore, ...]:
     """Typestores of earlier playseg_msgs definitions that bags may still hold, newest first."""
     store = get_typestore(Stores.ROS2_KILTED)
     types = {}
     for name in PLAYSEG_MSG_TYPES:
-        text = PLAY_STEP_BEFORE_CAMERAS if name == "PlayStep" else msg_text(name)
+        text = EARLIER_DEFINITIONS.get(name) or msg_text(name)
         types.update(get_types_from_msg(text, f"playseg_msgs/msg/{name}"))
     store.register(types)
     return (store,)
@@ -96,8 +114,8 @@ def typestore_for(type_name: str, type_hash: str) -> Typestore | None:
 
 def _as_current(value: Any, old: Typestore, new: Typestore) -> Any:
     """A message object of ``old``'s classes rebuilt with ``new``'s: fields both define are copied
-    (nested messages rebuilt alike), fields only ``new`` defines get their empty value (today's added
-    fields are all sequences or strings)."""
+    (nested messages rebuilt alike), fields only ``new`` defines get their empty value (an empty
+    sequence or string, NaN for a float, 0 for an integer)."""
     type_name = getattr(value, "__msgtype__", None)
     if type_name is None:
         if isinstance(value, list):
@@ -105,19 +123,21 @@ def _as_current(value: Any, old: Typestore, new: Typestore) -> Any:
         return value  # numbers, strings, numpy arrays
     _, fields = new.fielddefs[type_name]
     values = {}
-    for name, (node_type, _) in fields:
+    for name, (node_type, field_type) in fields:
         if hasattr(value, name):
             values[name] = _as_current(getattr(value, name), old, new)
         elif node_type == _SEQUENCE:
             values[name] = []
         elif node_type == _BASE:
-            values[name] = ""
+            values[name] = _EMPTY_BASE.get(field_type[0], 0)
         else:
             raise ValueError(f"{type_name}.{name}: no value for a field earlier definitions lack")
     return new.types[type_name](**values)
 
 
 _BASE, _SEQUENCE = 1, 4  # rosbags' Nodetype values of a base type and a sequence
+_EMPTY_BASE = {"string": "", "float32": float("nan"), "float64": float("nan"), "bool": False}
+"""The value a field earlier definitions lack gets (a figure not recorded is NaN; integers get 0)."""
 
 
 def as_current_cdr(data: bytes, type_name: str, type_hash: str) -> bytes:

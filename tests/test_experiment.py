@@ -91,3 +91,10 @@ def test_ground_truth_conditions_and_unknown_names() -> None:
     assert ground_truth_added("gt_100", play, 1).count == 6
     with pytest.raises(ValueError, match=r"unknown conditions \['gt_3x'\]"):
         check_conditions(["ps", "gt_3x"])
+
+
+def test_an_output_directory_of_another_experiment_is_refused(experiment: Path, capsys) -> None:
+    argv = ["experiment", "babyai", "--scale", "small", "--seeds", "1", "--out", str(experiment)]
+    assert cli_main(argv) == 1  # tiny results must never be reported as the small scale's
+    error = capsys.readouterr().err.strip()
+    assert "holds another experiment (scale, spec differ); use a new --out" in error and "\n" not in error

@@ -130,3 +130,28 @@ def test_a_playstep_carries_every_camera_by_name(kind_name: str) -> None:
     msg.camera_names = []
     with pytest.raises(StepError, match="1 extra_observations but no camera_names"):
         step_from_message(msg)
+
+
+def test_a_trainer_status_of_the_earlier_definition_is_re_encoded_in_todays() -> None:
+    """A bag recorded before TrainerStatus said which evaluation it reports still plays: its messages
+    decode as today's, the new figure NaN and its metric empty."""
+    import math
+
+    from playseg_ros.typestore import as_current_cdr, earlier_typestores, typestore_for
+
+    name = "playseg_msgs/msg/TrainerStatus"
+    old = earlier_typestores()[0]
+    digest = old.hash_rihs01(name)
+    assert typestore_for(name, digest) is old and digest != playseg_typestore().hash_rihs01(name)
+    time_type, header_type = old.types["builtin_interfaces/msg/Time"], old.types["std_msgs/msg/Header"]
+    msg = old.types[name](
+        header=header_type(stamp=time_type(sec=1, nanosec=2), frame_id="t"), state="idle", buffer_segments=3,
+        buffer_steps=40, policy_version=2, checkpoint_path="p.pt", last_eval_success_rate=0.5,
+        last_eval_episodes=8, last_train_loss=0.25, message="m",
+    )  # fmt: skip
+    data = as_current_cdr(bytes(old.serialize_cdr(msg, name)), name, digest)
+    now = playseg_typestore().deserialize_cdr(data, name)
+    assert (now.state, now.buffer_segments, now.policy_version, now.last_eval_episodes) == ("idle", 3, 2, 8)
+    assert (
+        now.last_eval_success_rate == 0.5 and now.last_eval_metric == "" and math.isnan(now.last_eval_value)
+    )

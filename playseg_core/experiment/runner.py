@@ -20,7 +20,7 @@ import os
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
@@ -143,6 +143,9 @@ def run_experiment(
     conditions = check_conditions(conditions)
     out = Path(out)
     began = time.perf_counter()
+    _check_same_experiment(
+        out, {"domain": domain, "scale": scale_name, "spec": asdict(scale), "policy": spec.policy}
+    )
     data_dir = _ensure_data(out, domain, scale, workers, log)
     data = ExperimentData.open(data_dir)
     log(
@@ -159,6 +162,23 @@ def run_experiment(
     write_report(out, spec, scale_name, rows, data, added)
     log(f"experiment done in {time.perf_counter() - began:.0f} s: {out / 'results.md'}")
     return rows
+
+
+def _check_same_experiment(out: Path, settings: dict[str, Any]) -> None:
+    """Record what ``out`` caches (out/experiment.json); ValueError when it holds another experiment, so
+    cached results are never reported under another scale or budget."""
+    path = out / "experiment.json"
+    recorded = json.loads(json.dumps(settings))  # as it reads back (tuples become lists)
+    if path.exists():
+        held = json.loads(path.read_text())
+        if held != recorded:
+            changed = sorted(k for k in recorded if held.get(k) != recorded[k])
+            raise ValueError(
+                f"--out {out}: holds another experiment ({', '.join(changed)} differ); use a new --out"
+            )
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(recorded, indent=2))
 
 
 def _ensure_data(out: Path, domain: str, scale: ExperimentScale, workers: int, log) -> Path:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import threading
+from pathlib import Path
 
 from playseg_msgs.msg import LabelledSegment, TrainerStatus
 from playseg_msgs.srv import EvaluatePolicy, Retrain, SaveBuffer
@@ -276,14 +277,17 @@ class TrainerNode(ReleasingLifecycleNode):
             response.success, response.message = False, NOT_CONFIGURED
             return response
         try:
-            result = trainer.evaluate(episodes=request.episodes or None)
-            response.policy_version = trainer.policy_version
+            latest = trainer.latest  # one version throughout, though a retraining may replace it meanwhile
+            if latest is None:
+                raise ValueError("no policy trained yet")
+            model = trainer.learner.load(Path(latest.checkpoint))[0]
+            result = trainer.evaluate(model, episodes=request.episodes or None)
+            response.policy_version = latest.version
             if result is not None:
                 response.success, response.success_rate = True, result.success_rate
                 response.metric, response.value = "success_rate", result.success_rate
                 response.episodes = result.num_episodes
             else:  # no simulator: the held-out figure measured when this version was trained
-                latest = trainer.latest
                 response.success, response.success_rate = True, math.nan
                 response.metric, response.value = latest.eval_metric, latest.eval_value
                 response.message = (
