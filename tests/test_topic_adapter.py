@@ -61,7 +61,7 @@ def test_live_steps_and_segments_equal_playseg_convert_segment(
         "segmenter", "segmenter", model=str(model_path), min_confidence=threshold
     )
     adapter, adapter_log = procs.node(
-        "topic_adapter", "adapter", mapping=str(mapping), episode_id="robot", idle_timeout_s=3.0
+        "topic_adapter", "adapter", mapping=str(mapping), episode_id="robot", idle_timeout_s=8.0
     )
     # PlaySteps are volatile: play once the segmenter and this test listen to the adapter.
     listening = lambda: peer.node.count_subscribers("/play/steps") >= 2  # noqa: E731

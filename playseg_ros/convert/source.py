@@ -12,18 +12,16 @@ import json
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
-from functools import cache
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from rosbags.highlevel import AnyReader
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
 from playseg_ros.bag.mcap_scan import damage_of
 from playseg_ros.convert.errors import ConvertError
-from playseg_ros.typestore import PLAYSEG_MSG_TYPES, msg_text
+from playseg_ros.typestore import playseg_typestore
 
 STORAGE_SUFFIXES = (".mcap", ".db3")
 ROS1_SUFFIX = ".bag"
@@ -32,16 +30,10 @@ PLAY_STEP = "playseg_msgs/msg/PlayStep"
 PLAY_STEPS_TOPIC = "/play/steps"
 
 
-@cache
 def convert_typestore() -> Typestore:
-    """ROS 2 Kilted's standard types plus playseg_msgs (TimedAnnotation included): how a bag without
-    embedded definitions is read."""
-    store = get_typestore(Stores.ROS2_KILTED)
-    types = {}
-    for name in (*PLAYSEG_MSG_TYPES, "TimedAnnotation"):
-        types.update(get_types_from_msg(msg_text(name), f"playseg_msgs/msg/{name}"))
-    store.register(types)
-    return store
+    """ROS 2 Kilted's standard types plus playseg_msgs (typestore.py; TimedAnnotation included): how a
+    bag without embedded definitions is read."""
+    return playseg_typestore()
 
 
 def is_bag(path: Path) -> bool:

@@ -34,11 +34,10 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
 from playseg_core.domains import load_domain
-from playseg_ros.typestore import msg_text
+from playseg_ros.typestore import playseg_typestore
 
 CAMERA_TOPIC = "/camera/image_raw"
 COMPRESSED_TOPIC = "/camera/image_raw/compressed"
@@ -88,10 +87,8 @@ class WrittenBag:
 
 
 def typestore() -> Typestore:
-    """ROS 2 Kilted's standard types plus playseg_msgs/msg/TimedAnnotation (from its .msg text)."""
-    store = get_typestore(Stores.ROS2_KILTED)
-    store.register(get_types_from_msg(msg_text("TimedAnnotation"), TIMED_ANNOTATION))
-    return store
+    """ROS 2 Kilted's standard types plus playseg_msgs (typestore.py; TimedAnnotation included)."""
+    return playseg_typestore()
 
 
 class _Messages:
