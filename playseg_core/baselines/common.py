@@ -117,6 +117,39 @@ class TrainedSegmenter:
     report: str
 
 
+def ps_training_setup(data: TrainingData, options: TrainOptions) -> tuple[list[Episode], Any, Any]:
+    """(annotated training episodes, TrainConfig, ModelConfig) for training a PS or labelling model on
+    ``data`` as `playseg train` would (ps/training.py defaults), with the options' budget where given."""
+    from dataclasses import replace
+
+    from playseg_core.ps.training import TrainConfig, model_config_for, segment_bounds
+
+    train_eps = data.annotated()
+    bounds = segment_bounds(train_eps, data.domain, **data.bounds)
+    threads = options.num_threads or torch.get_num_threads()
+    cfg = TrainConfig(seed=options.seed, k_max=bounds.k_max, num_threads=threads, progress=False)
+    cfg = replace(cfg, log_epochs=bool(options.log_every))
+    if options.epochs is not None:
+        cfg = replace(cfg, epochs=options.epochs, min_steps=0)
+    if options.steps is not None:
+        cfg = replace(cfg, epochs=1, min_steps=options.steps)
+    if options.batch_size is not None:
+        cfg = replace(cfg, segments_per_batch=options.batch_size)
+    if options.lr is not None:
+        cfg = replace(cfg, lr=options.lr)
+    model_cfg = model_config_for(
+        data.features,
+        data.domain,
+        len(data.instructions),
+        max_len=bounds.max_len,
+        read_actions=data.read_actions,
+        episodes=train_eps,
+        overrides=data.encoder_overrides,
+        min_len=bounds.min_len,
+    )
+    return train_eps, cfg, model_cfg
+
+
 def episode_rng(seed: int, episode_id: str) -> np.random.Generator:
     """Randomness of one episode's windows: depends on the seed and the episode, not on the order."""
     return np.random.default_rng([seed, zlib.crc32(episode_id.encode())])

@@ -9,13 +9,11 @@ checkpoint, whose label head labels too) can be used as well, with settings from
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-import torch
-
-from playseg_core.baselines.common import TrainingData, TrainOptions
+from playseg_core.baselines.common import TrainingData, TrainOptions, ps_training_setup
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.ps.labelling import label_segments
 from playseg_core.ps.model import LabelModel, PSModel, load_model, save_model
@@ -25,31 +23,9 @@ def train_labelling_model(
     data: TrainingData, options: TrainOptions
 ) -> tuple[LabelModel, dict[str, Any], float]:
     """The stand-alone labelling model (ps/training.py train_labeller) on ``data``; -> (model, meta, seconds)."""
-    from playseg_core.ps.training import TrainConfig, model_config_for, segment_bounds, train_labeller
+    from playseg_core.ps.training import train_labeller
 
-    train_eps = data.annotated()
-    bounds = segment_bounds(train_eps, data.domain, **data.bounds)
-    threads = options.num_threads or torch.get_num_threads()
-    cfg = TrainConfig(seed=options.seed, k_max=bounds.k_max, num_threads=threads, progress=False)
-    cfg = replace(cfg, log_epochs=bool(options.log_every))
-    if options.epochs is not None:
-        cfg = replace(cfg, epochs=options.epochs, min_steps=0)
-    if options.steps is not None:
-        cfg = replace(cfg, epochs=1, min_steps=options.steps)
-    if options.batch_size is not None:
-        cfg = replace(cfg, segments_per_batch=options.batch_size)
-    if options.lr is not None:
-        cfg = replace(cfg, lr=options.lr)
-    model_cfg = model_config_for(
-        data.features,
-        data.domain,
-        len(data.instructions),
-        max_len=bounds.max_len,
-        read_actions=data.read_actions,
-        episodes=train_eps,
-        overrides=data.encoder_overrides,
-        min_len=bounds.min_len,
-    )
+    train_eps, cfg, model_cfg = ps_training_setup(data, options)
     began = time.perf_counter()
     result = train_labeller(train_eps, data.val, data.instructions, cfg, model_cfg)
     final = result.history[-1].get("val", result.history[-1]["train"])

@@ -16,8 +16,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from playseg_core.baselines.changepoint import load_changepoint_segmenter, train_changepoint
 from playseg_core.baselines.common import (
     Segmenter,
@@ -25,6 +23,7 @@ from playseg_core.baselines.common import (
     TrainedSegmenter,
     TrainingData,
     TrainOptions,
+    ps_training_setup,
 )
 from playseg_core.baselines.random_windows import load_random_segmenter, train_random
 from playseg_core.baselines.tridet import load_tridet_segmenter, train_tridet
@@ -56,34 +55,10 @@ class PlaySegmenter(Segmenter):
 def train_play_segmentation(data: TrainingData, options: TrainOptions) -> TrainedSegmenter:
     """The PS model as `playseg train` trains it (TrainConfig defaults; the options' budget if given),
     calibrated on the val split."""
-    from dataclasses import replace
-
     from playseg_core.ps.calibration import calibrate_ps_model
-    from playseg_core.ps.training import TrainConfig, model_config_for, segment_bounds, train_ps
+    from playseg_core.ps.training import train_ps
 
-    train_eps = data.annotated()
-    bounds = segment_bounds(train_eps, data.domain, **data.bounds)
-    threads = options.num_threads or torch.get_num_threads()
-    cfg = TrainConfig(seed=options.seed, k_max=bounds.k_max, num_threads=threads, progress=False)
-    cfg = replace(cfg, log_epochs=bool(options.log_every))
-    if options.epochs is not None:
-        cfg = replace(cfg, epochs=options.epochs, min_steps=0)
-    if options.steps is not None:
-        cfg = replace(cfg, epochs=1, min_steps=options.steps)
-    if options.batch_size is not None:
-        cfg = replace(cfg, segments_per_batch=options.batch_size)
-    if options.lr is not None:
-        cfg = replace(cfg, lr=options.lr)
-    model_cfg = model_config_for(
-        data.features,
-        data.domain,
-        len(data.instructions),
-        max_len=bounds.max_len,
-        read_actions=data.read_actions,
-        episodes=train_eps,
-        overrides=data.encoder_overrides,
-        min_len=bounds.min_len,
-    )
+    train_eps, cfg, model_cfg = ps_training_setup(data, options)
     began = time.perf_counter()
     result = train_ps(train_eps, data.val, data.instructions, cfg, model_cfg)
     calibrated = calibrate_ps_model(result.model, data.val, 0.95) if data.val else {}

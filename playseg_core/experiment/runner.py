@@ -20,6 +20,7 @@ import os
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
@@ -121,6 +122,11 @@ class RunSettings:
     policy_config: dict[str, Any]
     eval_episodes: int
     threads: int
+
+    @property
+    def result_path(self) -> Path:
+        """Where this run's row is cached."""
+        return Path(self.out) / "runs" / f"{self.condition}-seed{self.seed}.json"
 
 
 def run_experiment(
@@ -260,7 +266,7 @@ def training_clips(data: ExperimentData, added: AddedSegments) -> list:
 def run_policy(settings: RunSettings) -> dict[str, Any]:
     """Train and evaluate one policy (cached in out/runs); the row of the results table."""
     out = Path(settings.out)
-    path = out / "runs" / f"{settings.condition}-seed{settings.seed}.json"
+    path = settings.result_path
     if path.exists():
         return json.loads(path.read_text())
     data = ExperimentData.open(out / "data")
@@ -292,20 +298,13 @@ def run_policy(settings: RunSettings) -> dict[str, Any]:
 
 
 def _run_policies(runs: list[RunSettings], workers: int, log) -> list[dict[str, Any]]:
-    cached = [
-        run for run in runs if (Path(run.out) / "runs" / f"{run.condition}-seed{run.seed}.json").exists()
-    ]
+    cached = [run for run in runs if run.result_path.exists()]
     log(f"policy runs: {len(runs)} ({len(cached)} cached), {workers} worker(s)")
-    if workers == 1:
-        rows = []
-        for run in runs:
-            rows.append(run_policy(run))
-            _log_row(rows[-1], log)
-        return rows
     # spawn: a fresh interpreter per worker (forking a process that already ran torch can deadlock)
-    with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn")) as pool:
-        rows = []
-        for row in pool.map(run_policy, runs):
+    pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn")) if workers > 1 else nullcontext()
+    rows = []
+    with pool:
+        for row in (pool.map if workers > 1 else map)(run_policy, runs):
             rows.append(row)
             _log_row(row, log)
     return rows
