@@ -75,6 +75,7 @@ class RobotBag:
     camera: str = "raw"  # raw (rgb8 Image), bgr8, mono8, png, jpeg (CompressedImage)
     labels: list[tuple[float, float, str]] = field(default_factory=lambda: list(LABELS))
     joint_gap: tuple[float, float] | None = None  # no JointState in [a, b)
+    camera_gap: tuple[float, float] | None = None  # no camera frame in [a, b)
     camera_topic: str = "/camera/image_raw"
     bad_image_at: int | None = None  # this frame's CompressedImage bytes are garbage
     silence: tuple[float, float] | None = None  # no message of any topic in [a, b) seconds
@@ -97,6 +98,8 @@ class RobotBag:
 
         out: list[tuple[str, str, int, Any]] = []
         for i, t in enumerate(self.camera_times()):
+            if self.camera_gap and ns(self.camera_gap[0]) <= t < ns(self.camera_gap[1]):
+                continue
             image = frame(i)
             if self.camera in ("png", "jpeg"):
                 ok, data = cv2.imencode(f".{self.camera}", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))

@@ -108,6 +108,51 @@ def test_live_mapping_gives_the_converted_episodes(tmp_path: Path, case: str, or
     assert dropped == [n for n in converted.notes if "step(s)" in n or "episode(s)" in n]
 
 
+@pytest.mark.parametrize(
+    ("silent", "spec"),
+    [
+        ("/joint_states", RobotBag(seconds=14.0, labels=[], joint_gap=(1.0, 13.0))),
+        ("/camera/image_raw", RobotBag(seconds=14.0, labels=[], camera_gap=(1.0, 13.0))),
+    ],
+)
+def test_a_silent_topic_keeps_the_other_buffers_bounded_and_the_steps_of_convert(
+    tmp_path: Path, silent: str, spec: RobotBag
+) -> None:
+    """One topic silent for 12 s while the others go on (a camera or the joint driver died): with
+    max_lag 1 s the buffers never hold more than about a second of samples, one warning names the silent
+    topic, and the steps are still the ones `playseg convert` keeps of the same bag (a silent feature
+    drops the steps it has no sample for; a silent primary has no steps)."""
+    bag = write_rosbag2(tmp_path / "robot", spec)
+    mapping = load_mapping(write_mapping(tmp_path / "map.yaml", MAPPING))
+    converted = convert_bag(bag, mapping)
+    live = LiveMapping(mapping, "robot", max_lag_s=1.0)
+    steps: list[LiveStep] = []
+    notes: list[str] = []
+    longest = dict.fromkeys(live.builder.buffers, 0)
+    for topic, msgtype, msg, received in messages_of(bag):
+        out = live.add(topic, msgtype, msg, received)
+        steps, notes = steps + out.steps, notes + out.notes
+        for name, buffer in live.builder.buffers.items():
+            longest[name] = max(longest[name], len(buffer.stamps))
+    end = live.end_stream()
+    steps += end.steps
+    # a second of each topic (100 Hz joints, 30 Hz camera, 10 Hz commands) and the tolerance on top;
+    # unbounded, the 12 s of silence would leave 1,200 joint samples or 360 frames waiting
+    assert longest["/joint_states"] <= 110 and longest["/camera/image_raw"] <= 35, longest
+    assert longest["/cmd_vel"] <= 13, longest
+    silences = [n for n in notes if "is silent" in n]
+    assert len(silences) == 1, notes
+    assert silences[0].startswith(f"topic {silent} is silent: its newest sample is 1.0")
+    assert "behind" in silences[0] and "(more than max_lag 1 s)" in silences[0]
+    (episode,) = converted.episodes
+    assert len(steps) == episode.num_steps + 1 < 14 * 10 - 100  # the 12 s of silence are not steps
+    np.testing.assert_array_equal(np.stack([s.frames[CAMERA] for s in steps]), episode.images[CAMERA])
+    np.testing.assert_array_equal(np.stack([s.state for s in steps]), episode.state)
+    np.testing.assert_array_equal(np.stack([s.action for s in steps[:-1]]), episode.actions)
+    dropped = [n.removeprefix("stream ended: ") for n in end.notes if n.startswith("stream ended: ")]
+    assert dropped == [n for n in converted.notes if "step(s)" in n or "episode(s)" in n]
+
+
 def test_a_wrong_message_on_the_annotation_topic_and_a_late_label_are_reported(tmp_path: Path) -> None:
     """Neither stops the stream: a message that is not a TimedAnnotation is a note naming the topic; a
     label that arrives after its episode closed is not applied, and a note says so."""

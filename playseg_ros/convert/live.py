@@ -8,6 +8,10 @@ times follow the mapping's ``clock`` as in a bag: ``header`` takes ``header.stam
 without one (and ``clock: receive``) takes the time the adapter received it, which matches a recording
 only live, not when a bag is replayed (use stamped messages, e.g. TwistStamped, to replay bags).
 
+Memory stays bounded when one mapped topic falls silent (a camera dies) while the others go on: a topic
+``max_lag_s`` behind the newest sample of the others is reported silent and no longer waited for
+(stepping.py); steps without its sample are dropped as convert drops them on the recorded bag.
+
 Human labels: ``playseg_msgs/TimedAnnotation`` messages on the mapping's annotation topic are turned into
 step ranges of the episode holding them (annotations.py, as convert does) when that episode ends.
 """
@@ -26,6 +30,11 @@ from playseg_ros.convert.errors import ConvertError
 from playseg_ros.convert.mapping import ConvertMapping
 from playseg_ros.convert.source import message_time
 from playseg_ros.convert.stepping import BuiltStep, StepBuilder
+
+DEFAULT_MAX_LAG_S = 10.0
+"""How far a topic may lag behind the newest sample before it counts as silent: far above what DDS
+delivery of topics on one graph lags (milliseconds), well below what buffering a camera for long costs
+(10 s of 30 Hz 640x480 rgb8 is 280 MB)."""
 
 
 @dataclass
@@ -50,17 +59,27 @@ class LiveOutput:
 class LiveMapping:
     """Feed it messages (`add`), collect what is decided; `end_stream` when the input fell silent."""
 
-    def __init__(self, mapping: ConvertMapping, episode_id: str, source: str = "live") -> None:
+    def __init__(
+        self,
+        mapping: ConvertMapping,
+        episode_id: str,
+        source: str = "live",
+        max_lag_s: float = DEFAULT_MAX_LAG_S,
+    ) -> None:
+        if not max_lag_s > 0:
+            raise ValueError(f"max_lag_s must be > 0, got {max_lag_s}")
         self.mapping, self.prefix, self.source = mapping, episode_id, source
+        self.max_lag_ns = round(max_lag_s * 1e9)
         self.episodes_done = 0  # episodes of earlier streams
         self.steps_published = 0
         self._new_stream()
 
     def _new_stream(self) -> None:
-        self.builder = StepBuilder(self.mapping, self.source, drop_bad=True)
+        self.builder = StepBuilder(self.mapping, self.source, drop_bad=True, max_lag_ns=self.max_lag_ns)
         self.labels: list[TimedLabel] = []
         self._open_times: list[int] = []  # step times of the episode being handed out
         self._notes_seen = 0
+        self._silences_seen = 0
 
     @property
     def topics(self) -> list[str]:
@@ -130,9 +149,9 @@ class LiveMapping:
         self.labels = [label for label in self.labels if label.start_ns > times[-1]]
 
     def _new_notes(self, out: LiveOutput) -> None:
-        bad = self.builder.bad
-        out.notes += bad[self._notes_seen :]
-        self._notes_seen = len(bad)
+        bad, silences = self.builder.bad, self.builder.silences
+        out.notes += bad[self._notes_seen :] + silences[self._silences_seen :]
+        self._notes_seen, self._silences_seen = len(bad), len(silences)
 
     def drop_notes(self) -> list[str]:
         """The stream's drop counts so far (per feature, primary gaps, short episodes)."""

@@ -21,6 +21,12 @@ The rules (docs/convert.md, "Alignment"):
   observation (``derive``); the last observation of an episode has none. So a step is handed out once
   the next kept step of its episode is known (or the episode ended), and not before its episode has
   ``min_steps`` actions (a short episode is never half published).
+- Live only (``max_lag_ns``): a topic whose newest sample is more than ``max_lag_ns`` behind the newest
+  sample of any mapped topic is *silent* (a camera died). Steps older than that horizon are decided
+  with what has arrived, so a feature of the silent topic without a sample within its tolerance drops
+  its step as convert drops it on the recorded bag, and samples older than the horizon (less the
+  tolerance) are forgotten: memory stays bounded while a topic is silent. A sample arriving later than
+  the horizon cannot change a step any more; the bound must exceed the largest lag the input can have.
 """
 
 from __future__ import annotations
@@ -203,8 +209,15 @@ class StepBuilder:
     its step, with a note, instead of failing the whole input (ConvertError naming ``source``, topic,
     field and time, as a bag does)."""
 
-    def __init__(self, mapping: ConvertMapping, source: Path | str, drop_bad: bool = False) -> None:
+    def __init__(
+        self,
+        mapping: ConvertMapping,
+        source: Path | str,
+        drop_bad: bool = False,
+        max_lag_ns: int | None = None,
+    ) -> None:
         self.mapping, self.source, self.drop_bad = mapping, source, drop_bad
+        self.max_lag_ns = max_lag_ns
         self.features = mapping.topic_features
         self.readers = {f.name: FeatureReader(f, source) for f in self.features}
         self.buffers: dict[str, TopicBuffer] = {f.topic: TopicBuffer() for f in self.features}
@@ -225,6 +238,10 @@ class StepBuilder:
         self.unmatched_steps = 0  # steps where some feature had no sample within its tolerance
         self.short_episodes = 0
         self.short_steps = 0
+        self.silences: list[str] = []  # live: a line each time a topic fell silent (max_lag_ns)
+        self._silent: set[str] = set()  # topics reported silent, until they deliver again
+        self._first_ns: int | None = None  # the oldest and newest sample times of any mapped topic
+        self._newest_ns: int | None = None
 
     # -- input ------------------------------------------------------------------------------------
 
@@ -235,6 +252,11 @@ class StepBuilder:
         if buffer is not None:
             buffer.msgtype = buffer.msgtype or msgtype
             buffer.add(stamp, msg)
+            self._first_ns = stamp if self._first_ns is None else min(self._first_ns, stamp)
+            self._newest_ns = stamp if self._newest_ns is None else max(self._newest_ns, stamp)
+            horizon = self._horizon()
+            if topic in self._silent and (horizon is None or buffer.latest >= horizon):
+                self._silent.discard(topic)  # it delivers again: a next silence is reported anew
         if topic == self.primary.topic:
             self._primary_sample(stamp)
 
@@ -274,7 +296,10 @@ class StepBuilder:
 
     def take(self) -> list[BuiltStep]:
         """The steps decided since the last call, in order."""
-        while self._candidates and self._decidable(self._candidates[0]):
+        horizon = self._horizon()
+        while self._candidates and (
+            self._decidable(self._candidates[0]) or (horizon is not None and self._candidates[0] < horizon)
+        ):
             self._decide(self._candidates.popleft())
         out, self._out = self._out, []
         return out
@@ -289,12 +314,39 @@ class StepBuilder:
         return out + self.take()
 
     def prune(self) -> None:
-        """Live: forget samples no undecided step can match (bounded memory)."""
-        oldest = self._candidates[0] if self._candidates else None
+        """Live: forget samples no undecided step can match (bounded memory). With ``max_lag_ns`` also
+        those older than the horizon when no step waits (the primary is silent), and report each topic
+        that fell silent in `silences`."""
+        horizon = self._horizon()
+        if horizon is not None:
+            self._report_silent(horizon)
+        oldest = self._candidates[0] if self._candidates else horizon
         if oldest is None:
             return
         for feature in self.features:
             self.buffers[feature.topic].prune(oldest - feature.tolerance_ns - 1)
+
+    def _horizon(self) -> int | None:
+        """Steps and samples older than this are decided / forgotten (None: unbounded)."""
+        if self.max_lag_ns is None or self._newest_ns is None:
+            return None
+        return self._newest_ns - self.max_lag_ns
+
+    def _report_silent(self, horizon: int) -> None:
+        newest_topic = max(self.buffers, key=lambda t: self.buffers[t].latest or 0)
+        for topic, buffer in self.buffers.items():
+            last = buffer.latest if buffer.latest is not None else self._first_ns
+            if topic in self._silent or last >= horizon:
+                continue
+            self._silent.add(topic)
+            lag = f"{(self._newest_ns - last) / 1e9:.3f} s"
+            since = f"no sample yet, {lag}" if buffer.latest is None else f"its newest sample is {lag}"
+            self.silences.append(
+                f"topic {topic} is silent: {since} behind {newest_topic} (more than max_lag "
+                f"{self.max_lag_ns / 1e9:g} s); steps are decided without waiting for it (dropped where it "
+                "has no sample within tolerance) and older samples of "
+                "the other topics are dropped"
+            )
 
     @property
     def episodes_kept(self) -> int:

@@ -7,7 +7,9 @@ sample later than the step's time plus its tolerance, or dropped and reported (w
 has none within its tolerance; never invented. PlaySteps carry every camera by name (camera_names), the
 state and the action, so the segmenter needs no other input. The input falling silent for
 ``idle_timeout_s`` ends the stream (as a bag's end: the last episode is closed); human labels become
-step-numbered ``Annotation``s when their episode ends.
+step-numbered ``Annotation``s when their episode ends. One topic falling silent while the others go on
+(a camera died) is reported once it lags ``max_lag_s`` behind them; from then on its steps are decided
+without waiting for it, so the other topics' buffers stay bounded.
 
 Lifecycle: configure reads the mapping and creates the publishers and the discovery/idle timer;
 activate subscribes to each mapping topic once a publisher reveals its type (or at once with
@@ -26,7 +28,7 @@ from rclpy.serialization import deserialize_message
 
 from playseg_ros import qos
 from playseg_ros.convert.errors import MappingError
-from playseg_ros.convert.live import LiveMapping, LiveOutput
+from playseg_ros.convert.live import DEFAULT_MAX_LAG_S, LiveMapping, LiveOutput
 from playseg_ros.convert.mapping import load_mapping
 from playseg_ros.messages import RCLPY, annotation_message, play_step_message
 from playseg_ros.nodes.common import ReleasingLifecycleNode, declare, require, run_node
@@ -53,6 +55,15 @@ class TopicAdapterNode(ReleasingLifecycleNode):
         self.idle_timeout_s = declare(
             self, "idle_timeout_s", 5.0, "no message for this long ends the stream (its last episode)"
         )
+        self.max_lag_s = declare(
+            self,
+            "max_lag_s",
+            DEFAULT_MAX_LAG_S,
+            "a mapped topic this far (message time) behind the newest sample of the others is silent: "
+            "reported, its steps decided without it (dropped where it has no sample within tolerance, as "
+            "convert drops them) and older samples dropped, bounding memory; keep it above the largest "
+            "lag between topics of the input",
+        )
         self.live: LiveMapping | None = None
         self._types: dict[str, str] = {}
         self._subs: dict[str, Any] = {}
@@ -68,6 +79,7 @@ class TopicAdapterNode(ReleasingLifecycleNode):
             require(bool(self.mapping_path), self, "mapping must be set")
             require(bool(self.episode_id), self, "episode_id must not be empty")
             require(self.idle_timeout_s > 0, self, "idle_timeout_s must be > 0")
+            require(self.max_lag_s > 0, self, "max_lag_s must be > 0")
             require(
                 self.reliability in ("reliable", "best_effort"), self, "reliability: reliable | best_effort"
             )
@@ -82,7 +94,7 @@ class TopicAdapterNode(ReleasingLifecycleNode):
                 given[topic] = type_name
             unknown = sorted(set(given) - set(mapping.topics))
             require(not unknown, self, f"topic_types names topics the mapping does not read: {unknown}")
-            self.live = LiveMapping(mapping, self.episode_id, source=self.get_name())
+            self.live = LiveMapping(mapping, self.episode_id, self.get_name(), self.max_lag_s)
             self._types = given
             self._steps_pub = self.create_publisher(PlayStep, self.steps_topic, qos.PLAY_STEPS)
             if self.annotations_topic:
