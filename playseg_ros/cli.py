@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import signal
 import sys
+import time
 
 EXIT_FAILED = 1
 """The job could not be done (one line on stderr says why)."""
@@ -85,12 +86,14 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         f"with {summary.workers} workers"
     )
     if args.bag:
-        from playseg_ros.play_bags import write_dataset_bags
+        from playseg_ros.play_bags import write_generated_bags
 
-        bags = write_dataset_bags(summary.path, summary.path / "bags")
-        for name, bag in bags.items():
-            size = sum(f.stat().st_size for f in bag.path.rglob("*") if f.is_file())
-            print(f"{bag.path}: {name} bag, {bag.message_count} messages, {size / 1e6:.2f} MB")
+        started = time.perf_counter()
+        lines = write_generated_bags(
+            args.domain, summary.path, summary.path / "bags", args.images or "raw", args.workers
+        )
+        print("\n".join(lines))
+        print(f"bags written in {time.perf_counter() - started:.1f} s")
     return 0
 
 
@@ -119,7 +122,15 @@ def _add_generate_command(sub: argparse._SubParsersAction) -> argparse.ArgumentP
     generate.add_argument(
         "--bag",
         action="store_true",
-        help="also write the episodes as play bags: OUT/bags/annotated (train+val), play, test",
+        help="also write the episodes as bags, OUT/bags/annotated (train+val, with annotations), play, test: "
+        "play bags (PlayStep) unless the domain writes its own (tabletop: one standard-message robot bag "
+        "per episode, camera, joint states, commands, with OUT/bags/mapping.yaml for `playseg convert`)",
+    )
+    generate.add_argument(
+        "--images",
+        choices=["raw", "jpeg", "both"],
+        help="with --bag, robot bags' camera: raw Image (default; converts back exactly), CompressedImage "
+        "jpeg (a fraction of the size, lossy) or both; play bags hold raw frames only",
     )
     generate.set_defaults(func=_cmd_generate)
     return generate

@@ -14,6 +14,7 @@ action. Readers validate as they go and raise `BagError` naming the bag, topic, 
 
 from __future__ import annotations
 
+import importlib
 import json
 from collections.abc import Callable, Collection, Iterable, Iterator
 from dataclasses import dataclass
@@ -421,6 +422,37 @@ def write_dataset_bags(
             out / name, dataset_bag_episodes(dataset, name), annotated, info=info, **writer_options
         )
     return summaries
+
+
+GENERATED_BAGS_HOOK = "write_generated_bags"
+"""What a domain's ROS package (``playseg_ros.<domain>``) may define to write its own bags for
+`playseg generate --bag`: ``(dataset_dir, out_dir, images=..., workers=...) -> summary lines``."""
+
+
+def write_generated_bags(
+    domain: str | None, dataset_dir: Path | str, out_dir: Path | str, images: str = "raw", workers: int = 1
+) -> list[str]:
+    """`playseg generate --bag`: the bags of the domain's ROS package when it has the hook
+    (`GENERATED_BAGS_HOOK`, e.g. standard-message robot bags), else play bags (`write_dataset_bags`:
+    PlayStep messages with raw frames). Returns one summary line per bag or bag directory written."""
+    hook = None
+    if domain:
+        try:
+            package = importlib.import_module(f"playseg_ros.{domain}")
+        except ModuleNotFoundError as error:
+            if error.name != f"playseg_ros.{domain}":
+                raise
+        else:
+            hook = getattr(package, GENERATED_BAGS_HOOK, None)
+    if hook is not None:
+        return list(hook(dataset_dir, out_dir, images=images, workers=workers))
+    if images != "raw":
+        raise ValueError(f"--images {images}: play bags (playseg_msgs/PlayStep) hold raw frames only")
+    lines = []
+    for name, bag in write_dataset_bags(dataset_dir, out_dir).items():
+        size = sum(f.stat().st_size for f in bag.path.rglob("*") if f.is_file())
+        lines.append(f"{bag.path}: {name} bag, {bag.message_count} messages, {size / 1e6:.2f} MB")
+    return lines
 
 
 @dataclass

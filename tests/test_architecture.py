@@ -19,7 +19,11 @@ from playseg_core.ps.model import LabelModel, PSModel, load_model, save_model
 from playseg_core.ps.training import model_config_for
 
 ROOT = Path(__file__).resolve().parent.parent
-DOMAIN_DIRS = (ROOT / "playseg_core" / "domains", ROOT / "playseg_ros" / "babyai")
+DOMAIN_DIRS = (
+    ROOT / "playseg_core" / "domains",
+    ROOT / "playseg_ros" / "babyai",
+    ROOT / "playseg_ros" / "tabletop",  # the tabletop domain's ROS side: its robot bags
+)
 
 
 def _python_files() -> list[Path]:

@@ -15,28 +15,44 @@ One bag per play episode, ``<out>/<episode id>/``:
 and, in the bag directory next to the storage file, ``ground_truth.json``: every instruction segment as
 times (the sidecar format of `playseg convert`), also for bags without annotations. ``<out>`` holds
 ``mapping.yaml`` (train: the annotations topic) and ``mapping_truth.yaml`` (the ground truth file) for
-`playseg convert`, and ``samples.json`` listing the bags.
+`playseg convert`.
 
-The log comes from the domain package through its public interface (`load_domain`), as
-`playseg generate` gets its data.
+Two sources: `write_sample_bags` plays new episodes (``samples.json`` lists them; `make bags`), and
+`write_dataset_bags` (`playseg generate --domain tabletop --bag`) writes a generated dataset's episodes,
+replayed from their seeds and checked against the dataset, one directory of bags per split as the play
+bags of `playseg generate --bag` (playseg_ros/play_bags.py: annotated, play, test). This package is the
+tabletop domain's ROS side: the rates, bounds and sizes come from playseg_core/domains/tabletop (its
+spec and the data's features).
 """
 
 from __future__ import annotations
 
 import json
+import multiprocessing
 import shutil
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import cv2
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys.store import Typestore
 
-from playseg_core.domains import load_domain
+from playseg_core.data.dataset import PlayDataset
+from playseg_core.data.features import Features
+from playseg_core.domains.tabletop.play import PlayConfig
+from playseg_core.domains.tabletop.robot_log import (
+    DEFAULT_STATE_HZ,
+    RobotLog,
+    dataset_play_config,
+    record_robot_log,
+    replay_dataset_episode,
+)
+from playseg_core.domains.tabletop.spec import DEFAULT_IMAGE_SIZE, DOMAIN
+from playseg_ros.play_bags import DATASET_BAGS
 from playseg_ros.typestore import playseg_typestore
 
 CAMERA_TOPIC = "/camera/image_raw"
@@ -47,6 +63,8 @@ ANNOTATION_TOPIC = "/annotations"
 CAMERA_FRAME = "top_camera"
 TRUTH_FILE = "ground_truth.json"
 MANIFEST_FILE = "samples.json"
+MAPPING_FILE = "mapping.yaml"
+TRUTH_MAPPING_FILE = "mapping_truth.yaml"
 IMAGE_CHOICES = ("raw", "jpeg", "both")
 JPEG_QUALITY = 90
 
@@ -55,23 +73,6 @@ COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 JOINT_STATE = "sensor_msgs/msg/JointState"
 TWIST = "geometry_msgs/msg/Twist"
 TIMED_ANNOTATION = "playseg_msgs/msg/TimedAnnotation"
-
-
-class RobotLog(Protocol):
-    """What the writer reads of a domain's robot log (playseg_core.domains.tabletop.robot_log)."""
-
-    episode_id: str
-    frame_ns: np.ndarray
-    frames: np.ndarray
-    joint_names: tuple[str, ...]
-    joint_ns: np.ndarray
-    joint_positions: np.ndarray
-    joint_velocities: np.ndarray
-    command_ns: np.ndarray
-    commands: np.ndarray
-
-    @property
-    def segment_times(self) -> list[tuple[int, int, str]]: ...
 
 
 @dataclass
@@ -170,8 +171,7 @@ def write_robot_bag(
     storage: str = "mcap",
 ) -> WrittenBag:
     """Write ``log`` as one rosbag2 bag at ``path`` (which must not exist) plus its ground-truth file."""
-    if images not in IMAGE_CHOICES:
-        raise ValueError(f"tabletop bag: images must be one of {', '.join(IMAGE_CHOICES)}, got {images!r}")
+    _check_images(images)
     if storage not in ("mcap", "sqlite3"):
         raise ValueError(f"tabletop bag: storage must be mcap or sqlite3, got {storage!r}")
     path = Path(path)
@@ -227,27 +227,49 @@ def write_robot_bag(
     return WrittenBag(path, log.episode_id, counts, annotate, len(segments), size)
 
 
-def mapping_yaml(images: str, annotations: str) -> str:
-    """A `playseg convert` mapping for these bags; ``annotations``: a topic or sidecar file entry."""
-    camera = COMPRESSED_TOPIC if images == "jpeg" else CAMERA_TOPIC
+def _numbers(values: Sequence[float] | None) -> str:
+    if values is None:
+        raise ValueError("tabletop bag mapping: the action declares no low/high bounds")
+    return f"[{', '.join(f'{value:g}' for value in values)}]"
+
+
+def mapping_yaml(features: Features, images: str, annotations: str) -> str:
+    """A `playseg convert` mapping that reads these bags back into data of ``features`` (the played
+    config's or the dataset's: step rate, camera, state, action bounds); ``annotations``: a topic or
+    sidecar file entry."""
+    if features.fps is None or features.state is None or len(features.cameras) != 1:
+        raise ValueError("tabletop bag mapping: the features must declare fps, one camera and a state")
+    camera = features.cameras[0]
+    topic = COMPRESSED_TOPIC if images == "jpeg" else CAMERA_TOPIC
+    action = features.action
     return f"""\
 # playseg convert mapping for tabletop robot bags (playseg_ros/tabletop/bags.py)
-fps: 10
-primary: observation.images.top
+fps: {features.fps:g}
+primary: {camera}
 tolerance_ms: 5
 features:
-  observation.images.top: {{topic: {camera}}}
-  observation.state: {{topic: {JOINT_TOPIC}, fields: [position, velocity]}}
-  action:
+  {camera}: {{topic: {topic}}}
+  {features.state.name}: {{topic: {JOINT_TOPIC}, fields: [position, velocity]}}
+  {action.name}:
     topic: {COMMAND_TOPIC}
     fields: [linear.x, linear.y]
     align: previous                       # the command in effect at the frame (sent with it)
-    tolerance_ms: 100                     # the last frame has no command of its own: keep it
-    low: [-0.2, -0.2]
-    high: [0.2, 0.2]
+    tolerance_ms: {1000 / features.fps:g}                     # the last frame has no command of its own: keep it
+    low: {_numbers(action.low)}
+    high: {_numbers(action.high)}
 annotations: {annotations}
 episodes: {{split: bag}}
 """
+
+
+def _write_mappings(out: Path, features: Features, images: str) -> None:
+    (out / MAPPING_FILE).write_text(mapping_yaml(features, images, f"{{topic: {ANNOTATION_TOPIC}}}"))
+    (out / TRUTH_MAPPING_FILE).write_text(mapping_yaml(features, images, f"{{file: {TRUTH_FILE}}}"))
+
+
+def _check_images(images: str) -> None:
+    if images not in IMAGE_CHOICES:
+        raise ValueError(f"tabletop bag: images must be one of {', '.join(IMAGE_CHOICES)}, got {images!r}")
 
 
 def write_sample_bags(
@@ -257,17 +279,15 @@ def write_sample_bags(
     episodes: int = 3,
     annotated: int = 1,
     images: str = "raw",
-    state_hz: float = 50.0,
+    state_hz: float = DEFAULT_STATE_HZ,
     tasks_per_episode: tuple[int, int] = (4, 6),
-    image_size: int = 96,
+    image_size: int = DEFAULT_IMAGE_SIZE,
     storage: str = "mcap",
     overwrite: bool = False,
-    domain: str = "tabletop",
 ) -> list[WrittenBag]:
     """``episodes`` tabletop play episodes (seeds ``seed * 10**9 + i``, as `playseg generate`) as robot
     bags in ``out``; the first ``annotated`` of them carry the annotations topic."""
-    if images not in IMAGE_CHOICES:
-        raise ValueError(f"tabletop bag: images must be one of {', '.join(IMAGE_CHOICES)}, got {images!r}")
+    _check_images(images)
     if episodes < 1 or not 0 <= annotated <= episodes:
         raise ValueError(
             f"tabletop sample bags: need episodes >= 1 and 0 <= annotated <= episodes, got {episodes}, {annotated}"
@@ -279,23 +299,21 @@ def write_sample_bags(
         if not (out / MANIFEST_FILE).is_file():
             raise FileExistsError(f"{out}: exists and holds no {MANIFEST_FILE}; refusing to replace it")
         shutil.rmtree(out)
-    play = load_domain(domain)
-    config = play.play_config(tasks_per_episode=tasks_per_episode, image_size=image_size)
+    config = PlayConfig(tasks_per_episode=tasks_per_episode, image_size=image_size)
     staging = out.with_name(f".{out.name}.partial")
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)
     written = []
     try:
         for index in range(episodes):
-            log = play.record_robot_log(config, seed * 10**9 + index, state_hz=state_hz)
+            log = record_robot_log(config, seed * 10**9 + index, state_hz=state_hz)
             bag = write_robot_bag(
                 log, staging / log.episode_id, annotate=index < annotated, images=images, storage=storage
             )
             written.append(bag)
-        (staging / "mapping.yaml").write_text(mapping_yaml(images, f"{{topic: {ANNOTATION_TOPIC}}}"))
-        (staging / "mapping_truth.yaml").write_text(mapping_yaml(images, f"{{file: {TRUTH_FILE}}}"))
+        _write_mappings(staging, config.features, images)
         manifest = {
-            "domain": domain,
+            "domain": DOMAIN,
             "seed": seed,
             "images": images,
             "state_hz": state_hz,
@@ -309,8 +327,113 @@ def write_sample_bags(
     return [replace(bag, path=out / bag.path.name) for bag in written]
 
 
+@dataclass(frozen=True)
+class _BagTask:
+    """One dataset episode to write as a bag (what a worker process needs)."""
+
+    dataset: str
+    index: int
+    config: PlayConfig
+    path: Path
+    annotate: bool
+    images: str
+    state_hz: float
+    storage: str
+
+
+_OPEN: dict[str, PlayDataset] = {}
+
+
+def _write_dataset_bag(task: _BagTask) -> WrittenBag:
+    dataset = _OPEN.get(task.dataset)
+    if dataset is None:  # one open per process: the arrays stay memory-mapped between episodes
+        dataset = _OPEN[task.dataset] = PlayDataset.open(task.dataset)
+    log = replay_dataset_episode(dataset, task.index, task.config, state_hz=task.state_hz)
+    return write_robot_bag(log, task.path, annotate=task.annotate, images=task.images, storage=task.storage)
+
+
+def _run(tasks: list[_BagTask], workers: int) -> Iterator[WrittenBag]:
+    if workers == 1 or len(tasks) <= 1:
+        yield from map(_write_dataset_bag, tasks)
+        return
+    # spawn: the parent may hold threads (tqdm, ROS, torch) that fork would copy half-locked.
+    with multiprocessing.get_context("spawn").Pool(min(workers, len(tasks))) as pool:
+        yield from pool.imap(_write_dataset_bag, tasks)
+
+
+def write_dataset_bags(
+    dataset_dir: str | Path,
+    out_dir: str | Path,
+    *,
+    images: str = "raw",
+    workers: int = 1,
+    state_hz: float = DEFAULT_STATE_HZ,
+    storage: str = "mcap",
+) -> dict[str, list[WrittenBag]]:
+    """A generated tabletop dataset's episodes as robot bags, one directory per dataset bag of
+    `playseg generate --bag` (play_bags.DATASET_BAGS): ``out_dir/annotated/<episode id>/`` (train + val,
+    with the annotations topic), ``out_dir/play/...`` and ``out_dir/test/...`` (ground truth only in the
+    sidecar), plus ``out_dir/mapping.yaml`` and ``mapping_truth.yaml``.
+
+    Every episode is replayed from its seed and checked against the dataset, so converting a directory
+    with the mapping gives back its episodes (with ``images="raw"`` or "both"; "jpeg" frames are lossy).
+    Written into ``out_dir/.partial`` and moved into place at the end: nothing half-written stays.
+    """
+    _check_images(images)
+    if workers < 1:
+        raise ValueError(f"tabletop bags: workers must be >= 1, got {workers}")
+    dataset = PlayDataset.open(dataset_dir)
+    config = dataset_play_config(dataset)
+    out = Path(out_dir)
+    names = [*DATASET_BAGS, MAPPING_FILE, TRUTH_MAPPING_FILE]
+    for name in names:  # refuse before writing anything
+        if (out / name).exists():
+            raise FileExistsError(f"{out / name}: already exists (remove it to write new bags)")
+    created = not out.exists()
+    staging = out / ".partial"
+    shutil.rmtree(staging, ignore_errors=True)
+    tasks: list[_BagTask] = []
+    for name, (splits, annotated) in DATASET_BAGS.items():
+        (staging / name).mkdir(parents=True)
+        for index in sorted(i for split in splits for i in dataset.episode_indices(split)):
+            path = staging / name / dataset.records[index].episode_id
+            task = _BagTask(str(dataset.path), index, config, path, annotated, images, state_hz, storage)
+            tasks.append(task)
+    try:
+        written = list(_run(tasks, workers))
+        _write_mappings(staging, dataset.features, images)
+        for name in names:
+            (staging / name).rename(out / name)
+        staging.rmdir()
+    except BaseException:
+        shutil.rmtree(out if created else staging, ignore_errors=True)
+        raise
+    by_name: dict[str, list[WrittenBag]] = {name: [] for name in DATASET_BAGS}
+    for bag in written:
+        name = bag.path.parent.name
+        by_name[name].append(replace(bag, path=out / name / bag.path.name))
+    return by_name
+
+
+def write_generated_bags(
+    dataset_dir: str | Path, out_dir: str | Path, images: str = "raw", workers: int = 1
+) -> list[str]:
+    """`playseg generate --domain tabletop --bag`: `write_dataset_bags`, one summary line per directory."""
+    lines = []
+    for name, bags in write_dataset_bags(dataset_dir, out_dir, images=images, workers=workers).items():
+        messages = sum(sum(bag.messages.values()) for bag in bags)
+        size = sum(bag.bytes_on_disk for bag in bags)
+        annotated = " with annotations" if any(bag.annotated for bag in bags) else ""
+        lines.append(
+            f"{Path(out_dir) / name}: {len(bags)} robot bags{annotated}, {messages} messages, {size / 1e6:.2f} MB"
+        )
+    mappings = ", ".join(str(Path(out_dir) / name) for name in (MAPPING_FILE, TRUTH_MAPPING_FILE))
+    lines.append(f"convert them with {mappings}")
+    return lines
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m playseg_ros.tabletop.bags --out DIR``: write sample bags (not yet part of `make bags`)."""
+    """``python -m playseg_ros.tabletop.bags --out DIR``: write sample bags (`make bags`)."""
     import argparse
 
     parser = argparse.ArgumentParser(description="tabletop play as standard-message robot bags")
@@ -352,10 +475,14 @@ __all__ = [
     "COMMAND_TOPIC",
     "COMPRESSED_TOPIC",
     "JOINT_TOPIC",
+    "MAPPING_FILE",
     "TRUTH_FILE",
+    "TRUTH_MAPPING_FILE",
     "WrittenBag",
     "mapping_yaml",
     "typestore",
+    "write_dataset_bags",
+    "write_generated_bags",
     "write_robot_bag",
     "write_sample_bags",
 ]

@@ -15,8 +15,9 @@ failures in a row the episode ends.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, fields
+from typing import Any
 
 import numpy as np
 
@@ -67,6 +68,26 @@ class PlayConfig:
         if not 1 <= self.idle_steps[0] <= self.idle_steps[1]:
             raise ValueError(f"PlayConfig.idle_steps must be 1 <= low <= high, got {self.idle_steps}")
 
+    @classmethod
+    def from_json(cls, raw: Mapping[str, Any], where: str = "play_config") -> PlayConfig:
+        """The config ``asdict(config)`` was written from (a dataset's ``meta.play_config``); ValueError
+        naming ``where`` and the field for anything else."""
+        if not isinstance(raw, Mapping):
+            raise ValueError(f"{where}: expected a mapping of PlayConfig fields, got {type(raw).__name__}")
+        settings = _settings(cls, raw, where)
+        if "teleop" in settings:
+            teleop = settings["teleop"]
+            if not isinstance(teleop, Mapping):
+                raise ValueError(f"{where}.teleop: expected a mapping of TeleopConfig fields")
+            try:
+                settings["teleop"] = TeleopConfig(**_settings(TeleopConfig, teleop, f"{where}.teleop"))
+            except TypeError as error:
+                raise ValueError(f"{where}.teleop: {error}") from error
+        try:
+            return cls(**settings)
+        except TypeError as error:  # a value of the wrong type
+            raise ValueError(f"{where}: {error}") from error
+
     @property
     def features(self) -> Features:
         """The dataset features: the top camera, the effector state, the commanded velocity."""
@@ -81,6 +102,17 @@ class PlayConfig:
             ],
             fps=CONTROL_HZ,
         )
+
+
+def _settings(kind: type, raw: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """``raw``'s entries as keyword arguments of the dataclass ``kind`` (JSON lists back to tuples)."""
+    known = {f.name for f in fields(kind)}
+    unknown = sorted(set(raw) - known)
+    if unknown:
+        raise ValueError(
+            f"{where}: unknown field {unknown[0]!r} (a {kind.__name__} has {', '.join(sorted(known))})"
+        )
+    return {name: tuple(value) if isinstance(value, list) else value for name, value in raw.items()}
 
 
 @dataclass
