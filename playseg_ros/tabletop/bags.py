@@ -43,6 +43,7 @@ from rosbags.typesys.store import Typestore
 
 from playseg_core.data.dataset import PlayDataset
 from playseg_core.data.features import Features
+from playseg_core.data.generation import episode_seed
 from playseg_core.domains.tabletop.play import PlayConfig
 from playseg_core.domains.tabletop.robot_log import (
     DEFAULT_STATE_HZ,
@@ -306,7 +307,7 @@ def write_sample_bags(
     written = []
     try:
         for index in range(episodes):
-            log = record_robot_log(config, seed * 10**9 + index, state_hz=state_hz)
+            log = record_robot_log(config, episode_seed(seed, index), state_hz=state_hz)
             bag = write_robot_bag(
                 log, staging / log.episode_id, annotate=index < annotated, images=images, storage=storage
             )
