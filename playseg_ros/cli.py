@@ -67,6 +67,8 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
     if args.annotated_share is not None and not 0.0 < args.annotated_share <= 1.0:
         raise ValueError(f"--annotated-share must be in (0, 1], got {args.annotated_share}")
+    if args.images and not args.bag:
+        raise ValueError(f"--images {args.images}: only with --bag (the dataset itself keeps raw frames)")
     summary = domain.generate_dataset(
         args.out,
         args.preset,

@@ -103,6 +103,9 @@ def test_bad_requests_are_refused_before_writing(generated: Path, tmp_path: Path
     with pytest.raises(ValueError, match="--images jpeg: play bags .* raw frames only"):
         write_generated_bags("babyai", generated, tmp_path / "y", images="jpeg")
     assert not (tmp_path / "y").exists()
+    argv = ["generate", "--domain", "tabletop", "--preset", "tiny", "--out", str(tmp_path / "z")]
+    assert cli_main([*argv, "--images", "jpeg", "--quiet"]) == 1  # --images without --bag
+    assert not (tmp_path / "z").exists()
 
 
 def test_a_replay_that_differs_from_the_dataset_is_refused(generated: Path, tmp_path: Path) -> None:
