@@ -110,7 +110,7 @@ def _add_generate_command(sub: argparse._SubParsersAction) -> argparse.ArgumentP
     generate.add_argument("--preset", default="small", help="dataset size, one of the domain's presets")
     generate.add_argument("--out", required=True, help="dataset directory to create")
     generate.add_argument("--seed", type=int, default=0, help="base seed; same seed, same bytes")
-    generate.add_argument("--workers", type=int, default=1, help="generator processes")
+    generate.add_argument("--workers", type=int, default=1, help="generator (and --bag writer) processes")
     generate.add_argument(
         "--annotated-share",
         type=float,
