@@ -76,15 +76,24 @@ RCLPY = MessageKind("rclpy", _rclpy_class, _rclpy_array)
 # --- building messages ----------------------------------------------------------------------------------
 
 
+def time_message(stamp_ns: int, kind: MessageKind = ROSBAGS) -> Any:
+    """A builtin_interfaces/Time of nanoseconds since the epoch."""
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return kind.make("builtin_interfaces/msg/Time", sec=sec, nanosec=nanosec)
+
+
 def header(stamp_ns: int, frame_id: str, kind: MessageKind = ROSBAGS) -> Any:
     """A std_msgs/Header with the stamp in nanoseconds since the epoch."""
-    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    stamp = kind.make("builtin_interfaces/msg/Time", sec=sec, nanosec=nanosec)
-    return kind.make("std_msgs/msg/Header", stamp=stamp, frame_id=frame_id)
+    return kind.make("std_msgs/msg/Header", stamp=time_message(stamp_ns, kind), frame_id=frame_id)
+
+
+def time_ns(time: Any) -> int:
+    """Nanoseconds since the epoch of a builtin_interfaces/Time."""
+    return int(time.sec) * 1_000_000_000 + int(time.nanosec)
 
 
 def stamp_ns(msg_header: Any) -> int:
-    return int(msg_header.stamp.sec) * 1_000_000_000 + int(msg_header.stamp.nanosec)
+    return time_ns(msg_header.stamp)
 
 
 def image_message(frame: np.ndarray | None, msg_header: Any, kind: MessageKind = ROSBAGS) -> Any:
@@ -227,6 +236,39 @@ def labelled_segment_of_steps(
         raise ValueError(
             f"segment [{segment.start}, {segment.end}) needs {segment.length + 1} steps, got {len(steps)}"
         )
+    return _labelled_segment(episode_id, segment, model_id, stamp, frame_id, kind, steps=steps)
+
+
+def labelled_segment_reference(
+    episode_id: str,
+    segment: Segment,
+    model_id: str,
+    stamp: int,
+    recording: tuple[str, str],
+    step_stamps: tuple[int, int],
+    frame_id: str = "play",
+    kind: MessageKind = ROSBAGS,
+) -> Any:
+    """A reference-form LabelledSegment: no steps; ``recording`` (bag directory, PlayStep topic) holds
+    them, ``step_stamps`` are the header stamps of steps start and end."""
+    bag, topic = recording
+    if not bag or not topic:
+        raise ValueError(f"a reference needs a bag and a topic, got {recording}")
+    return _labelled_segment(
+        episode_id, segment, model_id, stamp, frame_id, kind, recording_bag=bag, steps_topic=topic,
+        first_step_stamp=time_message(step_stamps[0], kind), last_step_stamp=time_message(step_stamps[1], kind),
+    )  # fmt: skip
+
+
+def _labelled_segment(
+    episode_id: str,
+    segment: Segment,
+    model_id: str,
+    stamp: int,
+    frame_id: str,
+    kind: MessageKind,
+    **form: Any,
+) -> Any:
     return kind.make(
         LABELLED_SEGMENT,
         header=header(stamp, frame_id, kind),
@@ -237,8 +279,11 @@ def labelled_segment_of_steps(
         label_confidence=float(segment.confidence),
         segment_log_prob=float(segment.log_prob),
         model_id=model_id,
-        steps=steps,
-    )
+        **{  # every field, as rosbags' classes need them all: the other form's empty
+            "steps": [], "recording_bag": "", "steps_topic": "", "first_step_stamp": time_message(0, kind),
+            "last_step_stamp": time_message(0, kind), **form,
+        },
+    )  # fmt: skip
 
 
 # --- reading messages (either kind) ---------------------------------------------------------------------
@@ -391,21 +436,37 @@ def segment_from_annotation(msg: Any) -> Segment:
     return Segment(int(msg.start_step), int(msg.end_step), msg.instruction)
 
 
-def clip_from_labelled(msg: Any, camera: str = DEFAULT_CAMERA) -> SegmentClip:
+def is_reference(msg: Any) -> bool:
+    """Whether a LabelledSegment is of the reference form (its steps are in a recording)."""
+    return bool(getattr(msg, "recording_bag", ""))  # earlier definitions have only the embedded form
+
+
+def clip_from_labelled(
+    msg: Any, camera: str = DEFAULT_CAMERA, steps: Sequence[Any] | None = None
+) -> SegmentClip:
     """The SegmentClip of a LabelledSegment (every step validated; an unnamed single camera's image as
-    feature ``camera``); StepError naming episode and step."""
+    feature ``camera``); StepError naming episode and step. ``steps``: the PlaySteps of a reference-form
+    segment, read from its recording (recorded_steps.py); None: the ones it embeds."""
     episode_id, start, end = msg.episode_id, int(msg.start_step), int(msg.end_step)
-    if not start < end:
-        raise StepError(episode_id, start, f"segment [{start}, {end}) is empty")
-    if len(msg.steps) != end - start + 1:
+    if steps is None and is_reference(msg):
         raise StepError(
             episode_id,
             start,
-            f"segment [{start}, {end}) needs steps {start}..{end}, got {len(msg.steps)} steps",
+            f"a reference-form segment: its steps are in bag {msg.recording_bag} on {msg.steps_topic}, "
+            "not in the message",
+        )
+    steps = msg.steps if steps is None else steps
+    if not start < end:
+        raise StepError(episode_id, start, f"segment [{start}, {end}) is empty")
+    if len(steps) != end - start + 1:
+        raise StepError(
+            episode_id,
+            start,
+            f"segment [{start}, {end}) needs steps {start}..{end}, got {len(steps)} steps",
         )
     segment = Segment(start, end, msg.instruction, float(msg.label_confidence), float(msg.segment_log_prob))
     builder = EpisodeBuilder(episode_id, first_step=start, camera=camera)
-    for step in msg.steps:
+    for step in steps:
         builder.add(step)
     return SegmentClip(
         episode_id=episode_id,

@@ -85,19 +85,46 @@ string message
 """TrainerStatus as bags recorded before it said which evaluation it reports (no last_eval_metric,
 last_eval_value)."""
 
-EARLIER_DEFINITIONS = {"PlayStep": PLAY_STEP_BEFORE_CAMERAS, "TrainerStatus": TRAINER_STATUS_BEFORE_METRIC}
+LABELLED_SEGMENT_BEFORE_REFERENCE = """\
+std_msgs/Header header
+string episode_id
+uint32 start_step
+uint32 end_step
+string instruction
+float32 label_confidence
+float32 segment_log_prob
+string model_id
+PlayStep[] steps
+"""
+"""LabelledSegment as bags recorded before it had a reference form (no recording_bag, steps_topic,
+first_step_stamp, last_step_stamp)."""
+
+EARLIER_GENERATIONS: tuple[dict[str, str], ...] = (
+    {"LabelledSegment": LABELLED_SEGMENT_BEFORE_REFERENCE},
+    {
+        "PlayStep": PLAY_STEP_BEFORE_CAMERAS,
+        "TrainerStatus": TRAINER_STATUS_BEFORE_METRIC,
+        "LabelledSegment": LABELLED_SEGMENT_BEFORE_REFERENCE,
+    },
+)
+"""Earlier definitions by generation, newest first; a type not named has today's definition there. A
+generation is one typestore because a message embedding another (LabelledSegment's PlaySteps) has the
+hash of the definitions of its time together."""
 
 
 @cache
 def earlier_typestores() -> tuple[Typestore, ...]:
     """Typestores of earlier playseg_msgs definitions that bags may still hold, newest first."""
-    store = get_typestore(Stores.ROS2_KILTED)
-    types = {}
-    for name in PLAYSEG_MSG_TYPES:
-        text = EARLIER_DEFINITIONS.get(name) or msg_text(name)
-        types.update(get_types_from_msg(text, f"playseg_msgs/msg/{name}"))
-    store.register(types)
-    return (store,)
+    stores = []
+    for generation in EARLIER_GENERATIONS:
+        store = get_typestore(Stores.ROS2_KILTED)
+        types = {}
+        for name in PLAYSEG_MSG_TYPES:
+            text = generation.get(name) or msg_text(name)
+            types.update(get_types_from_msg(text, f"playseg_msgs/msg/{name}"))
+        store.register(types)
+        stores.append(store)
+    return tuple(stores)
 
 
 @cache
@@ -126,16 +153,26 @@ def _as_current(value: Any, old: Typestore, new: Typestore) -> Any:
     for name, (node_type, field_type) in fields:
         if hasattr(value, name):
             values[name] = _as_current(getattr(value, name), old, new)
-        elif node_type == _SEQUENCE:
-            values[name] = []
-        elif node_type == _BASE:
-            values[name] = _EMPTY_BASE.get(field_type[0], 0)
         else:
-            raise ValueError(f"{type_name}.{name}: no value for a field earlier definitions lack")
+            values[name] = _empty(f"{type_name}.{name}", node_type, field_type, new)
     return new.types[type_name](**values)
 
 
-_BASE, _SEQUENCE = 1, 4  # rosbags' Nodetype values of a base type and a sequence
+def _empty(where: str, node_type: int, field_type: Any, store: Typestore) -> Any:
+    """The value of a field earlier definitions lack (a nested message: each of its fields empty)."""
+    if node_type == _SEQUENCE:
+        return []
+    if node_type == _BASE:
+        return _EMPTY_BASE.get(field_type[0], 0)
+    if node_type == _NAME:
+        _, fields = store.fielddefs[field_type]
+        return store.types[field_type](
+            **{name: _empty(f"{where}.{name}", kind, inner, store) for name, (kind, inner) in fields}
+        )
+    raise ValueError(f"{where}: no value for a field earlier definitions lack")
+
+
+_BASE, _NAME, _SEQUENCE = 1, 2, 4  # rosbags' Nodetype values of a base type, a message and a sequence
 _EMPTY_BASE = {"string": "", "float32": float("nan"), "float64": float("nan"), "bool": False}
 """The value a field earlier definitions lack gets (a figure not recorded is NaN; integers get 0)."""
 

@@ -140,3 +140,86 @@ def test_malformed_steps_are_logged_and_the_node_keeps_running(tmp_path, model_p
     assert "'gap' step 3: step gap, expected step 2" in log
     assert "'bad-action' step 0: segmentation failed" in log and "= 9.0: not a discrete action index" in log
     assert {s.episode_id for s in collector.segments} == {good.episode_id}
+
+
+def test_reference_form_segments_give_the_trainer_the_same_buffer_as_embedded_ones(tmp_path, model_path):
+    """Two pipelines on the same play: segmenter (embedded form) -> trainer, and segmenter (reference form)
+    + recorder -> trainer. The reference segments carry no steps (a few hundred bytes); their trainer
+    reads the steps from the recording while it is still being written; both buffers end up with the
+    same segments and the same steps."""
+    from playseg_msgs.msg import TrainerStatus
+    from rclpy.serialization import serialize_message
+
+    from playseg_core.augment.buffer import AugmentationBuffer
+
+    episodes = [generate_episode(PlayConfig(), seed) for seed in (31, 32)]
+    bag = tmp_path / "play"
+    write_play_bag(bag, episodes, annotated=False, info=DataInfo(PlayConfig().features, DOMAIN, INSTRUCTIONS))
+    model, _ = load_model(model_path)
+    expected = sum(len(segment_episode(model, episode)) for episode in read_play_bag(bag))
+    recording = tmp_path / "recording"
+
+    def trainer(form: str, **parameters: object) -> NodeSpec:
+        return NodeSpec(f"trainer_{form}", "trainer", {
+            "buffer_dir": str(tmp_path / f"buffer_{form}"), "checkpoint_dir": str(tmp_path / f"ckpt_{form}"),
+            "segments_topic": f"/segments_{form}", "status_topic": f"/status_{form}", "status_period_s": 0.5,
+            **parameters,
+        })  # fmt: skip
+
+    graph = Graph(
+        GraphSpec(
+            [
+                NodeSpec("recorder", "recorder", {"output": str(recording), "topics": ["/play/steps"]}),
+                trainer("embedded"),
+                trainer("reference", resolve_period_s=0.2),
+                NodeSpec("segmenter_embedded", "segmenter", {
+                    "model": str(model_path), "segments_topic": "/segments_embedded"}),
+                NodeSpec("segmenter_reference", "segmenter", {
+                    "model": str(model_path), "segments_topic": "/segments_reference",
+                    "segment_form": "reference", "recording_bag": str(recording)}),
+            ],
+            shutdown_timeout_s=20,
+        ),
+        log_dir=tmp_path,
+    )  # fmt: skip
+    graph.start()
+    collector = _Collector("/segments_reference")
+    buffered = {"embedded": 0, "reference": 0}
+    for form in buffered:
+        collector.node.create_subscription(
+            TrainerStatus, f"/status_{form}", lambda s, f=form: buffered.__setitem__(f, s.buffer_segments),
+            qos.STATUS,
+        )  # fmt: skip
+    try:
+        # both segmenters and the recorder (it subscribes once a publisher, ours, shows the type)
+        assert collector.spin_until(lambda: collector.steps_pub.get_subscription_count() >= 3, 60)
+        player = _start(tmp_path, "bag_player", bag=str(bag), rate=0.0, wait_for_subscribers=3)
+        done = lambda: buffered == {"embedded": expected, "reference": expected}  # noqa: E731
+        logs = lambda: "\n".join(p.read_text()[-2000:] for p in sorted(tmp_path.glob("*.log")))  # noqa: E731
+        assert collector.spin_until(done, 120), (buffered, expected, logs())
+        assert (tmp_path / "recording.partial").is_dir()  # read while the recorder still writes
+        player.stop()
+    finally:
+        collector.close()
+        codes = graph.stop()
+    assert set(codes.values()) == {0}, codes
+    reference_log = (tmp_path / "trainer_reference.log").read_text()
+    assert "dropped" not in reference_log and "Traceback" not in reference_log
+    assert len(collector.segments) == expected
+    sizes = [len(serialize_message(msg)) for msg in collector.segments]
+    assert all(len(msg.steps) == 0 and msg.recording_bag == str(recording) for msg in collector.segments)
+    assert all(msg.steps_topic == "/play/steps" for msg in collector.segments) and max(sizes) < 400, sizes
+
+    def clips(form: str) -> dict:
+        with AugmentationBuffer(tmp_path / f"buffer_{form}") as buffer:
+            return {(c.episode_id, c.segment.start, c.segment.end): c for c in buffer}
+
+    embedded, referenced = clips("embedded"), clips("reference")
+    assert len(embedded) == expected and sorted(referenced) == sorted(embedded)
+    for key, want in embedded.items():
+        got = referenced[key]
+        assert (got.segment, got.source) == (want.segment, want.source)
+        np.testing.assert_array_equal(got.actions, want.actions)
+        np.testing.assert_array_equal(got.state, want.state)
+        assert list(got.images) == list(want.images) == [CAMERA]
+        np.testing.assert_array_equal(got.images[CAMERA], want.images[CAMERA])

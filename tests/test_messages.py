@@ -140,7 +140,7 @@ def test_a_trainer_status_of_the_earlier_definition_is_re_encoded_in_todays() ->
     from playseg_ros.typestore import as_current_cdr, earlier_typestores, typestore_for
 
     name = "playseg_msgs/msg/TrainerStatus"
-    old = earlier_typestores()[0]
+    old = earlier_typestores()[-1]
     digest = old.hash_rihs01(name)
     assert typestore_for(name, digest) is old and digest != playseg_typestore().hash_rihs01(name)
     time_type, header_type = old.types["builtin_interfaces/msg/Time"], old.types["std_msgs/msg/Header"]
@@ -155,3 +155,32 @@ def test_a_trainer_status_of_the_earlier_definition_is_re_encoded_in_todays() ->
     assert (
         now.last_eval_success_rate == 0.5 and now.last_eval_metric == "" and math.isnan(now.last_eval_value)
     )
+
+
+def test_a_labelled_segment_of_the_earlier_definition_is_re_encoded_in_todays() -> None:
+    """A bag recorded before LabelledSegment had a reference form still reads and plays: its segments
+    decode as today's embedded form (steps kept, no recording_bag, zero stamps)."""
+    from msg_samples import play_step
+
+    from playseg_ros.typestore import as_current_cdr, earlier_typestores, typestore_for
+
+    name = "playseg_msgs/msg/LabelledSegment"
+    old = earlier_typestores()[0]  # today's PlayStep inside the earlier LabelledSegment
+    digest = old.hash_rihs01(name)
+    assert typestore_for(name, digest) is old and digest != playseg_typestore().hash_rihs01(name)
+    step = old.deserialize_cdr(bytes(serialize_message(play_step(4))), "playseg_msgs/msg/PlayStep")
+    time_type, header_type = old.types["builtin_interfaces/msg/Time"], old.types["std_msgs/msg/Header"]
+    msg = old.types[name](
+        header=header_type(stamp=time_type(sec=1, nanosec=2), frame_id="t"), episode_id="ep", start_step=4,
+        end_step=5, instruction="go to the red ball", label_confidence=0.5, segment_log_prob=-1.0,
+        model_id="m", steps=[step],
+    )  # fmt: skip
+    now = playseg_typestore().deserialize_cdr(
+        as_current_cdr(bytes(old.serialize_cdr(msg, name)), name, digest), name
+    )
+    assert (now.episode_id, now.start_step, now.end_step, now.model_id) == ("ep", 4, 5, "m")
+    assert [s.step for s in now.steps] == [4] and bytes(now.steps[0].observation.data) == bytes(
+        step.observation.data
+    )
+    assert now.recording_bag == "" and now.steps_topic == ""
+    assert (now.first_step_stamp.sec, now.last_step_stamp.nanosec) == (0, 0)

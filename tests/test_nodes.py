@@ -247,6 +247,48 @@ def test_trainer_logs_malformed_segments_and_keeps_running(
     assert stop(trainer) == 0
 
 
+def test_trainer_keeps_a_reference_segment_pending_until_its_recording_holds_the_steps(
+    procs: Processes, peer: RosPeer, tmp_path: Path
+) -> None:
+    """A reference-form segment naming a bag that is not there yet: one warning naming the bag, nothing
+    stored, the node keeps running; once the bag holds the steps the segment is stored with them."""
+    from playseg_ros.messages import PLAY_STEP, episode_messages, labelled_segment_reference
+
+    episode = generate_episode(PlayConfig(), 4)
+    segment = episode.segments[1]
+    stamps = [1_000_000_000 * (50 + t) for t in range(episode.num_steps + 1)]
+    bag = tmp_path / "recording"
+    msg = labelled_segment_reference(
+        episode.episode_id, segment, "ps", 0, (str(bag), "/play/steps"),
+        (stamps[segment.start], stamps[segment.end]), kind=RCLPY,
+    )  # fmt: skip
+    client = TrainerClient(peer)
+    trainer, log = _trainer(procs, tmp_path, "trainer", resolve_period_s=0.2)
+    client.wait_connected()
+    client.pub.publish(msg)
+    line = wait_for_log(log, r"WARN.*kept pending.*", 30, trainer).group(0)
+    assert f"episode {episode.episode_id!r} steps {segment.start}..{segment.end} on /play/steps" in line
+    assert f"no bag at {bag}" in line
+    peer.spin_until(lambda: False, 1.0)
+    assert client.acknowledged == 0 and trainer.poll() is None
+    with BagWriter(bag) as writer:
+        writer.add_topic(topic_info("/play/steps", PLAY_STEP))
+        for step, stamp in zip(episode_messages(episode, stamps), stamps, strict=True):
+            writer.write("/play/steps", bytes(playseg_typestore().serialize_cdr(step, PLAY_STEP)), stamp)
+    client.wait_acknowledged(1)
+    assert stop(trainer) == 0
+    assert "read from the recording, stored" in log.read_text()
+    with AugmentationBuffer(tmp_path / "buffer") as buffer:
+        (stored,) = list(buffer)
+    assert (stored.episode_id, stored.segment.start, stored.segment.end) == (
+        episode.episode_id, segment.start, segment.end,
+    )  # fmt: skip
+    np.testing.assert_array_equal(stored.actions, episode.actions[segment.start : segment.end])
+    np.testing.assert_array_equal(
+        stored.images[CAMERA], episode.images[CAMERA][segment.start : segment.end + 1]
+    )
+
+
 def test_trainer_retrain_service_writes_policy_version_1(
     procs: Processes, peer: RosPeer, tmp_path: Path
 ) -> None:

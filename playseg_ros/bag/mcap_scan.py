@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import struct
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -91,12 +92,14 @@ class RecordScan:
     Iterating yields ``(offset, record)``: the byte offset of the top-level record it came from (a
     chunk's records carry the chunk's offset, right after the Chunk record itself). Afterwards ``end`` is
     the offset just past the last good record and ``problem`` says why the scan stopped (None: the file
-    ended with a footer and the closing magic).
+    ended with a footer and the closing magic). ``start``: the offset of a record to begin at (an earlier
+    scan's ``end``: a file still being written is read on from where the last scan stopped).
     """
 
     path: Path
     end: int = 0
     problem: str | None = None
+    start: int = 0
 
     def __iter__(self) -> Iterator[tuple[int, McapRecord]]:
         self.end, self.problem = 0, None
@@ -105,7 +108,8 @@ class RecordScan:
             if stream.read(len(MAGIC)) != MAGIC:
                 self.problem = "cut inside its magic" if size < len(MAGIC) else "no MCAP magic at its start"
                 return
-            offset = self.end = len(MAGIC)
+            offset = self.end = max(self.start, len(MAGIC))
+            stream.seek(offset)
             while True:
                 head = stream.read(_RECORD_HEAD.size)
                 if not head:
@@ -135,6 +139,24 @@ class RecordScan:
                     if stream.read(len(MAGIC)) != MAGIC:
                         self.problem = "cut inside its closing magic"
                     return
+
+
+def read_record(path: Path, offset: int) -> list[McapRecord]:
+    """The record at ``offset`` (one a scan found complete), a chunk broken up into its records."""
+    with path.open("rb") as stream:
+        stream.seek(offset)
+        opcode, length = _RECORD_HEAD.unpack(stream.read(_RECORD_HEAD.size))
+        return _parse(opcode, stream.read(length))
+
+
+def mcap_files(directory: Path) -> list[Path]:
+    """The .mcap files of a bag directory in recording order (``<name>_<index>.mcap``)."""
+
+    def index(path: Path) -> tuple[int, str]:
+        match = re.search(r"_(\d+)\.mcap$", path.name)
+        return (int(match.group(1)) if match else -1, path.name)
+
+    return sorted(directory.glob("*.mcap"), key=index)
 
 
 def has_footer(path: Path) -> bool:

@@ -12,7 +12,6 @@ metadata record inside one of its files. A bag whose writer is still alive (its 
 from __future__ import annotations
 
 import contextlib
-import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,7 +23,7 @@ from mcap.writer import CompressionType
 
 from playseg_ros.bag.errors import BagError
 from playseg_ros.bag.lock import BagLock
-from playseg_ros.bag.mcap_scan import RecordScan
+from playseg_ros.bag.mcap_scan import RecordScan, mcap_files
 from playseg_ros.bag.schema import (
     METADATA_FILE,
     PARTIAL_SUFFIX,
@@ -77,7 +76,7 @@ def recover_bag(path: Path | str) -> list[RecoveredFile]:
 def _recover_locked(path: Path, directory: Path) -> list[RecoveredFile]:
     for stale in directory.glob(f"*{TEMP_SUFFIX}"):  # left by a recovery that was killed half-way
         stale.unlink()
-    files = sorted(directory.glob("*.mcap"), key=_file_index)
+    files = mcap_files(directory)
     old = _old_metadata(directory)
     if not files:
         storage = (old or {}).get("storage_identifier", "")
@@ -278,8 +277,3 @@ def _custom_data_of_record(record: Metadata) -> dict[str, str] | None:
             if isinstance(info.get("custom_data"), dict):
                 return {str(k): str(v) for k, v in info["custom_data"].items()}
     return None
-
-
-def _file_index(path: Path) -> tuple[int, str]:
-    match = re.search(r"_(\d+)\.mcap$", path.name)
-    return (int(match.group(1)) if match else -1, path.name)

@@ -1,7 +1,9 @@
 """segmenter: PlayStep in -> LabelledSegment out, Play Segmentation running online per episode.
 
 Each episode gets its own `StreamingSegmenter` (playseg_core.ps.streaming); a segment is published the moment
-the online decoder decides it, carrying its PlaySteps so consumers need no other stream. Malformed steps
+the online decoder decides it, carrying its PlaySteps so consumers need no other stream (``segment_form``
+``embedded``), or naming where the recorder keeps them (``reference``: the recorder's bag, the steps
+topic and the stamps of its first and last step; a few hundred bytes whatever the cameras). Malformed steps
 (wrong image size or encoding, NaN action, a gap or repeat in step numbers) are logged with their reason
 and end that episode's segmentation (a gap cannot be segmented across); the node keeps running. An
 episode whose steps stop arriving without `episode_end` is dropped after `episode_timeout_s`.
@@ -13,8 +15,10 @@ model and destroys the publisher and the timer (shutdown and error processing re
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from playseg_msgs.msg import LabelledSegment, PlayStep
@@ -29,6 +33,8 @@ from playseg_ros.messages import (
     StepError,
     check_step_number,
     labelled_segment_of_steps,
+    labelled_segment_reference,
+    stamp_ns,
     step_from_message,
 )
 from playseg_ros.nodes.common import ReleasingLifecycleNode, declare, require, run_node
@@ -36,8 +42,11 @@ from playseg_ros.nodes.common import ReleasingLifecycleNode, declare, require, r
 
 @dataclass
 class _OpenEpisode:
+    episode_id: str
     segmenter: StreamingSegmenter
-    steps: list[PlayStep] = field(default_factory=list)  # from the last decided boundary on
+    # from the last decided boundary on: the PlaySteps (embedded form), or their headers (reference form:
+    # the frames stay in the recording, not in this node's memory)
+    steps: list[Any] = field(default_factory=list)
     first_step: int = 0  # step number of steps[0]
     last_seen: float = field(default_factory=time.monotonic)
 
@@ -65,12 +74,23 @@ class SegmenterNode(ReleasingLifecycleNode):
         self.threads = declare(
             self, "torch_threads", 1, "torch CPU threads (more threads than cores is slow)"
         )
+        self.segment_form = declare(
+            self,
+            "segment_form",
+            "embedded",
+            "embedded: each LabelledSegment carries its PlaySteps; reference: it names recording_bag, the "
+            "steps topic and its first and last step stamps instead (the trainer reads the steps there)",
+        )
+        self.recording_bag = declare(
+            self, "recording_bag", "", "reference form: the recorder's bag directory (its 'output')"
+        )
         self.model = None
         self.camera = DEFAULT_CAMERA  # the feature the PlaySteps' image is: the model's camera
         self.episodes: dict[str, _OpenEpisode] = {}
         self.finished: set[str] = set()
         self.published = 0
         self._sub = None
+        self._recording = ("", "")  # reference form: (bag, fully qualified steps topic), from activate
         self._pub = None  # created in on_configure, destroyed in on_cleanup, as the timer
         self._timer = None
         self._frame_shapes: dict[str, tuple[int, ...]] = {}  # by camera name, from the model
@@ -81,6 +101,16 @@ class SegmenterNode(ReleasingLifecycleNode):
             require(self.min_len >= 0, self, "min_len must be >= 0")
             require(self.episode_timeout_s > 0, self, "episode_timeout_s must be > 0")
             require(self.threads >= 1, self, "torch_threads must be >= 1")
+            require(
+                self.segment_form in ("embedded", "reference"), self, "segment_form: embedded | reference"
+            )
+            require(
+                self.segment_form == "embedded" or bool(self.recording_bag),
+                self,
+                "segment_form reference needs recording_bag (the recorder's output)",
+            )
+            # absolute: the trainer resolves it from its own working directory
+            self.recording_bag = os.path.abspath(self.recording_bag) if self.recording_bag else ""
             torch.set_num_threads(self.threads)
             self.model, _ = load_model(self.model_path, kinds=("ps",))
             self.min_len = self.min_len or self.model.cfg.min_len
@@ -98,13 +128,20 @@ class SegmenterNode(ReleasingLifecycleNode):
             self.release()
             return TransitionCallbackReturn.FAILURE
         self.model_id = self.model_id or self.model_path.rsplit("/", 1)[-1]
+        form = f"reference to {self.recording_bag}" if self.reference else "embedded"
         self.get_logger().info(
-            f"model {self.model_path} (L_max {self.model.max_len}); {self.steps_topic} -> {self.segments_topic}"
+            f"model {self.model_path} (L_max {self.model.max_len}); {self.steps_topic} -> {self.segments_topic} "
+            f"({form} segments)"
         )
         return TransitionCallbackReturn.SUCCESS
 
+    @property
+    def reference(self) -> bool:
+        return self.segment_form == "reference"
+
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._sub = self.create_subscription(PlayStep, self.steps_topic, self._on_step, qos.PLAY_STEPS)
+        self._recording = (self.recording_bag, self._sub.topic_name)  # the name the recorder records
         return super().on_activate(state)
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -154,11 +191,11 @@ class SegmenterNode(ReleasingLifecycleNode):
             self.finished.discard(data.episode_id)
             check_step_number(data.episode_id, data.step, 0)
             episode = self.episodes[data.episode_id] = _OpenEpisode(
-                StreamingSegmenter(self.model, self.min_len)
+                data.episode_id, StreamingSegmenter(self.model, self.min_len)
             )
         else:
             check_step_number(data.episode_id, data.step, episode.next_step)
-        episode.steps.append(msg)
+        episode.steps.append(msg.header if self.reference else msg)
         episode.last_seen = time.monotonic()
         decided = episode.segmenter.push(data.observation(self.camera), data.action)
         if data.episode_end:
@@ -177,12 +214,17 @@ class SegmenterNode(ReleasingLifecycleNode):
             return
         steps = episode.steps[segment.start - episode.first_step : segment.end - episode.first_step + 1]
         stamp = self.get_clock().now().nanoseconds
-        frame_id = steps[0].header.frame_id
-        self._pub.publish(
-            labelled_segment_of_steps(
-                steps[0].episode_id, segment, steps, self.model_id, stamp, frame_id, RCLPY
+        if self.reference:
+            headers = steps
+            msg = labelled_segment_reference(
+                episode.episode_id, segment, self.model_id, stamp, self._recording,
+                (stamp_ns(headers[0]), stamp_ns(headers[-1])), headers[0].frame_id, RCLPY,
+            )  # fmt: skip
+        else:
+            msg = labelled_segment_of_steps(
+                episode.episode_id, segment, steps, self.model_id, stamp, steps[0].header.frame_id, RCLPY
             )
-        )
+        self._pub.publish(msg)
         self.published += 1
 
     def _drop_silent_episodes(self) -> None:

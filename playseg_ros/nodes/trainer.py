@@ -10,13 +10,21 @@ acknowledged. Retraining runs in a background thread every `retrain_every` segme
 policy's simulator (the `policy` parameter names it: ``<domain>.<policy>``, see playseg_core.augment.policy).
 A policy without a simulator (the generic ``bc``) reports its held-out validation figure instead;
 TrainerStatus.last_eval_metric and the `~/evaluate` answer say which one they carry.
+
+A reference-form segment (no steps; the recorder's bag, topic and step stamps instead) is resolved by
+reading its steps from that bag (playseg_ros/recorded_steps.py; the recording may still be in progress).
+Steps not there yet keep the segment pending, with one warning; it is retried every
+`resolve_period_s` and given up, with an error line, only after `resolve_timeout_s`.
 """
 
 from __future__ import annotations
 
 import math
 import threading
+import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from playseg_msgs.msg import LabelledSegment, TrainerStatus
 from playseg_msgs.srv import EvaluatePolicy, Retrain, SaveBuffer
@@ -34,8 +42,20 @@ from playseg_ros import qos
 from playseg_ros.messages import clip_from_labelled
 from playseg_ros.nodes.common import ReleasingLifecycleNode, declare, require, run_node
 from playseg_ros.play_bags import DataInfo, load_annotated
+from playseg_ros.recorded_steps import RecordedSteps, StepsNotRecorded, StepsReference, reference_of
 
 NOT_CONFIGURED = "trainer is not configured"
+PENDING_WARN_S = 10.0
+"""A reference-form segment whose steps a running recording still lacks after this long is warned about."""
+
+
+@dataclass
+class _Pending:
+    """A reference-form segment waiting for its steps to be recorded."""
+
+    msg: LabelledSegment
+    since: float  # time.monotonic() when it arrived
+    warned: bool = False
 
 
 class TrainerNode(ReleasingLifecycleNode):
@@ -69,6 +89,19 @@ class TrainerNode(ReleasingLifecycleNode):
             "eval_episodes": declare(self, "eval_episodes", 512, "fixed seeded evaluation episodes"),
             "eval_max_steps": declare(self, "eval_max_steps", 25, "success must come within this many steps"),
             "status_period_s": declare(self, "status_period_s", 2.0, "status republish period"),
+            "resolve_period_s": declare(
+                self,
+                "resolve_period_s",
+                1.0,
+                "retry reading a reference-form segment's steps from its recording this often",
+            ),
+            "resolve_timeout_s": declare(
+                self,
+                "resolve_timeout_s",
+                300.0,
+                "give up a reference-form segment whose steps are not in its recording after this long "
+                "(0 = never)",
+            ),
         }
         self.trainer: AugmentationTrainer | None = None
         self.base_info = DataInfo()
@@ -85,7 +118,11 @@ class TrainerNode(ReleasingLifecycleNode):
         self._status_lock = threading.Lock()
         self._status_pub = None
         self._status_timer = None
+        self._resolve_timer = None
         self._own_services = []
+        self._recordings: dict[tuple[str, str], RecordedSteps] = {}  # by (bag, topic), indexed as they grow
+        # reference-form segments whose steps are not recorded yet, by buffer key
+        self._pending: dict[tuple[str, int, int, str], _Pending] = {}
 
     # -- lifecycle -------------------------------------------------------------------------------------
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -95,6 +132,8 @@ class TrainerNode(ReleasingLifecycleNode):
             require(bool(p["checkpoint_dir"]), self, "checkpoint_dir must be set")
             require(p["retrain_every"] >= 0, self, "retrain_every must be >= 0")
             require(p["eval_episodes"] > 0 and p["eval_max_steps"] > 0, self, "eval_* must be > 0")
+            require(p["resolve_period_s"] > 0, self, "resolve_period_s must be > 0")
+            require(p["resolve_timeout_s"] >= 0, self, "resolve_timeout_s must be >= 0")
             annotated = load_annotated(p["base_data"]) if p["base_data"] else None
             learner = load_policy_learner(
                 p["policy"],
@@ -141,6 +180,10 @@ class TrainerNode(ReleasingLifecycleNode):
         with self._status_lock:
             self._status_pub = self.create_publisher(TrainerStatus, self.p["status_topic"], qos.STATUS)
         self._status_timer = self.create_timer(self.p["status_period_s"], self.publish_status)
+        # runs only while segments are pending: no wake-ups (nor a timer callback in flight at shutdown)
+        self._resolve_timer = self.create_timer(
+            self.p["resolve_period_s"], self._retry_pending, autostart=False
+        )
         # Services may run for minutes (retrain with wait=true): their own group keeps segments flowing.
         slow = MutuallyExclusiveCallbackGroup()
         self._own_services = [
@@ -169,9 +212,17 @@ class TrainerNode(ReleasingLifecycleNode):
         for service in self._own_services:
             self.destroy_service(service)
         self._own_services = []
-        if self._status_timer is not None:
-            self.destroy_timer(self._status_timer)
-            self._status_timer = None
+        for timer in (self._status_timer, self._resolve_timer):
+            if timer is not None:
+                self.destroy_timer(timer)
+        self._status_timer = self._resolve_timer = None
+        if self._pending:
+            self.get_logger().warning(
+                f"dropping {len(self._pending)} reference-form segments whose steps were never read: "
+                + ", ".join(f"{e!r} [{a}, {b})" for e, a, b, _ in self._pending)
+            )
+        self._pending.clear()
+        self._recordings.clear()
         with self._training:  # let a running retraining finish writing its checkpoint
             if self.trainer is not None:
                 self.trainer.close()
@@ -186,8 +237,68 @@ class TrainerNode(ReleasingLifecycleNode):
 
     # -- data ------------------------------------------------------------------------------------------
     def _on_segment(self, msg: LabelledSegment) -> None:
+        ref = reference_of(msg)
+        if ref is None:
+            self._store(msg)
+            return
+        key = (msg.episode_id, int(msg.start_step), int(msg.end_step), msg.model_id)
+        if key in self._pending:
+            return  # the same segment again (a second segmenter of the same model): it waits already
         try:
-            due = self.trainer.add(clip_from_labelled(msg, self.base_info.camera))
+            steps = self._recorded(ref).steps(ref)
+        except StepsNotRecorded as exc:
+            # Steps a running recorder has not flushed yet are normal (it closes a chunk every second or
+            # so): warned about only when they are still missing after PENDING_WARN_S.
+            self._pending[key] = _Pending(msg, time.monotonic())
+            if self._resolve_timer.is_canceled():
+                self._resolve_timer.reset()
+            if not exc.recording:
+                self._warn_pending(self._pending[key], exc)
+            return
+        self._store(msg, steps)
+
+    def _warn_pending(self, pending: _Pending, exc: StepsNotRecorded) -> None:
+        pending.warned = True
+        self.get_logger().warning(
+            f"LabelledSegment on {self.p['segments_topic']}: {exc}; kept pending, retried every "
+            f"{self.p['resolve_period_s']:g} s"
+        )
+
+    def _recorded(self, ref: StepsReference) -> RecordedSteps:
+        recording = (ref.bag, ref.topic)
+        if recording not in self._recordings:
+            self._recordings[recording] = RecordedSteps(*recording)
+        return self._recordings[recording]
+
+    def _retry_pending(self) -> None:
+        """Resolve the pending reference-form segments whose steps have been recorded since."""
+        timeout = self.p["resolve_timeout_s"]
+        for key, pending in list(self._pending.items()):
+            ref = reference_of(pending.msg)
+            try:
+                steps = self._recorded(ref).steps(ref)
+            except StepsNotRecorded as exc:
+                waited = time.monotonic() - pending.since
+                if timeout and waited > timeout:
+                    del self._pending[key]
+                    self.get_logger().error(
+                        f"dropped LabelledSegment on {self.p['segments_topic']} after resolve_timeout_s "
+                        f"{timeout:g}: {exc}"
+                    )
+                elif not pending.warned and (waited > PENDING_WARN_S or not exc.recording):
+                    self._warn_pending(pending, exc)
+                continue
+            del self._pending[key]
+            if pending.warned:
+                self.get_logger().info(f"{ref}: read from the recording, stored")
+            self._store(pending.msg, steps)
+        if not self._pending:
+            self._resolve_timer.cancel()
+
+    def _store(self, msg: LabelledSegment, steps: list[Any] | None = None) -> None:
+        """Add a segment (its steps: embedded, or read from its recording) to the buffer."""
+        try:
+            due = self.trainer.add(clip_from_labelled(msg, self.base_info.camera, steps))
         except ValueError as exc:
             self.get_logger().error(f"dropped LabelledSegment on {self.p['segments_topic']}: {exc}")
             return
