@@ -116,6 +116,8 @@ class RecordedSteps:
                 return self._read(directory, located)
         except OSError as error:  # a file renamed or replaced under us (the recording finished): later
             raise StepsNotRecorded(f"{ref}: {error.strerror}: {error.filename}", recording=True) from None
+        except Exception as error:  # noqa: BLE001 -- damaged bytes make any decoder error possible
+            raise StepsNotRecorded(f"{ref}: cannot read: {type(error).__name__}: {error}") from None
         recording = directory != self.bag
         raise StepsNotRecorded(f"{ref}: {_ranges(missing)} {self._not_there(directory)}", recording)
 

@@ -131,3 +131,25 @@ def test_a_killed_recording_is_read_up_to_its_last_chunk_and_after_recovery(tmp_
     _assert_same_clip(msg, recorded.steps(ref), steps, segment)
     recover_bag(bag)  # rewrites the file: read anew from the finished bag
     _assert_same_clip(msg, recorded.steps(ref), steps, segment)
+
+
+def test_a_chunk_damaged_after_it_was_indexed_is_a_one_line_error_not_a_crash(tmp_path: Path) -> None:
+    bag = tmp_path / "recording"
+    episode = generate_episode(PlayConfig(), 5)
+    steps = _steps(episode, 3 * SECOND)
+    with BagWriter(bag) as writer:
+        writer.add_topic(topic_info(TOPIC, PLAY_STEP))
+        _write(writer, steps)
+    segment = Segment(0, 3, "go to the red ball")
+    msg, ref = _reference(bag, steps, segment)
+    recorded = RecordedSteps(bag, TOPIC)
+    recorded.steps(ref)  # indexed
+    file = bag / f"{bag.name}_0.mcap"
+    data = bytearray(file.read_bytes())
+    data[200:400] = bytes(200)  # inside the first chunk's compressed records
+    file.write_bytes(bytes(data))  # in place: same inode, the index is kept
+    with pytest.raises(
+        StepsNotRecorded, match=r"steps 0\.\.3 on /play/steps in bag .*: cannot read: "
+    ) as error:
+        recorded.steps(ref)
+    assert "\n" not in str(error.value) and not error.value.recording
