@@ -86,10 +86,18 @@ def load_graph(path: str | Path) -> GraphSpec:
     return GraphSpec(nodes, raw.get("ros_domain_id"), float(raw.get("shutdown_timeout_s", 15.0)))
 
 
+class _ParamsDumper(yaml.SafeDumper):
+    """Writes a value used twice (one list for two parameters) twice: the ROS 2 parameter file parser
+    refuses YAML aliases."""
+
+    def ignore_aliases(self, data: object) -> bool:
+        return True
+
+
 def node_command(spec: NodeSpec, params_dir: Path) -> list[str]:
     """The command line that runs one node with its parameters (a ROS parameter file)."""
     params_file = params_dir / f"{spec.name}.yaml"
-    params_file.write_text(yaml.safe_dump({spec.name: {"ros__parameters": spec.parameters}}))
+    params_file.write_text(yaml.dump({spec.name: {"ros__parameters": spec.parameters}}, Dumper=_ParamsDumper))
     return [
         sys.executable,
         "-m",

@@ -126,12 +126,14 @@ def train(
     encoders: list[str] | None = None,
     method: str = "ps",
     encoders_from: str | None = None,
+    label_head: str | None = None,
 ) -> int:
     """Train the PS model (and optionally the stand-alone labeller) on a dataset's train/val splits,
     or another segmentation method (``method``, playseg_core/baselines/registry.py).
 
     ``bounds`` (min_len, max_len, k_max; None = derived, see `segment_bounds`) and ``encoders``
-    (``FEATURE=KIND`` overrides of the step encoders) come from the command line.
+    (``FEATURE=KIND`` overrides of the step encoders) and ``label_head`` (None: the domain's, else
+    linear) come from the command line.
 
     The outputs are checked before training starts (a model is never trained only to be lost).
     """
@@ -149,6 +151,8 @@ def train(
     get_method(method)  # an unknown method fails before anything is read
     if labeller and method != "ps":
         raise ValueError(f"--labeller: only with --method ps (method {method} writes what it needs to --out)")
+    if label_head and method != "ps":
+        raise ValueError(f"--label-head: only with --method ps, not {method}")
     if encoders_from and method not in ("unloc", "tridet"):
         raise ValueError(f"--encoders-from: only with --method unloc or tridet, not {method}")
     dataset = _open_dataset(data)
@@ -180,6 +184,7 @@ def train(
         episodes=train_eps,
         overrides=_encoder_overrides(encoders or []),
         min_len=chosen.min_len,
+        label_head=label_head,
     )
     read = ", ".join(f"{spec.feature} ({spec.kind})" for spec in model_cfg.encoders)
     unread = (
@@ -187,7 +192,7 @@ def train(
         if any(s.feature == ACTION for s in model_cfg.encoders)
         else f"; not the action ({features.action.describe()})"
     )
-    print(f"model reads {read}{unread}; {chosen.describe()}", flush=True)
+    print(f"model reads {read}{unread}; {model_cfg.label_head} label head; {chosen.describe()}", flush=True)
     result = train_ps(train_eps, val_eps, dataset.instructions, cfg, model_cfg)
     calibrated = calibrate_ps_model(result.model, val_eps, 0.95) if val_eps else {}
     extra = {

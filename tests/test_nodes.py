@@ -602,3 +602,15 @@ def test_bag_player_refuses_a_truncated_bag_naming_the_file(procs: Processes, tm
     assert re.search(
         r"file 'play_0.mcap': the file is truncated or unfinished .*playseg bag recover", log.read_text()
     )
+
+
+def test_a_parameter_value_shared_by_two_parameters_is_written_twice(tmp_path: Path) -> None:
+    """The ROS 2 parameter parser refuses YAML aliases ("Will not support aliasing"): one list given as
+    both `topics` and `wait_topics` (as the demo gives the bag player) must be written out twice."""
+    from playseg_ros.launch import NodeSpec, node_command
+
+    topics = ["/camera/image_raw", "/joint_states"]
+    node_command(NodeSpec("bag_player", "bag_player", {"topics": topics, "wait_topics": topics}), tmp_path)
+    text = (tmp_path / "bag_player.yaml").read_text()
+    assert "&" not in text and "*" not in text
+    assert yaml.safe_load(text)["bag_player"]["ros__parameters"] == {"topics": topics, "wait_topics": topics}

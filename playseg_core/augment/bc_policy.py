@@ -15,7 +15,6 @@ simulator: `evaluate` returns None. Checkpoints are playseg checkpoints of kind 
 
 from __future__ import annotations
 
-import re
 import time
 import zlib
 from collections.abc import Mapping, Sequence
@@ -39,9 +38,9 @@ from playseg_core.ps.encoders import (
     choose_encoders,
     feature_statistics,
 )
+from playseg_core.ps.model import instruction_words
 
 POLICY_NAME = "bc"
-_WORD = re.compile(r"[a-z0-9]+")
 
 
 @dataclass(frozen=True)
@@ -64,10 +63,10 @@ class BCTrainConfig:
     num_threads: int = 1
 
 
-def instruction_words(instruction: str, buckets: int) -> list[int]:
-    """The hashed bag of words of ``instruction``: lower-cased alphanumeric words -> bucket ids
-    (crc32, the same in every process)."""
-    return [zlib.crc32(word.encode()) % buckets for word in _WORD.findall(instruction.lower())]
+def hashed_instruction_words(instruction: str, buckets: int) -> list[int]:
+    """The hashed bag of words of ``instruction``: its words (`instruction_words`) -> bucket ids (crc32,
+    the same in every process)."""
+    return [zlib.crc32(word.encode()) % buckets for word in instruction_words(instruction)]
 
 
 class BCPolicy(nn.Module):
@@ -110,7 +109,7 @@ class BCPolicy(nn.Module):
     def instruction_ids(self, instructions: Sequence[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(known-string ids (N,), flat word ids, bag offsets (N,)) of ``instructions``."""
         known = torch.tensor([self._index.get(s, 0) for s in instructions], dtype=torch.long)
-        bags = [instruction_words(s, self.buckets) for s in instructions]
+        bags = [hashed_instruction_words(s, self.buckets) for s in instructions]
         flat = torch.tensor([w for bag in bags for w in bag], dtype=torch.long)
         offsets = torch.tensor(np.cumsum([0, *[len(bag) for bag in bags[:-1]]]), dtype=torch.long)
         return known, flat, offsets
@@ -387,7 +386,7 @@ __all__ = [
     "BCPolicy",
     "BCPolicyLearner",
     "BCTrainConfig",
-    "instruction_words",
+    "hashed_instruction_words",
     "load_bc_policy",
     "save_bc_policy",
 ]

@@ -12,6 +12,7 @@ the trunk as one batch (see `PSModel.end_logits`).
 
 from __future__ import annotations
 
+import re
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -47,6 +48,8 @@ class ModelConfig:
         them once, as its ``features`` (playseg_core/checkpoint.py), not in ``to_json``.
     num_classes: the number of instructions.
     min_len: L_min, the shortest segment (in actions) segmenting cuts by default; L_max is the trunk's.
+    label_head: how the label heads score an instruction (`LABEL_HEADS`): "linear" (one weight row per
+        instruction) or "text" (from the instruction's words, shared between instructions).
     """
 
     encoders: list[EncoderSpec]
@@ -54,6 +57,11 @@ class ModelConfig:
     num_classes: int
     trunk: TrunkConfig = field(default_factory=TrunkConfig)
     min_len: int = 1
+    label_head: str = "linear"
+
+    def __post_init__(self) -> None:
+        if self.label_head not in LABEL_HEADS:
+            raise ValueError(f"unknown label head {self.label_head!r} (known: {', '.join(LABEL_HEADS)})")
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -61,6 +69,7 @@ class ModelConfig:
             "trunk": asdict(self.trunk),
             "num_classes": self.num_classes,
             "min_len": self.min_len,
+            "label_head": self.label_head,
         }
 
     @staticmethod
@@ -71,6 +80,7 @@ class ModelConfig:
             num_classes=int(raw["num_classes"]),
             trunk=TrunkConfig(**raw["trunk"]),
             min_len=int(raw.get("min_len", 1)),
+            label_head=str(raw.get("label_head", "linear")),  # checkpoints before text heads: linear
         )
 
     @property
@@ -154,6 +164,57 @@ def _class_names(instructions: list[str] | None, num_classes: int) -> list[str]:
     return names
 
 
+_WORD = re.compile(r"[a-z0-9]+")
+
+
+def instruction_words(instruction: str) -> list[str]:
+    """The lower-cased alphanumeric words of an instruction, in order."""
+    return _WORD.findall(instruction.lower())
+
+
+class TextLabelHead(nn.Module):
+    """Scores every instruction from its words: logit = <query(hidden), mean of its tokens' embeddings> +
+    a per-instruction bias.
+
+    Tokens are the words, the words with their position and adjacent word pairs, so "the red block next
+    to the blue one" and "the blue block next to the red one" differ. Instructions sharing words share
+    parameters: with many instructions and few annotated segments each (compositional instruction sets),
+    one example of "push the red cube left" also teaches "red cube" and "left", where a linear head
+    learns each instruction from its own examples only.
+    """
+
+    def __init__(self, in_dim: int, instructions: list[str], dim: int = 64) -> None:
+        super().__init__()
+        token_lists = []
+        for text in instructions:
+            words = instruction_words(text) or [text]
+            pairs = [f"{a} {b}" for a, b in zip(words, words[1:], strict=False)]
+            token_lists.append(words + [f"{i}:{w}" for i, w in enumerate(words)] + pairs)
+        vocabulary = {token: i for i, token in enumerate(sorted({t for ts in token_lists for t in ts}))}
+        tokens = torch.zeros(len(instructions), len(vocabulary))
+        for row, token_list in enumerate(token_lists):
+            for token in token_list:
+                tokens[row, vocabulary[token]] += 1.0 / len(token_list)
+        self.register_buffer("tokens", tokens, persistent=False)  # rebuilt from the instructions
+        self.token_embedding = nn.Parameter(torch.randn(len(vocabulary), dim) * dim**-0.5)
+        self.query = nn.Linear(in_dim, dim)
+        self.bias = nn.Parameter(torch.zeros(len(instructions)))
+
+    def forward(self, hidden: torch.Tensor) -> torch.Tensor:
+        """(..., in_dim) -> (..., num_instructions) logits."""
+        return self.query(hidden) @ (self.tokens @ self.token_embedding).T + self.bias
+
+
+LABEL_HEADS = ("linear", "text")
+
+
+def make_label_head(kind: str, in_dim: int, instructions: list[str]) -> nn.Module:
+    """A label head of ``kind`` (`LABEL_HEADS`) over ``in_dim`` features for ``instructions``."""
+    if kind == "text":
+        return TextLabelHead(in_dim, instructions)
+    return nn.Linear(in_dim, len(instructions))
+
+
 ENCODE_PIXELS = 512 * 64 * 64
 """Camera pixels per encoder pass when encoding an episode (about 2 million: more small frames, fewer large)."""
 
@@ -218,10 +279,12 @@ class PSModel(StepModel):
     def __init__(self, cfg: ModelConfig, instructions: list[str] | None = None) -> None:
         super().__init__(cfg, instructions)
         self.end_head = nn.Linear(cfg.trunk.hidden_dim, 1)
-        self.label_head = nn.Linear(cfg.trunk.hidden_dim, cfg.num_classes)
+        self.label_head = make_label_head(cfg.label_head, cfg.trunk.hidden_dim, self.instructions)
         # Training only: the label from the end observation's encoding alone, an auxiliary loss that trains
         # the observation encoders directly (through the trunk's mixing they learn slowly at first).
-        self.frame_label_head = nn.Linear(self.encoders.observation_dim, cfg.num_classes)
+        self.frame_label_head = make_label_head(
+            cfg.label_head, self.encoders.observation_dim, self.instructions
+        )
         # Added to the end logit when segmenting, never in training: set after training to correct for
         # the positives' weight in the loss (calibration.py). Part of the state dict, so every path that
         # segments with this checkpoint (offline, streaming, nodes) cuts the same way.
@@ -303,10 +366,12 @@ class LabelModel(StepModel):
 
     def __init__(self, cfg: ModelConfig, instructions: list[str] | None = None) -> None:
         super().__init__(cfg, instructions)
-        self.head = nn.Linear(2 * cfg.trunk.hidden_dim, cfg.num_classes)
+        self.head = make_label_head(cfg.label_head, 2 * cfg.trunk.hidden_dim, self.instructions)
         # Training only, as PSModel's: through the pooled trunk alone the observation encoders learnt
         # far more slowly (docs/segmentation.md, "The labelling model").
-        self.frame_label_head = nn.Linear(self.encoders.observation_dim, cfg.num_classes)
+        self.frame_label_head = make_label_head(
+            cfg.label_head, self.encoders.observation_dim, self.instructions
+        )
 
     def logits_from_windows(
         self, windows: torch.Tensor, lengths: torch.Tensor, starts_episode: torch.Tensor | None = None

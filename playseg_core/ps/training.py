@@ -104,9 +104,11 @@ def model_config_for(
     episodes: Iterable[Episode] = (),
     overrides: dict[str, str] | None = None,
     min_len: int = 1,
+    label_head: str | None = None,
 ) -> ModelConfig:
     """The default model for data with ``features`` (step encoders by `choose_encoders`; the state and a
-    continuous action standardised with ``episodes``' statistics, computed only when read)."""
+    continuous action standardised with ``episodes``' statistics, computed only when read; the label
+    head ``label_head``, else the domain's ``LABEL_HEAD``, else "linear")."""
     needs = [f.name for f in (features.state, features.action) if f is not None and not f.is_discrete]
     episodes = list(episodes)
     statistics = feature_statistics(episodes, needs) if episodes and needs else {}
@@ -114,7 +116,11 @@ def model_config_for(
     observed = [features[spec.feature] for spec in encoders if spec.feature != features.action.name]
     # The action is always recorded (what the model was trained on), read or not.
     read = Features.of([*observed, features.action], features.fps)
-    return ModelConfig(encoders, read, num_classes, TrunkConfig(max_len=max_len), min_len=min_len)
+    if label_head is None:
+        label_head = getattr(load_domain(domain), "LABEL_HEAD", "linear") if domain else "linear"
+    return ModelConfig(
+        encoders, read, num_classes, TrunkConfig(max_len=max_len), min_len=min_len, label_head=label_head
+    )
 
 
 def _gather_windows(features: torch.Tensor, window_index: torch.Tensor) -> torch.Tensor:

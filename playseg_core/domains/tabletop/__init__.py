@@ -2,10 +2,12 @@
 rendering), a scripted teleoperator carrying out instructions one after another, a task oracle that
 decides completion, and generator presets. See docs/tabletop.md.
 
-The data is robot-shaped (a camera, a state vector, a continuous 2-D velocity action), so the generic
-step encoders read it as they are: this package adds no encoders and no segment-length bounds (the ones
-derived from the annotated segments apply). Its policy ``tabletop.bc`` is the generic ``bc`` policy
-evaluated in the simulator (learner.py, evaluation.py). Importing it imports neither pymunk nor OpenCV;
+The data is robot-shaped (a camera, a state vector, a continuous 2-D velocity action). The generic step
+encoders read the state and the action; the camera gets this package's object-map encoder (encoder.py),
+and the label heads score instructions from their words (``LABEL_HEAD``): 197 compositional instructions
+meet a few annotated segments each. No segment-length bounds: the ones derived from the annotated
+segments apply. Its policy ``tabletop.bc`` is the generic ``bc`` policy evaluated in the simulator
+(learner.py, evaluation.py). Importing it registers the encoder and imports neither pymunk nor OpenCV;
 the modules that run the world do.
 """
 
@@ -14,7 +16,19 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from playseg_core.data.features import Features
+from playseg_core.domains.tabletop.encoder import object_map_spec
 from playseg_core.domains.tabletop.spec import CAMERA, DOMAIN
+from playseg_core.ps.encoders import EncoderSpec
+
+LABEL_HEAD = "text"
+"""PS and labelling models of this domain score an instruction from its words (ps/model.py)."""
+
+
+def step_encoders(features: Features) -> dict[str, EncoderSpec | None]:
+    """The tabletop's choice of step encoders (ps/encoders.py `choose_encoders`): the object-map encoder
+    for its camera; the generic ones for the state and the action."""
+    return {CAMERA: object_map_spec(features[CAMERA])} if CAMERA in features else {}
 
 
 def _bc_policy(config: dict[str, Any]) -> Any:
@@ -106,12 +120,14 @@ a 25% annotated start split as in the paper's CALVIN experiment."""
 
 
 __all__ = [
+    "LABEL_HEAD",
     "CAMERA",
     "DOMAIN",
     "EXPERIMENT",
     "POLICIES",
     "PRESET_NAMES",
     "generate_dataset",
+    "step_encoders",
     "play_config",
     "record_robot_log",
 ]

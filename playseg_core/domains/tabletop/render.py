@@ -22,6 +22,7 @@ from playseg_core.domains.tabletop.spec import (
     DEFAULT_IMAGE_SIZE,
     EFFECTOR_RADIUS,
     EFFECTOR_REACH,
+    EFFECTOR_RGB,
     TABLE_SIZE,
 )
 
@@ -30,7 +31,6 @@ VIEW_BORDER = EFFECTOR_REACH + EFFECTOR_RADIUS + 0.002
 
 FLOOR_RGB = (60, 60, 66)
 TABLE_RGB = (205, 200, 190)
-EFFECTOR_RGB = (40, 40, 40)
 
 _SHIFT = 4  # OpenCV fixed-point bits: coordinates in 1/16 pixel
 _ONE = 1 << _SHIFT

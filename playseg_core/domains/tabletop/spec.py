@@ -43,6 +43,8 @@ BLOCK_FRICTION = 0.5
 """Coulomb friction coefficient between a block and the table: a block stops soon after a push ends."""
 
 EFFECTOR_RADIUS = 0.018
+EFFECTOR_RGB: tuple[int, int, int] = (40, 40, 40)
+"""How the camera sees the effector (render.py); the blocks' colours are COLOUR_RGB."""
 EFFECTOR_REACH = 0.03
 """How far past the table's edge the effector's centre may go (it reaches over the rims, which stop only
 blocks), so it can get behind a block lying against a rim."""
@@ -89,6 +91,7 @@ __all__ = [
     "DOMAIN",
     "EFFECTOR_RADIUS",
     "EFFECTOR_REACH",
+    "EFFECTOR_RGB",
     "EFFECTOR_TIME_CONSTANT",
     "EVAL_STEP_BUDGET",
     "MAX_SPEED",

@@ -1,0 +1,122 @@
+"""The tabletop's own step encoder (object maps) and the text label head it is paired with: the maps find
+each block where the simulator put it, the domain chooses both by default, checkpoints round-trip, and a
+text head labels instruction combinations it never saw in training (a linear head cannot)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from playseg_core.data.episode import Episode
+from playseg_core.data.features import Feature, FeatureError
+from playseg_core.domains.tabletop.encoder import KIND, ObjectMapEncoder, object_map_spec
+from playseg_core.domains.tabletop.play import PlayConfig
+from playseg_core.domains.tabletop.render import VIEW_BORDER, Renderer
+from playseg_core.domains.tabletop.sim import TabletopSim
+from playseg_core.domains.tabletop.spec import BLOCKS, CAMERA, COLOURS, DOMAIN, TABLE_SIZE
+from playseg_core.ps.model import PSModel, TextLabelHead, load_model, make_label_head, save_model
+from playseg_core.ps.training import model_config_for
+
+PARKED = np.array([[0.05 + 0.055 * i, 0.45] for i in range(8)])
+
+
+def _pixel(point: tuple[float, float], size: int) -> tuple[float, float]:
+    """(row, column) of a table point in a ``size`` frame (render.py's projection)."""
+    scale = size / (TABLE_SIZE + 2 * VIEW_BORDER)
+    return (TABLE_SIZE + VIEW_BORDER - point[1]) * scale - 0.5, (point[0] + VIEW_BORDER) * scale - 0.5
+
+
+@pytest.mark.parametrize("size", [96, 64])
+def test_each_colour_map_is_centred_on_that_colours_blocks(size: int) -> None:
+    blocks = PARKED.copy()
+    red_cube, blue_cylinder = BLOCKS.index("red cube"), BLOCKS.index("blue cylinder")
+    blocks[red_cube], blocks[blue_cylinder] = (0.1, 0.1), (0.4, 0.2)
+    sim = TabletopSim()
+    sim.place(blocks, (0.25, 0.3))
+    frame = Renderer(size).render(sim.scene())
+    encoder = ObjectMapEncoder(Feature(CAMERA, "image", "uint8", (size, size, 3)), {})
+    masks = encoder.masks(torch.from_numpy(frame)[None])[0].numpy()
+    assert masks.max() > 0.99
+    rows, columns = np.mgrid[0:size, 0:size]
+    # The other blocks are parked along the top edge: the lower half holds one blob of each colour.
+    lower = rows > size / 2
+    for colour, index in (("red", red_cube), ("blue", blue_cylinder)):
+        mask = (masks[COLOURS.index(colour)] > 0.5) * lower
+        centre = (float((mask * rows).sum() / mask.sum()), float((mask * columns).sum() / mask.sum()))
+        np.testing.assert_allclose(centre, _pixel(tuple(blocks[index]), size), atol=1.0)
+    effector = masks[len(COLOURS)] > 0.5
+    centre = (
+        float((effector * rows).sum() / effector.sum()),
+        float((effector * columns).sum() / effector.sum()),
+    )
+    np.testing.assert_allclose(centre, _pixel((0.25, 0.3), size), atol=1.0)
+    # The table and the floor belong to no map.
+    table = _pixel((0.25, 0.05), size)
+    assert masks[:, round(table[0]), round(table[1])].max() < 0.05
+    assert masks[:, size - 1, size - 1].max() < 0.05
+
+
+def test_the_encoder_refuses_a_frame_it_cannot_read() -> None:
+    with pytest.raises(FeatureError, match=f"{KIND}: feature 'observation.images.top'.*at least 16x16"):
+        ObjectMapEncoder(Feature(CAMERA, "image", "uint8", (12, 96, 3)), {})
+
+
+def test_the_domain_chooses_object_maps_and_the_text_head_and_checkpoints_keep_them(tmp_path: Path) -> None:
+    features = PlayConfig().features
+    instructions = ["push the red cube left", "push the blue cube right", "move the arm to the centre"]
+    rng = np.random.default_rng(0)
+    episode = Episode(
+        "e",
+        rng.uniform(-0.2, 0.2, (10, 2)).astype(np.float32),
+        {CAMERA: np.zeros((11, 96, 96, 3), np.uint8)},
+        rng.uniform(0, 0.5, (11, 4)).astype(np.float32),
+    )
+    config = model_config_for(features, DOMAIN, len(instructions), episodes=[episode])
+    assert config.encoders[0] == object_map_spec(features[CAMERA]) and config.label_head == "text"
+    assert (
+        model_config_for(features, DOMAIN, 3, episodes=[episode], label_head="linear").label_head == "linear"
+    )
+    torch.manual_seed(0)
+    model = PSModel(config, instructions).eval()
+    assert isinstance(model.label_head, TextLabelHead)
+    save_model(tmp_path / "m.pt", model)
+    loaded, _ = load_model(tmp_path / "m.pt")
+    assert loaded.cfg.label_head == "text"
+    hidden = torch.randn(5, config.trunk.hidden_dim)
+    torch.testing.assert_close(loaded.label_head(hidden), model.label_head(hidden))
+
+
+def test_a_text_head_labels_combinations_never_seen_in_training() -> None:
+    colours, directions = ["red", "blue", "green", "yellow"], ["left", "right", "up", "down"]
+    instructions = [f"push the {c} block {d}" for c in colours for d in directions]
+    unseen = {f"push the {c} block {d}" for c, d in zip(colours, directions, strict=True)}
+    rng = np.random.default_rng(0)
+
+    def features(indices: np.ndarray) -> torch.Tensor:
+        colour, direction = indices // 4, indices % 4
+        rows = np.zeros((len(indices), 8), np.float32)
+        rows[np.arange(len(indices)), colour] = 1.0
+        rows[np.arange(len(indices)), 4 + direction] = 1.0
+        return torch.from_numpy(rows + rng.normal(0, 0.1, rows.shape).astype(np.float32))
+
+    seen = np.array([i for i, text in enumerate(instructions) if text not in unseen])
+    held_out = np.array([i for i, text in enumerate(instructions) if text in unseen])
+    accuracy = {}
+    for kind in ("text", "linear"):
+        torch.manual_seed(0)
+        head = make_label_head(kind, 8, instructions)
+        optimizer = torch.optim.Adam(head.parameters(), lr=0.02)
+        for _ in range(300):
+            labels = rng.choice(seen, 64)
+            loss = torch.nn.functional.cross_entropy(head(features(labels)), torch.from_numpy(labels))
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+        test = np.repeat(held_out, 25)
+        predicted = head(features(test)).argmax(-1).numpy()
+        accuracy[kind] = float((predicted == test).mean())
+    assert accuracy["text"] > 0.8, accuracy
+    assert accuracy["linear"] < 0.2, accuracy
