@@ -14,7 +14,7 @@ from test_convert import MAPPING, RobotBag, write_mapping, write_rosbag2
 
 from playseg_core.data.features import STATE
 from playseg_ros.convert.build import convert_bag
-from playseg_ros.convert.live import LiveMapping, LiveStep
+from playseg_ros.convert.live import LiveMapping, LiveStep, ReplayStamps
 from playseg_ros.convert.mapping import load_mapping
 from playseg_ros.convert.source import convert_typestore
 
@@ -180,3 +180,62 @@ def test_a_wrong_message_on_the_annotation_topic_and_a_late_label_are_reported(t
     end = live.end_stream()
     later_notes += end.notes
     assert any("'late'" in n and "arrived after its episode closed: not applied" in n for n in later_notes)
+
+
+def test_replay_stamps_give_a_headerless_command_its_recorded_time_however_late_it_is_taken(
+    tmp_path: Path,
+) -> None:
+    """A replay: the player publishes each message's recorded time on /clock, then the message (source
+    timestamps 2k and 2k + 1); the adapter takes /clock and each topic from its own reader, interleaved at
+    random and late. The header-less Twist gets the /clock of its publication: convert's episode."""
+    bag = write_rosbag2(tmp_path / "robot", RobotBag(seconds=3.0, labels=[]))
+    mapping = load_mapping(write_mapping(tmp_path / "map.yaml"))
+    (episode,) = convert_bag(bag, mapping).episodes
+    played = []
+    for k, (topic, msgtype, msg, t) in enumerate(messages_of(bag)):
+        played += [("/clock", "", t, 2 * k), (topic, msgtype, msg, 2 * k + 1)]
+    for seed in range(3):
+        replay, live, steps = ReplayStamps(), LiveMapping(mapping, "robot"), []
+        for topic, msgtype, payload, source in interleaved(played, seed):
+            if topic == "/clock":
+                released = replay.clock(source, payload)
+            elif msgtype == "geometry_msgs/msg/Twist":
+                released = replay.stamp(source, (topic, msgtype, payload))
+            else:  # stamped: the receive time is not used
+                released = [(-1, (topic, msgtype, payload))]
+            for stamp, (t, mt, m) in released:
+                steps += live.add(t, mt, m, stamp).steps
+        for stamp, (t, mt, m) in replay.flush():
+            steps += live.add(t, mt, m, stamp).steps
+        steps += live.end_stream().steps
+        assert replay.refused == 0 and replay.forced == 0
+        assert [(s.episode_id, s.step) for s in steps] == [
+            ("robot:0", i) for i in range(episode.num_steps + 1)
+        ]
+        np.testing.assert_array_equal(np.stack([s.action for s in steps[:-1]]), episode.actions)
+        np.testing.assert_array_equal(np.stack([s.state for s in steps]), episode.state)
+
+
+def test_replay_stamps_hold_until_a_later_clock_and_refuse_what_came_before_any() -> None:
+    replay = ReplayStamps(held_max=2)
+    assert replay.stamp(5, "early") == [] and not replay.started  # held: a /clock may still precede it
+    assert replay.clock(10, 1_000) == [] and replay.refused == 1  # published before any /clock: no time
+    assert replay.stamp(11, "a") == [] and replay.stamp(12, "b") == []  # held for a later /clock
+    assert replay.clock(12, 2_000) == [(1_000, "a")]  # "b" may have been published after this /clock
+    assert replay.stamp(11, "late") == [(1_000, "late")]  # taken late: the /clock of its publication
+    assert replay.clock(20, 3_000) == [(2_000, "b")]
+    assert replay.stamp(21, "c") == [] and replay.stamp(22, "d") == []
+    assert replay.stamp(23, "e") == [(3_000, "c")] and replay.forced == 1  # no /clock any more: bounded
+    assert replay.flush() == [(3_000, "d"), (3_000, "e")]
+
+
+def test_episode_ids_count_on_over_streams_and_configurations(tmp_path: Path) -> None:
+    mapping = load_mapping(write_mapping(tmp_path / "map.yaml"))
+    live = LiveMapping(mapping, "robot", first_episode=3)
+    assert live.episodes_done == 3
+    bag = write_rosbag2(tmp_path / "robot", RobotBag(seconds=2.0, labels=[]))
+    steps = []
+    for topic, msgtype, msg, received in messages_of(bag):
+        steps += live.add(topic, msgtype, msg, received).steps
+    steps += live.end_stream().steps
+    assert {s.episode_id for s in steps} == {"robot:3"} and live.episodes_done == 4

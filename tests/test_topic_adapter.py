@@ -1,7 +1,8 @@
 """The mapping live: bag_player plays a rosbags-written bag of standard messages (30 Hz rgb8 Image, 100 Hz
 JointState with a gap, 10 Hz TwistStamped) into topic_adapter + segmenter, real processes on real DDS. The adapter's
 PlaySteps are the episode `playseg convert` makes of the same bag, and the segmenter's segments are the
-ones `playseg convert --segment` stores."""
+ones `playseg convert --segment` stores. A bag whose commands are header-less Twists, replayed at recorded
+speed with its /clock into an adapter on sim time, gives the same steps as `playseg convert`."""
 
 from __future__ import annotations
 
@@ -12,7 +13,10 @@ import pytest
 from lifecycle_msgs.msg import State
 from node_procs import Processes, RosPeer, stop, wait_for_log
 from playseg_msgs.msg import LabelledSegment, PlayStep
+from rclpy.qos import QoSProfile
+from rosgraph_msgs.msg import Clock
 from test_convert import MAPPING, RobotBag, write_mapping, write_rosbag2
+from test_convert_live import messages_of
 from test_convert_segment import untrained_model
 from test_robot_nodes import LifecycleProbe
 
@@ -21,6 +25,7 @@ from playseg_core.ps.model import load_model
 from playseg_core.ps.segmentation import segment_episode
 from playseg_ros import qos
 from playseg_ros.cli import main
+from playseg_ros.ros_types import message_class
 
 CAMERA = "observation.images.front"
 TOPICS = ["/camera/image_raw", "/joint_states", "/cmd_vel"]
@@ -143,3 +148,75 @@ def test_bad_parameters_fail_configure_in_one_line(
     assert node.wait(timeout=60) == 1
     text = log.read_text()
     assert message in text and "Traceback" not in text, text
+
+
+def test_headerless_twist_replayed_with_clock_gives_the_steps_of_playseg_convert(
+    procs: Processes, peer: RosPeer, tmp_path: Path
+) -> None:
+    """bag_player clock:=true at recorded speed, topic_adapter use_sim_time: a geometry_msgs/Twist (no
+    header) takes the /clock of its publication, its recorded time, as convert takes its log time."""
+    bag = write_rosbag2(tmp_path / "robot", RobotBag(seconds=4.0, labels=[], stamped_commands=False))
+    mapping = write_mapping(tmp_path / "map.yaml")
+    assert (
+        main(["convert", str(bag), "--out", str(tmp_path / "data"), "--mapping", str(mapping), "--quiet"])
+        == 0
+    )
+    converted = PlayDataset.open(tmp_path / "data")
+    episode = converted.episode(0)
+    assert converted.records[0].episode_id == "robot:0" and episode.num_steps + 1 == 40
+
+    steps: list[PlayStep] = []
+    peer.node.create_subscription(PlayStep, "/play/steps", steps.append, qos.PLAY_STEPS)
+    adapter, adapter_log = procs.node(
+        "topic_adapter", "adapter", mapping=str(mapping), episode_id="robot", use_sim_time=True,
+        idle_timeout_s=3.0,
+    )  # fmt: skip
+    # volatile: play once the adapter publishes to this test (its timer discovers the player on sim time 0)
+    assert peer.spin_until(lambda: peer.node.count_publishers("/play/steps") >= 1, 60)
+    wait_for_log(adapter_log, r"topic_adapter\]: mapping", 30, adapter)
+    peer.spin_until(lambda: False, 1.0)
+    player, player_log = procs.node(
+        "bag_player", "player", bag=str(bag), rate=1.0, clock=True, topics=TOPICS, wait_for_subscribers=1,
+        wait_topics=TOPICS,
+    )  # fmt: skip
+    ended = lambda: any(s.episode_end for s in steps)  # noqa: E731
+    assert peer.spin_until(ended, 60), adapter_log.read_text()[-3000:] + player_log.read_text()[-2000:]
+    peer.spin_until(lambda: False, 1.0)  # nothing more comes
+    assert player.wait(timeout=30) == 0
+
+    assert [(s.episode_id, s.step) for s in steps] == [("robot:0", t) for t in range(episode.num_steps + 1)]
+    for t, msg in enumerate(steps):
+        frame = np.frombuffer(bytes(msg.observation.data), np.uint8).reshape(episode.images[CAMERA].shape[1:])
+        np.testing.assert_array_equal(frame, episode.images[CAMERA][t])
+        np.testing.assert_array_equal(np.asarray(msg.state, np.float32), episode.state[t])
+        if t < episode.num_steps:
+            np.testing.assert_array_equal(np.asarray(msg.action, np.float32), episode.actions[t])
+    text = adapter_log.read_text()
+    assert "dropped" not in text and "Traceback" not in text, text[-3000:]
+    assert stop(adapter) == 0
+
+
+def test_bag_player_clock_publishes_each_messages_recorded_time_before_it(
+    procs: Processes, peer: RosPeer, tmp_path: Path
+) -> None:
+    bag = write_rosbag2(tmp_path / "robot", RobotBag(seconds=0.5, labels=[]))
+    recorded = sorted(t for _, _, _, t in messages_of(bag))
+    clocks: list[int] = []
+    commands: list[object] = []
+    peer.node.create_subscription(
+        Clock,
+        "/clock",
+        lambda m: clocks.append(m.clock.sec * 10**9 + m.clock.nanosec),
+        QoSProfile(depth=1000),
+    )
+    twist = message_class("geometry_msgs/msg/Twist")
+    peer.node.create_subscription(twist, "/cmd_vel", commands.append, QoSProfile(depth=1000))
+    player, log = procs.node(
+        "bag_player", "player", bag=str(bag), rate=1.0, clock=True, wait_for_subscribers=1,
+        wait_topics=["/cmd_vel"],
+    )  # fmt: skip
+    done = lambda: player.poll() is not None and len(clocks) >= len(recorded)  # noqa: E731
+    assert peer.spin_until(done, 60), log.read_text()
+    assert player.returncode == 0
+    assert clocks == recorded  # the recorded time of each message, in order (published before it)
+    assert len(commands) == 5

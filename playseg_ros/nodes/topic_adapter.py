@@ -11,6 +11,14 @@ step-numbered ``Annotation``s when their episode ends. One topic falling silent 
 (a camera died) is reported once it lags ``max_lag_s`` behind them; from then on its steps are decided
 without waiting for it, so the other topics' buffers stay bounded.
 
+Message times: ``header.stamp`` (mapping ``clock: header``), else the node's clock when the message is
+received (right on a robot). Replaying a bag: bag_player ``clock:=true`` (or ``ros2 bag play --clock``)
+at recorded speed and this node with ``use_sim_time:=true``; a message without a header then takes the
+/clock value in effect when the player published it (live.py ReplayStamps), its recorded time, so the
+steps are those `playseg convert` makes of the bag. A message published before the first /clock has no
+time (the replay's clock is not set): refused with a warning. The discovery/idle timer runs on the steady
+clock, so the stream ends ``idle_timeout_s`` of real time after the replay's last message.
+
 Lifecycle: configure reads the mapping and creates the publishers and the discovery/idle timer;
 activate subscribes to each mapping topic once a publisher reveals its type (or at once with
 ``topic_types``); deactivate unsubscribes and ends the open stream; cleanup (and shutdown, error
@@ -23,13 +31,17 @@ import time
 from typing import Any
 
 from playseg_msgs.msg import Annotation, PlayStep
+from rclpy.clock import Clock, ClockType
 from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
+from rosgraph_msgs.msg import Clock as ClockMessage
 
 from playseg_ros import qos
 from playseg_ros.convert.errors import MappingError
-from playseg_ros.convert.live import DEFAULT_MAX_LAG_S, LiveMapping, LiveOutput
+from playseg_ros.convert.live import DEFAULT_MAX_LAG_S, LiveMapping, LiveOutput, ReplayStamps
 from playseg_ros.convert.mapping import load_mapping
+from playseg_ros.convert.source import message_time
 from playseg_ros.messages import RCLPY, annotation_message, play_step_message
 from playseg_ros.nodes.common import ReleasingLifecycleNode, declare, require, run_node
 from playseg_ros.ros_types import message_class
@@ -73,6 +85,10 @@ class TopicAdapterNode(ReleasingLifecycleNode):
         self._last_message = 0.0
         self._stream_open = False
         self.published = 0
+        self._episodes_done = 0  # episodes of earlier configurations: their ids are never published again
+        self._clock_sub = None
+        self._replay: ReplayStamps | None = None  # use_sim_time: times of messages without a header
+        self._refused_seen = 0
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:
@@ -94,14 +110,19 @@ class TopicAdapterNode(ReleasingLifecycleNode):
                 given[topic] = type_name
             unknown = sorted(set(given) - set(mapping.topics))
             require(not unknown, self, f"topic_types names topics the mapping does not read: {unknown}")
-            self.live = LiveMapping(mapping, self.episode_id, self.get_name(), self.max_lag_s)
+            self.live = LiveMapping(
+                mapping, self.episode_id, self.get_name(), self.max_lag_s, first_episode=self._episodes_done
+            )
             self._types = given
             self._steps_pub = self.create_publisher(PlayStep, self.steps_topic, qos.PLAY_STEPS)
             if self.annotations_topic:
                 self._annotations_pub = self.create_publisher(
                     Annotation, self.annotations_topic, qos.ANNOTATIONS
                 )
-            self._timer = self.create_timer(0.1, self._tick, autostart=False)
+            # steady: with use_sim_time a ROS-time timer stands still until the first /clock (no discovery,
+            # a player waiting for subscribers never starts) and after the last one (the stream never ends)
+            steady = Clock(clock_type=ClockType.STEADY_TIME)
+            self._timer = self.create_timer(0.1, self._tick, autostart=False, clock=steady)
         except Exception as exc:  # any configuration problem: report it, stay unconfigured (retryable)
             self.get_logger().error(str(exc) if isinstance(exc, ValueError) else f"configure failed: {exc!r}")
             self.release()
@@ -112,6 +133,15 @@ class TopicAdapterNode(ReleasingLifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        if self.get_parameter("use_sim_time").value:
+            self._replay = ReplayStamps()
+            self._refused_seen = 0
+            # its own /clock reader (the time source keeps only the newest): every value, with its source
+            # timestamp; best effort as the time source's, so it matches any /clock publisher
+            profile = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
+            self._clock_sub = self.create_subscription(
+                ClockMessage, "/clock", self._on_clock, profile, raw=True
+            )
         self._timer.reset()
         self._subscribe_discovered()
         return super().on_activate(state)
@@ -133,12 +163,18 @@ class TopicAdapterNode(ReleasingLifecycleNode):
             if publisher is not None:
                 self.destroy_publisher(publisher)
                 setattr(self, name, None)
+        if self.live is not None:
+            self._episodes_done = self.live.episodes_done
         self.live = None
 
     def _unsubscribe(self) -> None:
         for sub in self._subs.values():
-            self.destroy_subscription(sub)
+            if sub is not None:
+                self.destroy_subscription(sub)
         self._subs.clear()
+        if self._clock_sub is not None:
+            self.destroy_subscription(self._clock_sub)
+            self._clock_sub = None
 
     def _tick(self) -> None:
         self._subscribe_discovered()
@@ -151,13 +187,13 @@ class TopicAdapterNode(ReleasingLifecycleNode):
     def _take_queued(self) -> bool:
         """Handle the messages waiting in the subscriptions' readers; whether there were any."""
         taken = False
-        for topic, sub in list(self._subs.items()):
-            while sub is not None and self._subs.get(topic) is sub:
+        for sub in [self._clock_sub, *self._subs.values()]:
+            while sub is not None and (sub is self._clock_sub or sub in self._subs.values()):
                 with sub.handle:  # as rclpy's executor takes a message
                     message = sub.handle.take_message(sub.msg_type, sub.raw)
                 if message is None:
                     break
-                sub.callback(message[0])
+                sub.callback(*message)
                 taken = True
         return taken
 
@@ -183,18 +219,53 @@ class TopicAdapterNode(ReleasingLifecycleNode):
             self._types[topic] = type_name
             # raw: deserialized here, so the receive time is taken before any work
             self._subs[topic] = self.create_subscription(
-                msg_class, topic, lambda data, t=topic, c=msg_class: self._on_message(t, c, data), profile,
+                msg_class, topic,
+                lambda data, info, t=topic, c=msg_class: self._on_message(t, c, data, info), profile,
                 raw=True,
             )  # fmt: skip
             self.get_logger().info(f"subscribed to {topic} ({type_name})")
 
-    def _on_message(self, topic: str, msg_class: type, data: bytes) -> None:
+    def _on_clock(self, data: bytes, info: dict) -> None:
+        if self._replay is None:
+            return
+        msg = deserialize_message(data, ClockMessage)
+        self._add_released(self._replay.clock(info["source_timestamp"], _ns(msg.clock)))
+
+    def _on_message(self, topic: str, msg_class: type, data: bytes, info: dict) -> None:
         received = self.get_clock().now().nanoseconds
         self._last_message = time.monotonic()
         self._stream_open = True
         try:
             msg = deserialize_message(data, msg_class)
-            output = self.live.add(topic, self._types[topic], msg, received)
+        except Exception as exc:  # one bad message must not take the node down: reported, dropped
+            self.get_logger().error(f"{topic}: message dropped: {exc!r}")
+            return
+        own_time = message_time(msg, 0, self.live.mapping.clock == "header")  # 0: none (receive time)
+        if self._replay is not None and not own_time and info.get("source_timestamp"):
+            self._add_released(self._replay.stamp(info["source_timestamp"], (topic, msg)))
+            return
+        if not own_time and not received:  # use_sim_time, no /clock yet: the time would be 0
+            self._refused(topic)
+            return
+        self._add(topic, msg, received)
+
+    def _add_released(self, released: list[tuple[int, tuple[str, Any]]]) -> None:
+        for stamp, (topic, msg) in released:
+            self._add(topic, msg, stamp)
+        if self._replay is not None and self._replay.refused > self._refused_seen:
+            self._refused_seen = self._replay.refused
+            self._refused(self._replay.last_refused[0])
+
+    def _refused(self, topic: str) -> None:
+        self.get_logger().warning(
+            f"{topic}: message without header.stamp published before the first /clock (use_sim_time: no "
+            "time yet): dropped",
+            throttle_duration_sec=5.0,
+        )
+
+    def _add(self, topic: str, msg: Any, received_ns: int) -> None:
+        try:
+            output = self.live.add(topic, self._types[topic], msg, received_ns)
         except Exception as exc:  # one bad message must not take the node down: reported, dropped
             self.get_logger().error(f"{topic}: message dropped: {exc!r}")
             return
@@ -203,6 +274,8 @@ class TopicAdapterNode(ReleasingLifecycleNode):
     def _end_stream(self) -> None:
         if self.live is None or not self._stream_open:
             return
+        if self._replay is not None:
+            self._add_released(self._replay.flush())
         self._stream_open = False
         self._publish(self.live.end_stream(), ended=True)
 
@@ -222,6 +295,10 @@ class TopicAdapterNode(ReleasingLifecycleNode):
                 self._annotations_pub.publish(annotation_message(episode_id, segment, stamp, kind=RCLPY))
         if ended:
             self.get_logger().info(f"stream ended: {self.published} steps published so far")
+
+
+def _ns(stamp: Any) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def main(args: list[str] | None = None) -> int:
