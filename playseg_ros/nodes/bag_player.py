@@ -6,6 +6,9 @@ reliable KEEP_ALL on both sides, so nothing is dropped: a subscriber slower than
 backlog in its reader (benchmarks/bench_live.py measures the resulting latency).
 `wait_for_subscribers` delays the start until each of `wait_topics` (default: the PlayStep topics) has that
 many subscribers (volatile topics have no history for late joiners). Annotation topics are published transient-local.
+`clock` publishes the recording's time on /clock before each message, as `ros2 bag play --clock` does: a
+node with `use_sim_time` then reads the recording's time from its clock, which is what gives a message
+without a header (a `geometry_msgs/Twist` command) its recorded time in a replay.
 
 A bag that cannot be read to its end (a damaged or truncated file) ends the node with exit code 1 after
 what could be read was published (and delivered), so `playseg up` reports it instead of a silent
@@ -18,8 +21,10 @@ import threading
 import time
 
 import rclpy
+from builtin_interfaces.msg import Time
 from rclpy.duration import Duration
 from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
 
 from playseg_ros import qos
 from playseg_ros.bag import BagReader
@@ -44,6 +49,9 @@ class BagPlayerNode(Node):
         self.delivery_timeout_s = declare(
             self, "delivery_timeout_s", 300.0, "at the end, wait this long at most for acknowledgements"
         )
+        publish_clock = declare(
+            self, "clock", False, "publish the recording's time on /clock before each message (use_sim_time)"
+        )
         require(bool(self.bag), self, "bag must be set")
         require(self.rate >= 0, self, "rate must be >= 0")
         self.reader = BagReader(self.bag)
@@ -51,6 +59,7 @@ class BagPlayerNode(Node):
         unknown = sorted(set(wanted) - set(self.reader.topics))
         require(not unknown, self, f"topics {unknown} are not in bag {self.bag}")
         self.topic_types = {t: ty for t, ty in self.reader.topics.items() if not wanted or t in wanted}
+        self.clock_publisher = self.create_publisher(Clock, "/clock", 10) if publish_clock else None
         self.publishers_by_topic = {}
         for topic, type_name in self.topic_types.items():
             profile = (
@@ -90,6 +99,9 @@ class BagPlayerNode(Node):
                     first_log = message.log_time_ns if first_log is None else first_log
                     due = started + (message.log_time_ns - first_log) / 1e9 / self.rate
                     time.sleep(max(0.0, due - time.monotonic()))
+                if self.clock_publisher is not None:
+                    seconds, nanoseconds = divmod(message.log_time_ns, 1_000_000_000)
+                    self.clock_publisher.publish(Clock(clock=Time(sec=seconds, nanosec=nanoseconds)))
                 data = message.data
                 if message.topic in self.earlier_definition:
                     data = as_current_cdr(data, *self.earlier_definition[message.topic])
