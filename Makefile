@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 # (tests/conftest.py).
 DEMO_ENV := ROS_DOMAIN_ID=$(or $(ROS_DOMAIN_ID),77) ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 
-.PHONY: setup demo test lint format bags bench clean
+.PHONY: setup demo test lint format bags models bench clean
 
 setup:
 	@bash scripts/setup_env.sh
@@ -35,6 +35,12 @@ bags: setup
 	cp -r build/sample/bags/annotated build/sample/bags/play build/sample/bags/test bags/
 	# tabletop play as a robot records it (standard messages, docs/tabletop.md): one annotated bag, one not
 	$(PY) -m playseg_ros.tabletop.bags --out bags/tabletop --episodes 2 --annotated 1 --images jpeg --overwrite
+
+# The sample PS models the demo uses (bags/models, bags/README.md): BabyAI's trained on bags/annotated,
+# the tabletop's on generated play (playseg_ros/demo.py TABLETOP_RECIPE). Without them `make demo` trains
+# stand-ins (slower, and the tabletop one far weaker).
+models: setup
+	$(PY) -m playseg_ros.cli demo --train-models
 
 clean:
 	rm -rf build $(VENV) .pytest_cache

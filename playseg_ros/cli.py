@@ -34,9 +34,9 @@ DEFAULT_DOMAIN = "babyai"
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from playseg_ros.demo import run_demo
+    from playseg_ros.demo import run_demo, train_sample_models
 
-    return run_demo()
+    return train_sample_models() if args.train_models else run_demo()
 
 
 def _cmd_bag_info(args: argparse.Namespace) -> int:
@@ -182,6 +182,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         args.encoder,
         args.method,
         args.encoders_from,
+        args.label_head,
     )
 
 
@@ -249,6 +250,13 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
         metavar="FEATURE=KIND",
         help="step encoder of a feature instead of the default: image_cnn, state_mlp, discrete_action, "
         "continuous_action, a domain's kind (e.g. babyai.grid_tiles), or none (not read); repeatable",
+    )
+    train.add_argument(
+        "--label-head",
+        choices=["linear", "text"],
+        help="how PS scores an instruction: linear (one weight row per instruction) or text (from its words, "
+        "shared between instructions: many compositional instructions, few segments each); default: the "
+        "domain's choice, else linear",
     )
     train.add_argument(
         "--method",
@@ -414,6 +422,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="print a traceback for every failure")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     demo = sub.add_parser("demo", help="run the main job on the sample bags in bags/")
+    demo.add_argument(
+        "--train-models",
+        action="store_true",
+        help="instead: train the sample PS models the demo uses into bags/models (`make models`; about an hour)",
+    )
     demo.set_defaults(func=_cmd_demo)
     _add_bag_commands(sub)
     _add_generate_command(sub)

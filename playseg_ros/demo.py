@@ -20,8 +20,22 @@ import shutil
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from playseg_ros.launch import Graph
 
 DEMO_DIR = Path("build/demo")
+BABYAI_MODEL = "babyai-ps.pt"
+TABLETOP_MODEL = "tabletop-ps.pt"
+"""The sample models next to the sample bags (bags/models/, written by `make models`): with them the demo
+trains no PS model."""
+TABLETOP_RECIPE = {"preset": "paper", "seed": 0, "epochs": 12}
+"""How `make models` trains the tabletop sample model: generated play of this preset and seed, its train
+split for this many epochs (calibrated on its val split)."""
+TABLETOP_STAND_IN = {"preset": "small", "seed": 0, "epochs": 8}
+"""What the demo trains when the sample tabletop model is missing or stale: minutes, not hours, and far
+weaker (it says so)."""
 PLAY_TIMEOUT_S = 240.0
 SEGMENT_TIMEOUT_S = 300.0
 
@@ -30,28 +44,51 @@ def _log(message: str) -> None:
     print(f"[demo {time.strftime('%H:%M:%S')}] {message}", flush=True)
 
 
-def _cache_key(bag: Path) -> str:
-    """The bag's content and playseg_core's code: a cached model is reused only if both are the same."""
-    import playseg_core
-
+def bag_digest(bag: Path) -> str:
+    """The content of a bag's MCAP files: a model trained on the bag is reused only for the same content."""
     digest = hashlib.sha256()
-    code = sorted(Path(playseg_core.__file__).parent.rglob("*.py"))
-    for file in [*sorted(bag.glob("*.mcap")), *code]:
+    for file in sorted(bag.glob("*.mcap")):
+        digest.update(file.name.encode())
         digest.update(file.read_bytes())
     return digest.hexdigest()[:16]
 
 
-def ensure_ps_model(annotated_bag: Path, cache_dir: Path) -> Path:
-    """Train the PS model on the annotated bag unless a model for this exact bag is cached."""
+def _code_digest() -> str:
+    """playseg_core's code: a model cached by a run of the demo is reused only by the same code."""
+    import playseg_core
+
+    digest = hashlib.sha256()
+    for file in sorted(Path(playseg_core.__file__).parent.rglob("*.py")):
+        digest.update(file.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def shipped_model(path: Path, trained_on: str) -> Path | None:
+    """``path`` (a model `make models` wrote next to the sample bags) when it loads with this code and was
+    trained on ``trained_on`` (a bag digest or a generator command); None, saying why, otherwise."""
+    from playseg_core.checkpoint import CheckpointError
+    from playseg_core.ps.model import load_model
+
+    if not path.is_file():
+        return None
+    try:
+        _, meta = load_model(path)
+    except CheckpointError as error:
+        _log(f"not using {path}: {error}; training instead (`make models` rewrites it)")
+        return None
+    if meta.get("trained_on") != trained_on:
+        _log(f"not using {path}: trained on {meta.get('trained_on')!r}, not {trained_on!r}; training instead")
+        return None
+    return path
+
+
+def train_babyai_model(annotated_bag: Path, model_path: Path) -> Path:
+    """Train and calibrate the BabyAI demo's PS model on the annotated sample bag (4-8 minutes here)."""
     from playseg_core.ps.calibration import calibrate_ps_model
     from playseg_core.ps.model import save_model
     from playseg_core.ps.training import TrainConfig, model_config_for, segment_bounds, train_ps
     from playseg_ros.play_bags import load_annotated
 
-    model_path = cache_dir / f"ps-{_cache_key(annotated_bag)}.pt"
-    if model_path.exists():
-        _log(f"reusing cached PS model {model_path}")
-        return model_path
     annotated = load_annotated(annotated_bag)
     info, episodes = annotated.info, annotated.episodes
     if info.features is None or not info.instructions:
@@ -74,14 +111,100 @@ def ensure_ps_model(annotated_bag: Path, cache_dir: Path) -> Path:
     config = TrainConfig(k_max=bounds.k_max, progress=sys.stderr.isatty())
     result = train_ps(train, val, info.instructions, config, model_cfg)
     calibrated = calibrate_ps_model(result.model, val)
-    cache_dir.mkdir(parents=True, exist_ok=True)
-    save_model(model_path, result.model, {"trained_on": str(annotated_bag), **calibrated})
+    model_path.parent.mkdir(parents=True, exist_ok=True)
+    save_model(model_path, result.model, {"trained_on": bag_digest(annotated_bag), **calibrated})
     bias = calibrated["end_bias"]
     _log(
         f"PS model trained in {result.seconds:.0f} s -> {model_path}; end bias {bias['bias']:+.2f} "
         f"(val boundary F1 {bias['f1']:.3f}, {bias['f1_without_bias']:.3f} without it)"
     )
     return model_path
+
+
+def ensure_ps_model(annotated_bag: Path, cache_dir: Path, shipped: Path | None = None) -> Path:
+    """The BabyAI demo's PS model: ``shipped`` (the sample model, `make models`) when it was trained on this
+    bag and loads, else one cached by an earlier run for this bag and code, else a newly trained one."""
+    trained_on = bag_digest(annotated_bag)
+    if shipped is not None and shipped_model(shipped, trained_on) is not None:
+        _log(f"using the sample PS model {shipped} (trained on {annotated_bag} by `make models`)")
+        return shipped
+    model_path = cache_dir / f"ps-{trained_on}-{_code_digest()}.pt"
+    if model_path.exists():
+        _log(f"reusing cached PS model {model_path}")
+        return model_path
+    return train_babyai_model(annotated_bag, model_path)
+
+
+def _recipe_text(recipe: dict) -> str:
+    return (
+        f"playseg generate --domain tabletop --preset {recipe['preset']} --seed {recipe['seed']}; "
+        f"PS trained {recipe['epochs']} epochs on its train split"
+    )
+
+
+def train_tabletop_model(recipe: dict, work_dir: Path, model_path: Path) -> Path:
+    """Generate tabletop play as ``recipe`` says and train and calibrate a PS model on it (the domain's
+    step encoders and label head)."""
+    from playseg_core.data.dataset import PlayDataset
+    from playseg_core.domains import load_domain
+    from playseg_core.ps.calibration import calibrate_ps_model
+    from playseg_core.ps.model import save_model
+    from playseg_core.ps.training import TrainConfig, model_config_for, segment_bounds, train_ps
+
+    data = work_dir / f"tabletop-{recipe['preset']}-{recipe['seed']}"
+    if not (data / "meta" / "info.json").is_file():
+        _log(f"generating tabletop play ({recipe['preset']} preset) into {data} ...")
+        load_domain("tabletop").generate_dataset(data, recipe["preset"], recipe["seed"], 2, False, True)
+    dataset = PlayDataset.open(data)
+    train, val = list(dataset.episodes("train")), list(dataset.episodes("val"))
+    bounds = segment_bounds(train, dataset.domain)
+    model_cfg = model_config_for(
+        dataset.features, dataset.domain, len(dataset.instructions), max_len=bounds.max_len, episodes=train,
+        min_len=bounds.min_len,
+    )  # fmt: skip
+    _log(
+        f"training the tabletop PS model on {sum(len(e.segments) for e in train)} annotated segments, "
+        f"{recipe['epochs']} epochs ..."
+    )
+    config = TrainConfig(
+        k_max=bounds.k_max, epochs=recipe["epochs"], min_steps=0, progress=sys.stderr.isatty()
+    )
+    result = train_ps(train, val, dataset.instructions, config, model_cfg)
+    calibrated = calibrate_ps_model(result.model, val)
+    model_path.parent.mkdir(parents=True, exist_ok=True)
+    save_model(model_path, result.model, {"trained_on": _recipe_text(recipe), **calibrated})
+    _log(f"tabletop PS model trained in {result.seconds:.0f} s -> {model_path}")
+    return model_path
+
+
+def ensure_tabletop_model(cache_dir: Path, shipped: Path | None = None) -> Path:
+    """The robot half's PS model: ``shipped`` (`make models`) when it loads with this code, else a cached
+    or newly trained stand-in (`TABLETOP_STAND_IN`)."""
+    if shipped is not None and shipped_model(shipped, _recipe_text(TABLETOP_RECIPE)) is not None:
+        _log(f"using the sample tabletop PS model {shipped} ({_recipe_text(TABLETOP_RECIPE)}; `make models`)")
+        return shipped
+    model_path = cache_dir / "tabletop-ps-stand-in.pt"
+    if shipped_model(model_path, _recipe_text(TABLETOP_STAND_IN)) is not None:
+        _log(f"reusing the stand-in tabletop PS model {model_path} (`make models` trains the sample model)")
+        return model_path
+    _log(f"no sample tabletop model: training a weaker stand-in ({_recipe_text(TABLETOP_STAND_IN)})")
+    return train_tabletop_model(TABLETOP_STAND_IN, cache_dir, model_path)
+
+
+def train_sample_models(bags_dir: Path = Path("bags"), work_dir: Path = Path("build/models")) -> int:
+    """`make models`: the sample models the demo uses, into ``bags_dir``/models."""
+    out = bags_dir / "models"
+    train_babyai_model(bags_dir / "annotated", out / BABYAI_MODEL)
+    train_tabletop_model(TABLETOP_RECIPE, work_dir, out / TABLETOP_MODEL)
+    return 0
+
+
+def player_graph(bag: Path, log_dir: Path, **parameters) -> Graph:
+    """A graph of one bag_player node playing ``bag`` (exits when done), with its other ``parameters``."""
+    from playseg_ros.launch import Graph, GraphSpec, NodeSpec
+
+    spec = NodeSpec("bag_player", "bag_player", {"bag": str(bag), "exit_when_done": True, **parameters})
+    return Graph(GraphSpec([spec]), log_dir=log_dir)
 
 
 class _DemoClient:
@@ -157,7 +280,8 @@ def run_demo(bags_dir: Path = Path("bags"), out_dir: Path = DEMO_DIR) -> int:
         if not (bag / "metadata.yaml").is_file():
             print(f"error: sample bag {bag} is missing (regenerate with `make bags`)", file=sys.stderr)
             return 2
-    model_path = ensure_ps_model(annotated_bag, out_dir / "cache")
+    model_path = ensure_ps_model(annotated_bag, out_dir / "cache", bags_dir / "models" / BABYAI_MODEL)
+    robot_model = ensure_tabletop_model(out_dir / "cache", bags_dir / "models" / TABLETOP_MODEL)
 
     run_dir = out_dir / "run"
     if run_dir.exists():
@@ -197,23 +321,7 @@ def run_demo(bags_dir: Path = Path("bags"), out_dir: Path = DEMO_DIR) -> int:
         _log(f"policy v{before.policy_version}: success {before.eval_success_rate:.3f}")
 
         truth_episodes = read_play_bag(play_bag, truth=True)
-        player = Graph(
-            GraphSpec(
-                [
-                    NodeSpec(
-                        "bag_player",
-                        "bag_player",
-                        {
-                            "bag": str(play_bag),
-                            "rate": 0.0,
-                            "wait_for_subscribers": 2,
-                            "exit_when_done": True,
-                        },
-                    )
-                ]
-            ),
-            log_dir=run_dir / "logs",
-        )
+        player = player_graph(play_bag, run_dir / "logs", rate=0.0, wait_for_subscribers=2)
         _log(f"bag_player: publishing {len(truth_episodes)} unannotated play episodes from {play_bag} ...")
         player.start()
         started = time.monotonic()
@@ -260,9 +368,7 @@ def run_demo(bags_dir: Path = Path("bags"), out_dir: Path = DEMO_DIR) -> int:
         "label_accuracy": metrics["label_accuracy"],
         "policy_success_before": before.eval_success_rate,
         "policy_success_after": after.eval_success_rate,
-        "seconds": time.monotonic() - began,
     }
-    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     from playseg_core.ps.timeline import plot_timeline
 
     timeline = run_dir / "timeline.png"
@@ -280,7 +386,31 @@ def run_demo(bags_dir: Path = Path("bags"), out_dir: Path = DEMO_DIR) -> int:
     )
     _log(
         f"outputs: recorded bag {output_bag} (play steps + /segments), policies {run_dir / 'policies'}, "
-        f"buffer {run_dir / 'buffer'}, timeline {timeline}, summary {run_dir / 'summary.json'}"
+        f"buffer {run_dir / 'buffer'}, timeline {timeline}"
     )
-    _log(f"done in {summary['seconds']:.0f} s")
+
+    print()
+    _log(
+        "robot half: a tabletop robot bag in standard messages (camera, joint states, velocity commands) ..."
+    )
+    from playseg_ros.demo_robot import run_robot_half
+
+    robot = run_robot_half(bags_dir, run_dir, robot_model)
+    print(robot.table)
+    r = robot.summary
+    _log(
+        f"{r['bag']}: {r['segments']} segments live ({r['true_segments']} true); boundary precision "
+        f"{r['precision']:.3f} recall {r['recall']:.3f} (exact), F1 {r['f1_tol2']:.3f} within 2 steps (0.2 s), "
+        f"label accuracy {r['label_accuracy']:.3f}; convert --segment stored the {r['stored_segments']} at or above "
+        f"the label threshold {r['label_threshold']:.2f}, the same as live: {r['live_equals_convert']}"
+    )
+    lerobot = r["lerobot"]
+    _log(
+        f"LeRobot {lerobot['codebase_version']} dataset {lerobot['path']}: {lerobot['episodes']} episodes, "
+        f"{lerobot['frames']} frames, {lerobot['tasks']} tasks, {lerobot['instructions']} distinct per-frame "
+        f"instructions (language_persistent, style subtask), videos {', '.join(lerobot['videos'])}"
+    )
+    summary = {"babyai": summary, "robot": robot.summary, "seconds": time.monotonic() - began}
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    _log(f"done in {summary['seconds']:.0f} s; summary {run_dir / 'summary.json'}")
     return 0 if not math.isnan(after.eval_success_rate) else 1

@@ -23,6 +23,17 @@ from playseg_core.ps.training import model_config_for
 PARKED = np.array([[0.05 + 0.055 * i, 0.45] for i in range(8)])
 
 
+def tabletop_shaped_episode(num_steps: int) -> Episode:
+    """Random actions and states of the tabletop's shapes, black frames: statistics for a model config."""
+    rng = np.random.default_rng(0)
+    return Episode(
+        "e",
+        rng.uniform(-0.2, 0.2, (num_steps, 2)).astype(np.float32),
+        {CAMERA: np.zeros((num_steps + 1, 96, 96, 3), np.uint8)},
+        rng.uniform(0, 0.5, (num_steps + 1, 4)).astype(np.float32),
+    )
+
+
 def _pixel(point: tuple[float, float], size: int) -> tuple[float, float]:
     """(row, column) of a table point in a ``size`` frame (render.py's projection)."""
     scale = size / (TABLE_SIZE + 2 * VIEW_BORDER)
@@ -67,13 +78,7 @@ def test_the_encoder_refuses_a_frame_it_cannot_read() -> None:
 def test_the_domain_chooses_object_maps_and_the_text_head_and_checkpoints_keep_them(tmp_path: Path) -> None:
     features = PlayConfig().features
     instructions = ["push the red cube left", "push the blue cube right", "move the arm to the centre"]
-    rng = np.random.default_rng(0)
-    episode = Episode(
-        "e",
-        rng.uniform(-0.2, 0.2, (10, 2)).astype(np.float32),
-        {CAMERA: np.zeros((11, 96, 96, 3), np.uint8)},
-        rng.uniform(0, 0.5, (11, 4)).astype(np.float32),
-    )
+    episode = tabletop_shaped_episode(10)
     config = model_config_for(features, DOMAIN, len(instructions), episodes=[episode])
     assert config.encoders[0] == object_map_spec(features[CAMERA]) and config.label_head == "text"
     assert (
