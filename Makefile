@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 # (tests/conftest.py).
 DEMO_ENV := ROS_DOMAIN_ID=$(or $(ROS_DOMAIN_ID),77) ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 
-.PHONY: setup demo test lint format bags models bench clean
+.PHONY: setup demo test lint format bags models bench clean lerobot-check
 
 setup:
 	@bash scripts/setup_env.sh
@@ -17,6 +17,16 @@ demo: setup
 
 test: setup
 	$(PY) -m pytest -q tests
+
+# The LeRobot export read by the real `lerobot` (LeRobotDataset, offline) and compared frame by frame
+# with its source (docs/convert.md, LeRobot v3.0). lerobot needs Python 3.12 and torch < 2.12: its own
+# environment, build/lerobot-venv (scripts/setup_lerobot_env.sh; built once, ~2.5 min and ~5.4 GB).
+LEROBOT_CHECK_DIR ?= build/lerobot-check
+lerobot-check: setup
+	@bash scripts/setup_lerobot_env.sh
+	$(PY) scripts/lerobot_export.py $(LEROBOT_CHECK_DIR)
+	HF_HUB_OFFLINE=1 HF_DATASETS_OFFLINE=1 build/lerobot-venv/bin/python scripts/lerobot_check.py \
+		$(LEROBOT_CHECK_DIR)/tabletop $(LEROBOT_CHECK_DIR)/synthetic
 
 lint: setup
 	$(VENV)/bin/ruff check .
