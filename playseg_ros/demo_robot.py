@@ -89,7 +89,7 @@ def _stream_live(play_bag: Path, mapping: Path, model: Path, run_dir: Path, expe
         play_bag, run_dir / "logs", rate=REPLAY_RATE, clock=True, topics=topics, wait_topics=topics,
         wait_for_subscribers=1,
     )  # fmt: skip
-    # Its own context: the caller's process may have a ROS node of its own (a test, the BabyAI half).
+    # Its own context: the caller's process may have a ROS node of its own (a test, the demo's first half).
     context = rclpy.Context()
     rclpy.init(context=context)
     node = rclpy.create_node("playseg_demo_robot", context=context)
