@@ -26,6 +26,8 @@ EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError)
 CheckpointError; OSError a missing, unreadable or unwritable path or a full disk."""
 
 SEGMENTATION_METHODS = ("ps", "unloc", "tridet", "random", "changepoint")
+LABEL_HEADS = ("linear", "text")
+"""playseg_core.ps.model.LABEL_HEADS, spelt here so that parsing the command line imports no torch."""
 """`--method` of train and segment: the names of playseg_core.baselines.registry.METHODS (listed here so
 `playseg --help` need not import torch; tests/test_baselines_cli.py checks they agree)."""
 
@@ -253,7 +255,7 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     )
     train.add_argument(
         "--label-head",
-        choices=["linear", "text"],
+        choices=LABEL_HEADS,
         help="how PS scores an instruction: linear (one weight row per instruction) or text (from its words, "
         "shared between instructions: many compositional instructions, few segments each); default: the "
         "domain's choice, else linear",
@@ -425,7 +427,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument(
         "--train-models",
         action="store_true",
-        help="instead: train the sample PS models the demo uses into bags/models (`make models`; about an hour)",
+        help="instead: train the sample PS models the demo uses into bags/models (`make models`; about 90 minutes here)",
     )
     demo.set_defaults(func=_cmd_demo)
     _add_bag_commands(sub)

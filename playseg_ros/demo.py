@@ -142,7 +142,14 @@ def _recipe_text(recipe: dict) -> str:
     )
 
 
-def train_tabletop_model(recipe: dict, work_dir: Path, model_path: Path) -> Path:
+def _stand_in_text() -> str:
+    """The stand-in is cached by a demo run: reused only by the same code, as the BabyAI cache."""
+    return f"{_recipe_text(TABLETOP_STAND_IN)}; code {_code_digest()}"
+
+
+def train_tabletop_model(
+    recipe: dict, work_dir: Path, model_path: Path, trained_on: str | None = None
+) -> Path:
     """Generate tabletop play as ``recipe`` says and train and calibrate a PS model on it (the domain's
     step encoders and label head)."""
     from playseg_core.data.dataset import PlayDataset
@@ -172,7 +179,7 @@ def train_tabletop_model(recipe: dict, work_dir: Path, model_path: Path) -> Path
     result = train_ps(train, val, dataset.instructions, config, model_cfg)
     calibrated = calibrate_ps_model(result.model, val)
     model_path.parent.mkdir(parents=True, exist_ok=True)
-    save_model(model_path, result.model, {"trained_on": _recipe_text(recipe), **calibrated})
+    save_model(model_path, result.model, {"trained_on": trained_on or _recipe_text(recipe), **calibrated})
     _log(f"tabletop PS model trained in {result.seconds:.0f} s -> {model_path}")
     return model_path
 
@@ -184,11 +191,11 @@ def ensure_tabletop_model(cache_dir: Path, shipped: Path | None = None) -> Path:
         _log(f"using the sample tabletop PS model {shipped} ({_recipe_text(TABLETOP_RECIPE)}; `make models`)")
         return shipped
     model_path = cache_dir / "tabletop-ps-stand-in.pt"
-    if shipped_model(model_path, _recipe_text(TABLETOP_STAND_IN)) is not None:
+    if shipped_model(model_path, _stand_in_text()) is not None:
         _log(f"reusing the stand-in tabletop PS model {model_path} (`make models` trains the sample model)")
         return model_path
     _log(f"no sample tabletop model: training a weaker stand-in ({_recipe_text(TABLETOP_STAND_IN)})")
-    return train_tabletop_model(TABLETOP_STAND_IN, cache_dir, model_path)
+    return train_tabletop_model(TABLETOP_STAND_IN, cache_dir, model_path, _stand_in_text())
 
 
 def train_sample_models(bags_dir: Path = Path("bags"), work_dir: Path = Path("build/models")) -> int:
@@ -276,9 +283,12 @@ def run_demo(bags_dir: Path = Path("bags"), out_dir: Path = DEMO_DIR) -> int:
 
     began = time.monotonic()
     annotated_bag, play_bag = bags_dir / "annotated", bags_dir / "play"
-    for bag in (annotated_bag, play_bag):
-        if not (bag / "metadata.yaml").is_file():
-            print(f"error: sample bag {bag} is missing (regenerate with `make bags`)", file=sys.stderr)
+    from playseg_ros.demo_robot import RobotHalfError, robot_half_inputs, run_robot_half
+
+    needed = [annotated_bag / "metadata.yaml", play_bag / "metadata.yaml", *robot_half_inputs(bags_dir)]
+    for path in needed:
+        if not path.is_file():
+            print(f"error: sample bag file {path} is missing (regenerate with `make bags`)", file=sys.stderr)
             return 2
     model_path = ensure_ps_model(annotated_bag, out_dir / "cache", bags_dir / "models" / BABYAI_MODEL)
     robot_model = ensure_tabletop_model(out_dir / "cache", bags_dir / "models" / TABLETOP_MODEL)
@@ -393,9 +403,12 @@ def run_demo(bags_dir: Path = Path("bags"), out_dir: Path = DEMO_DIR) -> int:
     _log(
         "robot half: a tabletop robot bag in standard messages (camera, joint states, velocity commands) ..."
     )
-    from playseg_ros.demo_robot import run_robot_half
-
-    robot = run_robot_half(bags_dir, run_dir, robot_model)
+    (run_dir / "summary.json").write_text(json.dumps({"babyai": summary}, indent=2))
+    try:
+        robot = run_robot_half(bags_dir, run_dir, robot_model)
+    except RobotHalfError as error:
+        print(f"error: the robot half failed: {error}", file=sys.stderr)
+        return 1
     print(robot.table)
     r = robot.summary
     _log(

@@ -33,6 +33,21 @@ def _log(message: str) -> None:
     print(f"[demo {time.strftime('%H:%M:%S')}] {message}", flush=True)
 
 
+class RobotHalfError(RuntimeError):
+    """The robot half could not run to its end (a node or a conversion failed); the message names it."""
+
+
+def robot_half_inputs(bags_dir: Path) -> list[Path]:
+    """The sample files the robot half reads (checked before the demo starts)."""
+    tabletop = bags_dir / "tabletop"
+    return [
+        tabletop / PLAY_BAG / "metadata.yaml",
+        tabletop / ANNOTATED_BAG / "metadata.yaml",
+        tabletop / "mapping.yaml",
+        tabletop / "mapping_truth.yaml",
+    ]
+
+
 @dataclass
 class RobotHalfResult:
     summary: dict
@@ -46,7 +61,7 @@ def _truth_episode(play_bag: Path, mapping_truth: Path, out: Path):
 
     summary = convert([play_bag], out, load_mapping(mapping_truth), 1, True, False)
     if summary.failed:
-        raise RuntimeError(f"{play_bag}: {summary.failed[0].error}")
+        raise RobotHalfError(f"{play_bag}: {summary.failed[0].error}")
     return PlayDataset.open(out).episode(0)
 
 
@@ -79,6 +94,7 @@ def _stream_live(play_bag: Path, mapping: Path, model: Path, run_dir: Path, expe
                         "episode_id": PLAY_BAG,
                         "idle_timeout_s": IDLE_TIMEOUT_S,
                         "use_sim_time": True,
+                        "wait_for_subscribers": 3,  # segmenter, recorder and this process
                     },
                 ),
             ]
@@ -110,8 +126,9 @@ def _stream_live(play_bag: Path, mapping: Path, model: Path, run_dir: Path, expe
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline and not condition():
             for name, proc in {**graph.processes, **player.processes}.items():
-                if proc.poll() is not None and name != "bag_player":
-                    raise RuntimeError(
+                # the player exits when done: only a failure counts (a damaged bag: exit code 1)
+                if proc.poll() is not None and (name != "bag_player" or proc.returncode != 0):
+                    raise RobotHalfError(
                         f"node {name} exited with code {proc.returncode}: see {graph.log_dir / name}.log"
                     )
             executor.spin_once(timeout_sec=0.1)
@@ -121,7 +138,7 @@ def _stream_live(play_bag: Path, mapping: Path, model: Path, run_dir: Path, expe
     try:
         # PlaySteps are volatile: play once the segmenter, the recorder and this node listen to the adapter.
         if not spin_until(lambda: node.count_subscribers("/play/steps") >= 3, 60.0):
-            raise RuntimeError(
+            raise RobotHalfError(
                 "segmenter and recorder did not subscribe to /play/steps (see build/demo/run/logs)"
             )
         _log(f"bag_player: publishing {play_bag} ({', '.join(topics)}) into topic_adapter ...")
@@ -129,8 +146,9 @@ def _stream_live(play_bag: Path, mapping: Path, model: Path, run_dir: Path, expe
         player.start()
         # Done when the segment ending at the episode's last step has arrived (a segmentation tiles it).
         if not spin_until(lambda: ends[0] >= expected_steps, STREAM_TIMEOUT_S):
-            _log(
-                f"warning: after {STREAM_TIMEOUT_S:.0f} s the segments reach step {ends[0]} of {expected_steps}"
+            raise RobotHalfError(
+                f"after {STREAM_TIMEOUT_S:.0f} s the segments reach step {ends[0]} of {expected_steps} "
+                f"({steps[0]} PlaySteps; logs in {graph.log_dir})"
             )
         _log(
             f"topic_adapter published {steps[0]} PlaySteps, the segments reach step {ends[0]}, "
@@ -185,12 +203,7 @@ def run_robot_half(bags_dir: Path, run_dir: Path, model: Path) -> RobotHalfResul
         tabletop / "mapping.yaml",
         tabletop / "mapping_truth.yaml",
     )
-    for path in (
-        play_bag / "metadata.yaml",
-        tabletop / ANNOTATED_BAG / "metadata.yaml",
-        mapping,
-        mapping_truth,
-    ):
+    for path in robot_half_inputs(bags_dir):
         if not path.is_file():
             raise FileNotFoundError(f"sample robot bag file {path} is missing (regenerate with `make bags`)")
     robot_dir = run_dir / "robot"
@@ -216,7 +229,7 @@ def run_robot_half(bags_dir: Path, run_dir: Path, model: Path) -> RobotHalfResul
         output_format="lerobot", segmentation=segmentation,
     )  # fmt: skip
     if exported.failed:
-        raise RuntimeError(f"convert: {exported.failed[0].error}")
+        raise RobotHalfError(f"convert: {exported.failed[0].error}")
     copy = PlayDataset.open(playseg_copy(lerobot_dir))
     by_id = {record.episode_id: index for index, record in enumerate(copy.records)}
     stored = copy.segments(by_id[truth.episode_id], truth=True) if truth.episode_id in by_id else []
@@ -246,4 +259,4 @@ def run_robot_half(bags_dir: Path, run_dir: Path, model: Path) -> RobotHalfResul
     return RobotHalfResult(summary, table)
 
 
-__all__ = ["RobotHalfResult", "run_robot_half"]
+__all__ = ["RobotHalfError", "RobotHalfResult", "robot_half_inputs", "run_robot_half"]

@@ -14,6 +14,8 @@ from test_baselines import FEATURES, INSTRUCTIONS, synthetic_episode
 from playseg_core.baselines.registry import METHODS
 from playseg_core.checkpoint import read_checkpoint
 from playseg_core.data.dataset import DatasetWriter, PlayDataset
+from playseg_core.ps.model import LABEL_HEADS
+from playseg_ros.cli import LABEL_HEADS as CLI_LABEL_HEADS
 from playseg_ros.cli import SEGMENTATION_METHODS
 from playseg_ros.cli import main as cli_main
 
@@ -30,8 +32,9 @@ def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-def test_the_command_line_offers_the_registry_methods() -> None:
+def test_the_command_line_offers_the_registry_methods_and_label_heads() -> None:
     assert SEGMENTATION_METHODS == tuple(METHODS)
+    assert CLI_LABEL_HEADS == LABEL_HEADS
 
 
 @pytest.mark.parametrize("method", list(METHODS))

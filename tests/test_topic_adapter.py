@@ -66,7 +66,12 @@ def test_live_steps_and_segments_equal_playseg_convert_segment(
         "segmenter", "segmenter", model=str(model_path), min_confidence=threshold
     )
     adapter, adapter_log = procs.node(
-        "topic_adapter", "adapter", mapping=str(mapping), episode_id="robot", idle_timeout_s=8.0
+        "topic_adapter",
+        "adapter",
+        mapping=str(mapping),
+        episode_id="robot",
+        idle_timeout_s=8.0,
+        wait_for_subscribers=2,
     )
     # PlaySteps are volatile: play once the segmenter and this test listen to the adapter.
     listening = lambda: peer.node.count_subscribers("/play/steps") >= 2  # noqa: E731
@@ -169,7 +174,7 @@ def test_headerless_twist_replayed_with_clock_gives_the_steps_of_playseg_convert
     peer.node.create_subscription(PlayStep, "/play/steps", steps.append, qos.PLAY_STEPS)
     adapter, adapter_log = procs.node(
         "topic_adapter", "adapter", mapping=str(mapping), episode_id="robot", use_sim_time=True,
-        idle_timeout_s=3.0,
+        idle_timeout_s=3.0, wait_for_subscribers=1,
     )  # fmt: skip
     # volatile: play once the adapter publishes to this test (its timer discovers the player on sim time 0)
     assert peer.spin_until(lambda: peer.node.count_publishers("/play/steps") >= 1, 60)

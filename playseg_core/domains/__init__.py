@@ -8,6 +8,8 @@ step encoders (ps/encoders.py) and exposes:
   for some features (None: not read); the others get the generic ones (ps/encoders.py);
 - optionally ``SEGMENT_BOUNDS`` (``min_len``, ``max_len``, ``k_max``): its measured segment-length
   bounds, used instead of the ones derived from the annotated segments (ps/training.py);
+- optionally ``LABEL_HEAD``: the label head its PS and labelling models use by default ("linear" or
+  "text", ps/model.py `LABEL_HEADS`);
 - ``POLICIES``: policy name -> factory of an `augment.policy.PolicyLearner` (config dict -> learner);
 - optionally ``PRESET_NAMES`` and ``generate_dataset(out, preset, seed, workers, progress, overwrite,
   annotated_share)`` when it can generate play (`playseg generate --domain <name>`).

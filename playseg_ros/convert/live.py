@@ -179,8 +179,8 @@ with the newest clock known, reported."""
 class ReplayStamps:
     """Times of messages without a header in a replay: the /clock value in effect when each was published.
 
-    A player publishing the recording's time on /clock before each message (bag_player ``clock``,
-    ``ros2 bag play --clock``) makes that value the message's recorded time. Publication order is read from
+    A player publishing the recording's time on /clock before each message (bag_player ``clock``; rosbag2
+    publishes /clock at a fixed rate instead, up to one period early) makes that value the message's recorded time. Publication order is read from
     DDS source timestamps (the publishing process's wall clock, the same for the player's /clock and its
     messages), so the time does not depend on when the adapter takes the message or the /clock. A message
     is held until a /clock published after it arrives (the clocks before it have then arrived too: one

@@ -6,9 +6,10 @@ reliable KEEP_ALL on both sides, so nothing is dropped: a subscriber slower than
 backlog in its reader (benchmarks/bench_live.py measures the resulting latency).
 `wait_for_subscribers` delays the start until each of `wait_topics` (default: the PlayStep topics) has that
 many subscribers (volatile topics have no history for late joiners). Annotation topics are published transient-local.
-`clock` publishes the recording's time on /clock before each message, as `ros2 bag play --clock` does: a
-node with `use_sim_time` then reads the recording's time from its clock, which is what gives a message
-without a header (a `geometry_msgs/Twist` command) its recorded time in a replay.
+`clock` publishes the recording's time on /clock before each message, like `ros2 bag play --clock` (which
+publishes it at a fixed rate instead): a node with `use_sim_time` then reads the recording's time from
+its clock, which is what gives a message without a header (a `geometry_msgs/Twist` command) its
+recorded time in a replay; the player waits for /clock subscribers too.
 
 A bag that cannot be read to its end (a damaged or truncated file) ends the node with exit code 1 after
 what could be read was published (and delivered), so `playseg up` reports it instead of a silent
@@ -133,9 +134,11 @@ class BagPlayerNode(Node):
     def _wait_for_subscribers(self) -> None:
         if self.wait_for_subscribers <= 0:
             return
+        # With `clock`, /clock too: a node on sim time must see the first one (it times the first message).
+        waited = [self.publishers_by_topic[topic] for topic in self.wait_topics]
+        waited += [self.clock_publisher] if self.clock_publisher is not None else []
         while rclpy.ok() and any(
-            self.publishers_by_topic[topic].get_subscription_count() < self.wait_for_subscribers
-            for topic in self.wait_topics
+            publisher.get_subscription_count() < self.wait_for_subscribers for publisher in waited
         ):
             time.sleep(0.05)
 

@@ -12,8 +12,8 @@ step-numbered ``Annotation``s when their episode ends. One topic falling silent 
 without waiting for it, so the other topics' buffers stay bounded.
 
 Message times: ``header.stamp`` (mapping ``clock: header``), else the node's clock when the message is
-received (right on a robot). Replaying a bag: bag_player ``clock:=true`` (or ``ros2 bag play --clock``)
-at recorded speed and this node with ``use_sim_time:=true``; a message without a header then takes the
+received (right on a robot). Replaying a bag: bag_player ``clock:=true`` (``ros2 bag play --clock`` publishes
+/clock at a fixed rate: up to one period early) at recorded speed and this node with ``use_sim_time:=true``; a message without a header then takes the
 /clock value in effect when the player published it (live.py ReplayStamps), its recorded time, so the
 steps are those `playseg convert` makes of the bag. A message published before the first /clock has no
 time (the replay's clock is not set): refused with a warning. The discovery/idle timer runs on the steady
@@ -66,6 +66,13 @@ class TopicAdapterNode(ReleasingLifecycleNode):
         )
         self.idle_timeout_s = declare(
             self, "idle_timeout_s", 5.0, "no message for this long ends the stream (its last episode)"
+        )
+        self.wait_for_subscribers = declare(
+            self,
+            "wait_for_subscribers",
+            0,
+            "subscribe to the mapped topics only once steps_topic has this many subscribers (PlaySteps "
+            "are volatile: a segmenter or recorder matched late would miss the first steps)",
         )
         self.max_lag_s = declare(
             self,
@@ -185,7 +192,7 @@ class TopicAdapterNode(ReleasingLifecycleNode):
                 self._end_stream()
 
     def _take_queued(self) -> bool:
-        """Handle the messages waiting in the subscriptions' readers; whether there were any."""
+        """Handle the messages waiting in the subscriptions' readers; whether any was a data message."""
         taken = False
         for sub in [self._clock_sub, *self._subs.values()]:
             while sub is not None and (sub is self._clock_sub or sub in self._subs.values()):
@@ -194,7 +201,8 @@ class TopicAdapterNode(ReleasingLifecycleNode):
                 if message is None:
                     break
                 sub.callback(*message)
-                taken = True
+                # /clock alone keeps no stream open (a simulator publishes it all the time)
+                taken = taken or sub is not self._clock_sub
         return taken
 
     def _subscribe_discovered(self) -> None:
@@ -203,6 +211,8 @@ class TopicAdapterNode(ReleasingLifecycleNode):
             return
         missing = [t for t in self.live.topics if t not in self._subs]
         if not missing:
+            return
+        if self._steps_pub is None or self._steps_pub.get_subscription_count() < self.wait_for_subscribers:
             return
         discovered = dict(self.get_topic_names_and_types())
         profile = qos.recorder_qos(self.reliability)
