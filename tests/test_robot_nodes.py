@@ -42,9 +42,13 @@ def _robot_model(path: Path, episodes: list) -> Path:
 
 
 def _call(peer: RosPeer, srv_type: type, name: str, request: object, timeout: float = 60.0) -> object:
+    """One service call through a new client, given half a second after the service shows up: Fast DDS
+    drops a server's response ("failed to send response (timeout)") while the client's response reader
+    is not matched yet, which a starved CPU can stretch past the server's wait."""
     client = peer.node.create_client(srv_type, name)
     try:
         assert client.wait_for_service(timeout_sec=15), f"{name} not offered"
+        peer.spin_until(lambda: False, 0.5)
         future = client.call_async(request)
         assert peer.spin_until(future.done, timeout), f"no answer from {name}"
         return future.result()
