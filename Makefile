@@ -20,12 +20,13 @@ test: setup
 
 # The LeRobot export read by the real `lerobot` (LeRobotDataset, offline) and compared frame by frame
 # with its source (docs/convert.md, LeRobot v3.0). lerobot needs Python 3.12 and torch < 2.12: its own
-# environment, build/lerobot-venv (scripts/setup_lerobot_env.sh; built once, ~2.5 min and ~5.4 GB).
+# environment, ~/.cache/playseg/lerobot-venv (scripts/setup_lerobot_env.sh; built once, ~2.5 min and ~5.4 GB).
 LEROBOT_CHECK_DIR ?= build/lerobot-check
+LEROBOT_VENV ?= $(or $(XDG_CACHE_HOME),$(HOME)/.cache)/playseg/lerobot-venv
 lerobot-check: setup
-	@bash scripts/setup_lerobot_env.sh
+	@LEROBOT_VENV=$(LEROBOT_VENV) bash scripts/setup_lerobot_env.sh
 	$(PY) scripts/lerobot_export.py $(LEROBOT_CHECK_DIR)
-	HF_HUB_OFFLINE=1 HF_DATASETS_OFFLINE=1 build/lerobot-venv/bin/python scripts/lerobot_check.py \
+	HF_HUB_OFFLINE=1 HF_DATASETS_OFFLINE=1 $(LEROBOT_VENV)/bin/python scripts/lerobot_check.py \
 		$(LEROBOT_CHECK_DIR)/tabletop $(LEROBOT_CHECK_DIR)/synthetic
 
 lint: setup

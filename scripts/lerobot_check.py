@@ -1,10 +1,10 @@
 """Load playseg's LeRobot exports with the real ``lerobot`` reader and compare them with their source.
 
-Run with the lerobot environment's Python (scripts/setup_lerobot_env.sh builds build/lerobot-venv), on
+Run with the lerobot environment's Python (scripts/setup_lerobot_env.sh builds ~/.cache/playseg/lerobot-venv), on
 directories written by scripts/lerobot_export.py (each holds ``lerobot/``, ``expected.npz``,
 ``expected.json``); ``make lerobot-check`` does all three:
 
-    build/lerobot-venv/bin/python scripts/lerobot_check.py DIR [DIR ...]
+    $(LEROBOT_VENV)/bin/python scripts/lerobot_check.py DIR [DIR ...]
 
 Offline: HF_HUB_OFFLINE=1 and the dataset's ``root`` is given, so nothing is looked up on the Hub (the
 script refuses to run without HF_HUB_OFFLINE). For every frame, through ``LeRobotDataset.__getitem__``:

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Idempotent set-up of lerobot's own environment, build/lerobot-venv (Python 3.12), for
+# Idempotent set-up of lerobot's own environment, .venv-lerobot (Python 3.12), for
 # scripts/lerobot_check.py (`make lerobot-check`): lerobot needs Python >= 3.12 and torch < 2.12, which
 # cannot share playseg's .venv (Python 3.11, torch 2.13). Installs requirements-lerobot.txt (exact pins)
 # and is skipped when the venv was built from the same pins and interpreter (stamp file in the venv).
@@ -8,7 +8,8 @@
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-VENV="${LEROBOT_VENV:-$ROOT/build/lerobot-venv}"
+# outside the work tree: 5.4 GB of third-party code, kept between clones and CI runs on one machine
+VENV="${LEROBOT_VENV:-${XDG_CACHE_HOME:-$HOME/.cache}/playseg/lerobot-venv}"
 REQS="$ROOT/requirements-lerobot.txt"
 LOG="$ROOT/build/setup-logs/lerobot-venv.log"
 mkdir -p "$(dirname "$LOG")"
