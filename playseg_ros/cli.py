@@ -408,8 +408,9 @@ def _add_experiment_command(sub: argparse._SubParsersAction) -> None:
     experiment.add_argument("--workers", type=int, default=2, help="parallel generation and policy runs")
     experiment.add_argument(
         "--conditions",
-        help="comma-separated subset, in table order (default: gt_start,gt_2x,gt_4x,gt_100,oracle_relabel,"
-        "random_relabel,ps; also unloc, tridet, changepoint)",
+        help="comma-separated conditions or groups, in table order (default: the group 'default' = "
+        "gt_start,gt_2x,gt_4x,gt_100,oracle_relabel,random_relabel,ps; 'curve' = the ground-truth curve "
+        "gt_1pct..gt_50pct with gt_start and gt_100; 'baselines' = unloc,tridet,changepoint)",
     )
     experiment.set_defaults(func=_cmd_experiment)
 

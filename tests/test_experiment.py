@@ -13,14 +13,15 @@ from playseg_core.experiment.conditions import AddedSegments, check_conditions, 
 from playseg_core.experiment.runner import ExperimentData
 from playseg_ros.cli import main as cli_main
 
-CONDITIONS = "gt_start,gt_2x,gt_100,oracle_relabel,random_relabel"
+CONDITIONS = "gt_start,gt_2x,gt_100,oracle_relabel,random_relabel,gt_5pct,gt_50pct"
 
 
 @pytest.fixture(scope="module")
 def experiment(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("experiment")
     argv = ["experiment", "babyai", "--scale", "tiny", "--seeds", "2", "--out", str(out)]
-    assert cli_main([*argv, "--workers", "2", "--conditions", CONDITIONS]) == 0
+    # gt_25pct is the tiny scale's start split itself (25% of the pool): dropped as a repeat of gt_start
+    assert cli_main([*argv, "--workers", "2", "--conditions", f"{CONDITIONS},gt_25pct"]) == 0
     return out
 
 
@@ -32,8 +33,15 @@ def test_every_condition_and_seed_gives_a_row_and_the_report_has_table_and_plots
             row = json.loads((experiment / "runs" / f"{condition}-seed{seed}.json").read_text())
             assert row["condition"] == condition and row["seed"] == seed
             assert 0.0 <= row["success"] <= 1.0 and row["eval_episodes"] == 8
+            assert len(row["episode_success"]) == 8
+            assert row["episode_success"].count("1") == round(8 * row["success"])
+            per_instruction = row["per_instruction"].values()
+            assert sum(given for _, given in per_instruction) == 8
+            assert sum(done for done, _ in per_instruction) == row["episode_success"].count("1")
+    assert "| gt_25pct |" not in table and not (experiment / "runs" / "gt_25pct-seed0.json").exists()
     assert "0.544 +- 0.009" in table  # the paper's start split, next to ours
-    for plot in ("success.png", "lengths.png", "labels.png"):
+    assert "| gap recovered |" in table and "gap from gt_start to gt_100" in table  # recovered, or none
+    for plot in ("success.png", "curve.png", "lengths.png", "labels.png", "gain.png"):
         assert (experiment / plot).stat().st_size > 1000
 
 
@@ -47,6 +55,10 @@ def test_conditions_add_what_they_say(experiment: Path) -> None:
     assert rows["gt_start"]["segments"] == start and rows["gt_start"]["added_segments"] == 0
     assert rows["gt_2x"]["segments"] == 2 * start
     assert rows["gt_100"]["added_segments"] == len(truth)
+    pool = start + len(truth)
+    assert rows["gt_5pct"]["segments"] == round(0.05 * pool) < start  # part of the start split only
+    assert rows["gt_5pct"]["added_segments"] == 0
+    assert rows["gt_50pct"]["segments"] == round(0.5 * pool) > start  # the start split, then play's
     oracle = AddedSegments.load(experiment / "added" / "oracle_relabel.json")
     spans = {(episode, s.start, s.end) for episode, found in oracle.by_episode.items() for s in found}
     assert spans == truth  # the true cuts, labels from the labelling model
@@ -89,8 +101,13 @@ def test_ground_truth_conditions_and_unknown_names() -> None:
     assert ground_truth_added("gt_4x", play, 2).count == 6
     assert ground_truth_added("gt_4x", play, 3).count == 6  # no more than play holds
     assert ground_truth_added("gt_100", play, 1).count == 6
+    assert ground_truth_added("gt_50pct", play, 2).count == 2  # (2 + 6) / 2 = 4 = 2 start + 2 added
+    assert ground_truth_added("gt_25pct", play, 3).start_kept == 2  # 9 / 4 -> 2 of the 3 start segments
     with pytest.raises(ValueError, match=r"unknown conditions \['gt_3x'\]"):
         check_conditions(["ps", "gt_3x"])
+    assert check_conditions(["curve", "gt_start", "ps"]) == [
+        "gt_start", "gt_100", "gt_1pct", "gt_2pct", "gt_5pct", "gt_10pct", "gt_25pct", "gt_50pct", "ps"
+    ]  # fmt: skip
 
 
 def test_an_output_directory_of_another_experiment_is_refused(experiment: Path, capsys) -> None:

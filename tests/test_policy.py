@@ -10,7 +10,12 @@ import torch
 
 from playseg_core.checkpoint import CheckpointError
 from playseg_core.domains.babyai.evaluation import RandomPolicy, bot_demonstrations, evaluate_policy
-from playseg_core.domains.babyai.imitation import PolicyTrainConfig, mirror_samples, train_policy
+from playseg_core.domains.babyai.imitation import (
+    PolicyTrainConfig,
+    learning_rate_at,
+    mirror_samples,
+    train_policy,
+)
 from playseg_core.domains.babyai.policy import (
     WORD_TO_ID,
     PolicyConfig,
@@ -85,6 +90,17 @@ def test_mirrored_demonstrations_obey_the_dynamics(demonstrations):
                 assert (after - before).tolist() == list(step)
             elif action in (0, 1):
                 assert new_direction == (direction + (1 if action == 1 else -1)) % 4
+
+
+def test_learning_rate_warms_up_then_decays_to_its_floor():
+    config = PolicyTrainConfig(steps=1000, learning_rate=1e-3, warmup_steps=100, min_learning_rate=1e-5)
+    rates = [learning_rate_at(step, config) for step in range(1, 1001)]
+    assert rates[0] == pytest.approx(1e-5) and rates[99] == pytest.approx(1e-3)  # linear warm-up
+    assert all(a >= b for a, b in zip(rates[99:], rates[100:], strict=False))  # then never rises
+    assert rates[549] == pytest.approx((1e-3 + 1e-5) / 2, rel=0.01)  # half-way down the cosine
+    assert rates[-1] == pytest.approx(1e-5)
+    constant = PolicyTrainConfig(steps=10, warmup_steps=0, learning_rate=2e-3, min_learning_rate=2e-3)
+    assert {learning_rate_at(step, constant) for step in range(1, 11)} == {2e-3}
 
 
 def test_training_is_seeded(demonstrations):

@@ -49,24 +49,32 @@ class PolicyEvaluation:
     seed: int
     seconds: float
     episode_success: list[bool] = field(default_factory=list)
+    episode_instructions: list[str] = field(default_factory=list)  # what episode k asked for
 
 
-def success_difference_noise(before: float, after: float, num_episodes: int) -> float:
-    """One standard error of the difference of two success rates, each measured on ``num_episodes``
-    episodes (binomial, treated as independent; conservative for the same fixed episodes)."""
-    variance = before * (1.0 - before) / num_episodes + after * (1.0 - after) / num_episodes
-    return float(np.sqrt(variance))
+def success_difference_noise(before: Sequence[bool], after: Sequence[bool], seed_std: float = 0.0) -> float:
+    """One standard error of the change in success from ``before`` to ``after``, two evaluations of the
+    same fixed episodes (episode k of each is the same task): the paired standard error of the
+    per-episode differences, combined with the spread that retraining with another seed gives each
+    policy (``seed_std``, the std of one run's success over training seeds; 0 when not known)."""
+    if len(before) != len(after) or len(before) == 0:
+        raise ValueError(f"need two evaluations of the same episodes, got {len(before)} and {len(after)}")
+    differences = np.asarray(after, np.float64) - np.asarray(before, np.float64)
+    paired = differences.std(ddof=1) / np.sqrt(len(differences)) if len(differences) > 1 else 0.0
+    return float(np.sqrt(paired**2 + 2.0 * seed_std**2))
 
 
-def describe_success_change(before: float, after: float, num_episodes: int) -> str:
-    """A policy's success before -> after, and whether the change is beyond two standard errors."""
-    noise = success_difference_noise(before, after, num_episodes)
-    change = after - before
+def describe_success_change(before: Sequence[bool], after: Sequence[bool], seed_std: float = 0.0) -> str:
+    """A policy's success before -> after on the same episodes, and whether the change is beyond two
+    standard errors (`success_difference_noise`)."""
+    noise = success_difference_noise(before, after, seed_std)
+    rate_before, rate_after = float(np.mean(before)), float(np.mean(after))
+    change = rate_after - rate_before
     if abs(change) <= 2.0 * noise:
         verdict = "no measurable change at this scale (within 2 standard errors)"
     else:
         verdict = "a gain beyond 2 standard errors" if change > 0 else "a drop beyond 2 standard errors"
-    return f"{before:.3f} -> {after:.3f} ({change:+.3f}; one standard error {noise:.3f}: {verdict})"
+    return f"{rate_before:.3f} -> {rate_after:.3f} ({change:+.3f}; one standard error {noise:.3f}: {verdict})"
 
 
 class InstructionPolicy(Protocol):

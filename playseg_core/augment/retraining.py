@@ -127,6 +127,8 @@ class AugmentationTrainer:
         version = self.policy_version + 1
         path = self.checkpoint_dir / f"policy-v{version:04d}.pt"
         meta = {"version": version, "success_rate": success, metric or "eval": value, "segments": len(clips)}
+        if result is not None:  # episode by episode, so that two versions compare on the same episodes
+            meta["episode_success"] = "".join("01"[bool(ok)] for ok in result.episode_success)
         self.learner.save(path, model, meta)
         latest = PolicyVersion(
             version=version,

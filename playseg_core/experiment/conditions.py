@@ -11,6 +11,11 @@ from the rest of the pool (the play split, whose ground truth the segmenters nev
   segment), labelled by the labelling model;
 - ``ps`` and the baselines (``unloc``, ``tridet``, ``changepoint``): what that segmentation method
   extracts from play, kept when its label confidence reaches the method's calibrated threshold.
+
+The ground-truth curve (``--conditions curve``) adds ``gt_<p>pct``: the first p% of the whole pool's
+ground-truth segments (the start split's first, then play's), fewer than the start split when p is below
+its share; it measures how much the policy gains from more correct data, i.e. the headroom a start split
+leaves.
 """
 
 from __future__ import annotations
@@ -27,7 +32,16 @@ SEGMENTER_CONDITIONS = {"ps": "ps", "random_relabel": "random", "unloc": "unloc"
 """condition -> the segmentation method (baselines/registry.py) whose segments it adds."""
 CONDITIONS = ("gt_start", "gt_2x", "gt_4x", "gt_100", "oracle_relabel", "random_relabel", "ps")
 """The default conditions, in table order; ``unloc``, ``tridet`` and ``changepoint`` on request."""
-KNOWN_CONDITIONS = (*CONDITIONS, "unloc", "tridet", "changepoint")
+POOL_PERCENTS = (1, 2, 5, 10, 25, 50)
+"""The ground-truth curve's shares of the pool besides the start split and 100% (``gt_<p>pct``)."""
+CURVE_CONDITIONS = tuple(f"gt_{p}pct" for p in POOL_PERCENTS)
+KNOWN_CONDITIONS = (*CONDITIONS, "unloc", "tridet", "changepoint", *CURVE_CONDITIONS)
+CONDITION_GROUPS = {
+    "default": CONDITIONS,
+    "curve": ("gt_start", "gt_100", *CURVE_CONDITIONS),
+    "baselines": ("unloc", "tridet", "changepoint"),
+}
+"""Names that stand for several conditions in ``--conditions``."""
 
 
 @dataclass(frozen=True)
@@ -36,6 +50,7 @@ class AddedSegments:
 
     condition: str
     by_episode: dict[str, list[Segment]]
+    start_kept: int | None = None  # how many of the start split's segments are trained on (None: all)
 
     @property
     def count(self) -> int:
@@ -47,7 +62,8 @@ class AddedSegments:
             for episode_id, segments in self.by_episode.items()
         }
         tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"condition": self.condition, "segments": rows}))
+        record = {"condition": self.condition, "segments": rows, "start_kept": self.start_kept}
+        tmp.write_text(json.dumps(record))
         tmp.replace(path)  # a cached file is always complete
 
     @classmethod
@@ -57,23 +73,41 @@ class AddedSegments:
             episode_id: [Segment(int(a), int(b), str(label), float(conf)) for a, b, label, conf in rows]
             for episode_id, rows in data["segments"].items()
         }
-        return cls(data["condition"], by_episode)
+        return cls(data["condition"], by_episode, data.get("start_kept"))
 
 
 def check_conditions(names: Sequence[str]) -> list[str]:
-    """``names`` in order without repeats; ValueError naming an unknown one."""
-    unknown = [name for name in names if name not in KNOWN_CONDITIONS]
+    """``names`` (groups expanded) in order without repeats; ValueError naming an unknown one."""
+    expanded = [c for name in names for c in CONDITION_GROUPS.get(name, (name,))]
+    unknown = [name for name in expanded if name not in KNOWN_CONDITIONS]
     if unknown:
-        raise ValueError(f"unknown conditions {unknown} (known: {', '.join(KNOWN_CONDITIONS)})")
-    return list(dict.fromkeys(names))
+        known = [*CONDITION_GROUPS, *KNOWN_CONDITIONS]
+        raise ValueError(f"unknown conditions {unknown} (known: {', '.join(known)})")
+    return list(dict.fromkeys(expanded))
+
+
+def pool_percent(condition: str) -> int | None:
+    """p of a ``gt_<p>pct`` condition, else None."""
+    if condition.startswith("gt_") and condition.endswith("pct"):
+        return int(condition[3:-3])
+    return None
 
 
 def ground_truth_added(condition: str, play: Sequence[Episode], start_segments: int) -> AddedSegments:
-    """The ground-truth segments ``gt_*`` conditions add: all of them (``gt_100``), none (``gt_start``), or
-    the first ones in play order until start + added = the multiple of the start split."""
+    """The ground-truth segments ``gt_*`` conditions add: all of them (``gt_100``), none (``gt_start``),
+    the first ones in play order until start + added = the multiple of the start split, or the first p%
+    of the pool (``gt_<p>pct``, keeping only part of the start split when p% of the pool is fewer)."""
     if condition == "gt_start":
         return AddedSegments(condition, {})
-    wanted = None if condition == "gt_100" else (GT_MULTIPLES[condition] - 1) * start_segments
+    percent = pool_percent(condition)
+    if percent is not None:
+        pool = start_segments + sum(len(episode.segments) for episode in play)
+        wanted = max(1, round(pool * percent / 100))
+        if wanted <= start_segments:
+            return AddedSegments(condition, {}, start_kept=wanted)
+        wanted -= start_segments
+    else:
+        wanted = None if condition == "gt_100" else (GT_MULTIPLES[condition] - 1) * start_segments
     by_episode: dict[str, list[Segment]] = {}
     taken = 0
     for episode in play:

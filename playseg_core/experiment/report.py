@@ -1,5 +1,7 @@
 """The experiment's report: a Markdown table of policy success per condition (mean +- std over seeds) next
-to the paper's figures, and plots of success, segment lengths and labels of what each condition adds."""
+to the paper's figures, the share of the gap between the start split and all the data each condition
+recovers, and plots: success per condition, the ground-truth curve, segment lengths and labels of what
+each condition adds, and the per-instruction gain against the number of segments added for it."""
 
 from __future__ import annotations
 
@@ -9,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from playseg_core.experiment.conditions import AddedSegments
+from playseg_core.experiment.conditions import AddedSegments, pool_percent
 from playseg_core.experiment.runner import ExperimentData, ExperimentSpec
 
 
@@ -33,21 +35,64 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     return summary
 
 
+def gap_recovered(summary: dict[str, dict[str, Any]], condition: str) -> float | None:
+    """(condition - gt_start) / (gt_100 - gt_start): the share of what all the data adds over the start
+    split that this condition gets; None without both ends or a positive gap."""
+    if not {"gt_start", "gt_100", condition} <= summary.keys():
+        return None
+    start, full = summary["gt_start"]["mean"], summary["gt_100"]["mean"]
+    if not full > start:
+        return None
+    return (summary[condition]["mean"] - start) / (full - start)
+
+
+def difference(summary: dict[str, dict[str, Any]], a: str, b: str) -> tuple[float, float]:
+    """mean(a) - mean(b) and one standard error of it (each seed's run is an independent draw of
+    training and of which evaluation episodes it solves)."""
+    ra, rb = summary[a], summary[b]
+    error = np.sqrt(ra["std"] ** 2 / max(1, ra["seeds"] - 1) + rb["std"] ** 2 / max(1, rb["seeds"] - 1))
+    return ra["mean"] - rb["mean"], float(error)
+
+
+def targets_text(summary: dict[str, dict[str, Any]]) -> list[str]:
+    """The issue's targets, each with what this run reached: PS against GT 2x, the gap PS and random
+    relabelling recover."""
+    lines = []
+    if {"ps", "gt_2x"} <= summary.keys():
+        change, error = difference(summary, "ps", "gt_2x")
+        verdict = "beats" if change > 2 * error else "does not beat" if change < -2 * error else "ties"
+        lines.append(f"- PS {verdict} GT 2x the start split: {change:+.3f} (one standard error {error:.3f}).")
+    if {"gt_start", "gt_100"} <= summary.keys() and gap_recovered(summary, "gt_100") is None:
+        start, full = summary["gt_start"]["mean"], summary["gt_100"]["mean"]
+        lines.append(
+            f"- gt_100 ({full:.3f}) does not score above gt_start ({start:.3f}): no gap from gt_start to "
+            "gt_100 to recover at this scale."
+        )
+    for condition, goal in (("ps", ">= 0.90"), ("oracle_relabel", ""), ("random_relabel", "well below PS")):
+        share = gap_recovered(summary, condition)
+        if share is not None:
+            target = f" (target {goal})" if goal else ""
+            lines.append(f"- {condition} recovers {share:.2f} of the gap from gt_start to gt_100{target}.")
+    return lines
+
+
 def results_table(spec: ExperimentSpec, scale: str, summary: dict[str, dict[str, Any]]) -> str:
     """The Markdown table: ours per condition, the paper's where it has the same condition."""
     lines = [
-        f"| condition | segments trained on (added) | success, mean +- std (seeds) | paper {spec.paper_source} |",
-        "|---|---|---|---|",
+        "| condition | segments trained on (added) | success, mean +- std (seeds) | gap recovered | "
+        f"paper {spec.paper_source} |",
+        "|---|---|---|---|---|",
     ]
     for condition, row in summary.items():
         paper = spec.paper.get(condition)
         paper_text = f"{paper[0]:.3f} +- {paper[1]:.3f}" if paper else "-"
+        share = gap_recovered(summary, condition)
         lines.append(
             f"| {condition} | {row['segments']} ({row['added']}) | {row['mean']:.3f} +- {row['std']:.3f} "
-            f"({row['seeds']}) | {paper_text} |"
+            f"({row['seeds']}) | {'-' if share is None else f'{share:.2f}'} | {paper_text} |"
         )
     for name, (mean, std) in spec.paper_only.items():
-        lines.append(f"| {name} (paper only) | - | - | {mean:.3f} +- {std:.3f} |")
+        lines.append(f"| {name} (paper only) | - | - | - | {mean:.3f} +- {std:.3f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -69,16 +114,24 @@ def write_report(
         f"`{spec.policy}`; success = the domain simulator's fixed seeded evaluation episodes.",
         "",
         results_table(spec, scale, summary),
+        "Gap recovered: (condition - gt_start) / (gt_100 - gt_start).",
+        "",
+        *targets_text(summary),
+        "",
         "Plots: success.png (per condition, error bars = std over seeds; paper's figures as crosses), "
+        "curve.png (the ground-truth conditions: success against the segments trained on), "
         "lengths.png (segment lengths of what each condition adds vs play's ground truth), labels.png "
-        "(label distribution of what each condition adds).",
+        "(label distribution of what each condition adds), gain.png (per instruction: success gain over "
+        "gt_start against the segments added for that instruction).",
         "",
     ]
     path = out / "results.md"
     path.write_text("\n".join(text))
     _plot_success(out / "success.png", spec, summary)
+    _plot_curve(out / "curve.png", summary)
     _plot_lengths(out / "lengths.png", data, added)
     _plot_labels(out / "labels.png", data, added)
+    _plot_gain(out / "gain.png", rows, added)
     return path
 
 
@@ -145,6 +198,73 @@ def _plot_labels(path: Path, data: ExperimentData, added: dict[str, AddedSegment
     ax.set_xticks(range(len(names)), names, rotation=90, fontsize=6)
     ax.set_ylabel("share of added segments")
     ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _is_ground_truth(condition: str) -> bool:
+    return condition.startswith("gt_")
+
+
+def _plot_curve(path: Path, summary: dict[str, dict[str, Any]]) -> None:
+    plt = _pyplot()
+    points = sorted(
+        (row["segments"], row["mean"], row["std"], condition)
+        for condition, row in summary.items()
+        if _is_ground_truth(condition)
+    )
+    fig, ax = plt.subplots(figsize=(7, 4))
+    if points:
+        x, mean, std, names = zip(*points, strict=True)
+        ax.errorbar(x, mean, yerr=std, marker="o", capsize=4)
+        for xi, yi, name in zip(x, mean, names, strict=True):
+            ax.annotate(name, (xi, yi), textcoords="offset points", xytext=(4, -12), fontsize=7)
+        ax.set_xscale("log")
+    for condition, row in summary.items():
+        if not _is_ground_truth(condition):
+            ax.axhline(row["mean"], linestyle=":", linewidth=1, color="grey")
+            ax.annotate(condition, (ax.get_xlim()[0], row["mean"]), fontsize=7, color="grey")
+    ax.set_xlabel("annotated segments trained on (ground truth)")
+    ax.set_ylabel("policy success")
+    ax.set_ylim(0, 1)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def instruction_success(rows: list[dict[str, Any]], condition: str) -> dict[str, float]:
+    """instruction -> success over every seed's evaluation episodes of that instruction."""
+    totals: dict[str, list[int]] = {}
+    for row in rows:
+        if row["condition"] != condition:
+            continue
+        for instruction, (done, given) in row.get("per_instruction", {}).items():
+            entry = totals.setdefault(instruction, [0, 0])
+            entry[0] += done
+            entry[1] += given
+    return {name: done / given for name, (done, given) in totals.items() if given}
+
+
+def _plot_gain(path: Path, rows: list[dict[str, Any]], added: dict[str, AddedSegments]) -> None:
+    plt = _pyplot()
+    start = instruction_success(rows, "gt_start")
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for condition, segments in added.items():
+        if condition == "gt_start" or pool_percent(condition) is not None:
+            continue
+        success = instruction_success(rows, condition)
+        counts = Counter(s.instruction for found in segments.by_episode.values() for s in found)
+        names = sorted(set(success) & set(start))
+        if names:
+            ax.scatter(
+                [counts[n] for n in names], [success[n] - start[n] for n in names], s=12, label=condition
+            )
+    ax.axhline(0.0, color="black", linewidth=0.8)
+    ax.set_xlabel("segments added for the instruction")
+    ax.set_ylabel("success gain over gt_start")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

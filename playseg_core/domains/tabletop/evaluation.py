@@ -96,6 +96,7 @@ def evaluate_policy(
     renderer = Renderer(image_size)
     success = [False] * num_episodes
     steps_taken = [max_steps] * num_episodes
+    instructions = [""] * num_episodes
     families: dict[str, list[int]] = {}
     for wave in range(0, num_episodes, batch_episodes):
         running = [
@@ -103,6 +104,7 @@ def evaluate_policy(
         ]
         for run in running:
             families.setdefault(run.episode.task.family, [0, 0])[1] += 1
+            instructions[run.index] = run.episode.task.text
         for step in range(max_steps):
             frames, states = zip(*(run.observe() for run in running), strict=True)
             observations: Mapping[str, np.ndarray] = {CAMERA: np.stack(frames), STATE: np.stack(states)}
@@ -129,6 +131,7 @@ def evaluate_policy(
         seed=seed,
         seconds=time.perf_counter() - started,
         episode_success=success,
+        episode_instructions=instructions,
         family_success={name: (done, given) for name, (done, given) in sorted(families.items())},
         episode_steps=steps_taken,
         max_steps=max_steps,
