@@ -406,7 +406,10 @@ def run_demo(bags_dir: Path = Path("bags"), out_dir: Path = DEMO_DIR) -> int:
     before_outcomes, after_outcomes = (
         _episode_outcomes(run_dir / "policies", version.policy_version) for version in (before, after)
     )
-    change = describe_success_change(before_outcomes, after_outcomes, DEMO_POLICY_SEED_STD)
+    if before_outcomes and len(before_outcomes) == len(after_outcomes):
+        change = describe_success_change(before_outcomes, after_outcomes, DEMO_POLICY_SEED_STD)
+    else:  # a trainer that kept no episode-by-episode outcomes: the rates, without an error
+        change = f"{before.eval_success_rate:.3f} -> {after.eval_success_rate:.3f} (no per-episode outcomes)"
     _log(
         f"policy success before augmentation -> after: {change}, on the same {episodes} seeded episodes of "
         "the policy's simulator (the error combines those episodes, paired, with the spread between "

@@ -99,6 +99,9 @@ def test_learning_rate_warms_up_then_decays_to_its_floor():
     assert all(a >= b for a, b in zip(rates[99:], rates[100:], strict=False))  # then never rises
     assert rates[549] == pytest.approx((1e-3 + 1e-5) / 2, rel=0.01)  # half-way down the cosine
     assert rates[-1] == pytest.approx(1e-5)
+    short = PolicyTrainConfig(steps=16, warmup_steps=50, learning_rate=1e-3, min_learning_rate=1e-5)
+    assert learning_rate_at(2, short) == pytest.approx(1e-3)  # warm-up cut to an eighth of the run
+    assert learning_rate_at(16, short) == pytest.approx(1e-5)  # and it still decays
     constant = PolicyTrainConfig(steps=10, warmup_steps=0, learning_rate=2e-3, min_learning_rate=2e-3)
     assert {learning_rate_at(step, constant) for step in range(1, 11)} == {2e-3}
 

@@ -44,7 +44,8 @@ from playseg_core.experiment.conditions import (
 EVAL_SEED = 1_000_000
 """First seed of the fixed evaluation episodes (disjoint from play generation), the same for every run."""
 RUN_THREADS = 1
-"""Torch threads of one policy run, whatever the number of workers: a run's result depends on its seed only."""
+"""Torch threads of one policy run or segmenter training, whatever the number of workers: a result
+depends on its seed only."""
 
 
 @dataclass(frozen=True)
@@ -147,9 +148,7 @@ def run_experiment(
         raise ValueError(f"--seeds and --workers must be >= 1, got {seeds} and {workers}")
     spec = ExperimentSpec.of_domain(domain)
     scale = spec.scale(scale_name)
-    conditions = [
-        c for c in check_conditions(conditions) if pool_percent(c) != round(100 * scale.start_share)
-    ]  # a point of the curve that is the start split itself is gt_start
+    conditions = check_conditions(conditions)
     out = Path(out)
     began = time.perf_counter()
     _check_same_experiment(
@@ -157,6 +156,7 @@ def run_experiment(
     )
     data_dir = _ensure_data(out, domain, scale, workers, log)
     data = ExperimentData.open(data_dir)
+    conditions = [c for c in conditions if not _repeats_start_split(c, data)]
     log(
         f"data {data_dir}: start split {len(data.start)} episodes ({data.start_segments} segments), "
         f"play {len(data.play)} episodes ({sum(len(e.segments) for e in data.play)} ground-truth segments)"
@@ -172,6 +172,15 @@ def run_experiment(
     write_report(out, spec, scale_name, rows, data, added)
     log(f"experiment done in {time.perf_counter() - began:.0f} s: {out / 'results.md'}")
     return rows
+
+
+def _repeats_start_split(condition: str, data: ExperimentData) -> bool:
+    """A point of the ground-truth curve that trains on exactly the start split: gt_start again."""
+    percent = pool_percent(condition)
+    if percent is None:
+        return False
+    pool = data.start_segments + sum(len(episode.segments) for episode in data.play)
+    return max(1, round(pool * percent / 100)) == data.start_segments
 
 
 def _check_same_experiment(out: Path, settings: dict[str, Any]) -> None:
@@ -230,13 +239,13 @@ def train_segmenter(out: str, method: str, steps: int | None, threads: int) -> s
 
 
 def _train_segmenters(out: Path, methods: list[str], scale: ExperimentScale, workers: int, log) -> None:
-    """Every missing segmenter, in parallel when there are workers for it (one torch thread each)."""
+    """Every missing segmenter, in parallel when there are workers for it; one torch thread each, so a
+    model does not depend on the number of workers."""
     missing = [m for m in methods if not (out / "models" / f"{m}.pt").exists()]
     if not missing:
         return
     log(f"training {', '.join(missing)} on the start split ({min(workers, len(missing))} at a time) ...")
-    threads = max(1, workers // len(missing)) if workers > 1 else 1
-    jobs = [(str(out), m, scale.segmenter_steps, threads) for m in missing]
+    jobs = [(str(out), m, scale.segmenter_steps, RUN_THREADS) for m in missing]
     if workers > 1 and len(missing) > 1:
         with ProcessPoolExecutor(min(workers, len(missing)), mp_context=get_context("spawn")) as pool:
             reports = list(pool.map(train_segmenter, *zip(*jobs, strict=True)))
@@ -252,7 +261,7 @@ def ensure_segmenter(out: Path, method: str, data: ExperimentData, scale: Experi
     from playseg_core.baselines.registry import get_method
 
     if not (out / "models" / f"{method}.pt").exists():
-        log(f"  {train_segmenter(str(out), method, scale.segmenter_steps, 2)}")
+        log(f"  {train_segmenter(str(out), method, scale.segmenter_steps, RUN_THREADS)}")
     return get_method(method).load(out / "models" / f"{method}.pt", SegmentOptions(seed=0))
 
 

@@ -129,10 +129,12 @@ def mirror_samples(states: torch.Tensor, actions: torch.Tensor) -> tuple[torch.T
 
 def learning_rate_at(step: int, config: PolicyTrainConfig) -> float:
     """The learning rate of optimizer step ``step`` (1-based): linear warm-up to ``learning_rate`` over
-    ``warmup_steps``, then a cosine decay to ``min_learning_rate`` at step ``steps``."""
-    if step <= config.warmup_steps:
-        return config.learning_rate * step / max(1, config.warmup_steps)
-    progress = (step - config.warmup_steps) / max(1, config.steps - config.warmup_steps)
+    ``warmup_steps`` (at most an eighth of the run, so a short run still decays), then a cosine decay to
+    ``min_learning_rate`` at step ``steps``."""
+    warmup = min(config.warmup_steps, config.steps // 8)
+    if step <= warmup:
+        return config.learning_rate * step / max(1, warmup)
+    progress = (step - warmup) / max(1, config.steps - warmup)
     cosine = 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
     return config.min_learning_rate + cosine * (config.learning_rate - config.min_learning_rate)
 
