@@ -57,6 +57,9 @@ def test_conditions_add_what_they_say(experiment: Path) -> None:
     assert rows["gt_5pct"]["segments"] == round(0.05 * pool) < start  # part of the start split only
     assert rows["gt_5pct"]["added_segments"] == 0
     assert rows["gt_50pct"]["segments"] == round(0.5 * pool) > start  # the start split, then play's
+    table = (experiment / "results.md").read_text()
+    assert f"| gt_100 | {len(truth)} | 1.000 | 1.000 |" in table  # what it adds is the truth itself
+    assert f"| oracle_relabel | {len(truth)} | 1.000 |" in table  # the true cuts, labels of a model
     oracle = AddedSegments.load(experiment / "added" / "oracle_relabel.json")
     spans = {(episode, s.start, s.end) for episode, found in oracle.by_episode.items() for s in found}
     assert spans == truth  # the true cuts, labels from the labelling model

@@ -81,6 +81,34 @@ def targets_text(summary: dict[str, dict[str, Any]]) -> list[str]:
     return lines
 
 
+def added_quality(data: ExperimentData, added: dict[str, AddedSegments]) -> str:
+    """A Markdown table of what each condition adds from play against play's ground truth: segments,
+    the share whose span is exactly a true segment's, and the share of their steps whose label is the
+    true instruction at that step."""
+    truth_spans = {e.episode_id: {(s.start, s.end) for s in e.segments} for e in data.play}
+    truth_steps = {}
+    for episode in data.play:
+        labels = np.full(episode.num_steps, "", dtype=object)
+        for segment in episode.segments:
+            labels[segment.start : segment.end] = segment.instruction
+        truth_steps[episode.episode_id] = labels
+    lines = [
+        "| condition | segments added | exact true spans | steps labelled as the truth |",
+        "|---|---|---|---|",
+    ]
+    for condition, segments in added.items():
+        found = [(e, s) for e, group in segments.by_episode.items() for s in group]
+        if not found:
+            continue
+        exact = sum((s.start, s.end) in truth_spans.get(e, ()) for e, s in found)
+        steps = sum(s.length for _, s in found)
+        right = sum(int((truth_steps[e][s.start : s.end] == s.instruction).sum()) for e, s in found)
+        lines.append(
+            f"| {condition} | {len(found)} | {exact / len(found):.3f} | {right / max(1, steps):.3f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
 def results_table(spec: ExperimentSpec, scale: str, summary: dict[str, dict[str, Any]]) -> str:
     """The Markdown table: ours per condition, the paper's where it has the same condition."""
     lines = [
@@ -123,6 +151,9 @@ def write_report(
         "",
         *targets_text(summary),
         "",
+        "What each condition adds, against play's ground truth:",
+        "",
+        added_quality(data, added),
         "Plots: success.png (per condition, error bars = std over seeds; paper's figures as crosses), "
         "curve.png (the ground-truth conditions: success against the segments trained on), "
         "lengths.png (segment lengths of what each condition adds vs play's ground truth), labels.png "
