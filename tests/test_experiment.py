@@ -90,6 +90,15 @@ def test_a_rerun_computes_nothing_again_and_a_run_depends_on_its_seed_only(exper
         assert again[key] == first[key], key
 
 
+def test_the_report_covers_every_cached_run_whatever_was_asked_this_time(experiment: Path) -> None:
+    argv = ["experiment", "babyai", "--scale", "tiny", "--seeds", "1", "--out", str(experiment)]
+    assert cli_main([*argv, "--conditions", "gt_start"]) == 0  # cached: computes nothing
+    table = (experiment / "results.md").read_text()
+    for condition in CONDITIONS.split(","):
+        row = next(line for line in table.splitlines() if line.startswith(f"| {condition} |"))
+        assert "(2) |" in row  # both seeds of the first invocation
+
+
 def test_ground_truth_conditions_and_unknown_names() -> None:
     from playseg_core.data.episode import Episode, Segment
 

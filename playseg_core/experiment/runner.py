@@ -34,6 +34,7 @@ from playseg_core.data.features import Features
 from playseg_core.domains import load_domain
 from playseg_core.experiment.conditions import (
     CONDITIONS,
+    KNOWN_CONDITIONS,
     SEGMENTER_CONDITIONS,
     AddedSegments,
     check_conditions,
@@ -169,9 +170,20 @@ def run_experiment(
         for condition in conditions
     ]
     rows = _run_policies(runs, workers, log)
-    write_report(out, spec, scale_name, rows, data, added)
+    reported = cached_rows(out)  # what earlier invocations ran too (other conditions, more seeds)
+    for condition in {row["condition"] for row in reported} - added.keys():
+        added[condition] = AddedSegments.load(out / "added" / f"{condition}.json")
+    write_report(out, spec, scale_name, reported, data, added)
     log(f"experiment done in {time.perf_counter() - began:.0f} s: {out / 'results.md'}")
     return rows
+
+
+def cached_rows(out: Path) -> list[dict[str, Any]]:
+    """Every finished policy run under out/runs, in table order (the known conditions' order, then
+    seed)."""
+    rows = [json.loads(path.read_text()) for path in (out / "runs").glob("*-seed*.json")]
+    order = {condition: index for index, condition in enumerate(KNOWN_CONDITIONS)}
+    return sorted(rows, key=lambda row: (order.get(row["condition"], len(order)), row["seed"]))
 
 
 def _repeats_start_split(condition: str, data: ExperimentData) -> bool:
