@@ -414,7 +414,7 @@ def run_demo(bags_dir: Path = Path("bags"), out_dir: Path = DEMO_DIR) -> int:
         f"policy success before augmentation -> after: {change}, on the same {episodes} seeded episodes of "
         "the policy's simulator (the error combines those episodes, paired, with the spread between "
         "training seeds); what augmentation does at the scales where it can be measured: "
-        "`playseg experiment`, README 'Augmentation'"
+        "`playseg experiment`, docs/augmentation.md"
     )
     _log(
         f"outputs: recorded bag {output_bag} (play steps + /segments), policies {run_dir / 'policies'}, "

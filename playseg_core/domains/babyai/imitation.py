@@ -4,9 +4,9 @@ Every sample is one random timestep t of one uniformly drawn segment, (state_t, 
 cross-entropy, Adam with a linear warm-up and a cosine decay of the learning rate (`learning_rate_at`).
 Seeded: the same seed and data give the same weights. (Evaluation: evaluation.py.)
 
-Why the decay: at a constant rate the weights end wherever the last noisy minibatches left them, and the
-policy's success then varied by +-0.06-0.08 between seeds on the same data, more than any difference of
-data the augmentation experiment measures; decaying to a small rate lets every seed settle.
+Why the decay: at a constant rate the weights end wherever the last noisy minibatches left them.
+Decaying to a small rate lets a run settle where it is. It does not decide where that is: on large sets
+some seeds stay on a loss plateau either way (docs/augmentation.md).
 """
 
 from __future__ import annotations
