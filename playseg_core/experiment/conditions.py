@@ -93,6 +93,12 @@ def pool_percent(condition: str) -> int | None:
     return None
 
 
+def pool_share_segments(percent: int, play: Sequence[Episode], start_segments: int) -> int:
+    """How many segments p% of the pool (the start split's plus play's ground truth) is, at least one."""
+    pool = start_segments + sum(len(episode.segments) for episode in play)
+    return max(1, round(pool * percent / 100))
+
+
 def ground_truth_added(condition: str, play: Sequence[Episode], start_segments: int) -> AddedSegments:
     """The ground-truth segments ``gt_*`` conditions add: all of them (``gt_100``), none (``gt_start``),
     the first ones in play order until start + added = the multiple of the start split, or the first p%
@@ -101,8 +107,7 @@ def ground_truth_added(condition: str, play: Sequence[Episode], start_segments: 
         return AddedSegments(condition, {})
     percent = pool_percent(condition)
     if percent is not None:
-        pool = start_segments + sum(len(episode.segments) for episode in play)
-        wanted = max(1, round(pool * percent / 100))
+        wanted = pool_share_segments(percent, play, start_segments)
         if wanted <= start_segments:
             return AddedSegments(condition, {}, start_kept=wanted)
         wanted -= start_segments

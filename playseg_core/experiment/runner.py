@@ -40,6 +40,7 @@ from playseg_core.experiment.conditions import (
     check_conditions,
     ground_truth_added,
     pool_percent,
+    pool_share_segments,
 )
 
 EVAL_SEED = 1_000_000
@@ -191,8 +192,7 @@ def _repeats_start_split(condition: str, data: ExperimentData) -> bool:
     percent = pool_percent(condition)
     if percent is None:
         return False
-    pool = data.start_segments + sum(len(episode.segments) for episode in data.play)
-    return max(1, round(pool * percent / 100)) == data.start_segments
+    return pool_share_segments(percent, data.play, data.start_segments) == data.start_segments
 
 
 def _check_same_experiment(out: Path, settings: dict[str, Any]) -> None:
