@@ -17,6 +17,7 @@ from playseg_core.domains.babyai.imitation import (
     train_policy,
 )
 from playseg_core.domains.babyai.policy import (
+    COLOUR_WORDS,
     WORD_TO_ID,
     PolicyConfig,
     PolicyNet,
@@ -158,6 +159,55 @@ def test_bad_checkpoints_name_the_file(tmp_path: Path, trained):
     torch.save(checkpoint, missing)
     with pytest.raises(CheckpointError, match="(?s)missing_key.pt.*head.1.weight"):
         load_policy(missing)
+
+
+def test_checkpoint_written_before_relevance_maps_loads_as_film_only(tmp_path: Path, demonstrations):
+    film_only = PolicyConfig(**{**SMALL.__dict__, "relevance_maps": 0})
+    model, _ = train_policy(
+        demonstrations[:50], PolicyTrainConfig(steps=3, batch_size=16, policy=film_only), progress=False
+    )
+    assert model.relevance_queries is None
+    path = tmp_path / "old.pt"
+    save_policy(path, model, {})
+    checkpoint = torch.load(path, weights_only=True)
+    del checkpoint["config"]["relevance_maps"]  # as a checkpoint from before the field existed
+    torch.save(checkpoint, path)
+    loaded, _ = load_policy(path)
+    assert loaded.config.relevance_maps == 0
+    states = torch.from_numpy(np.stack([s[0] for _, s, _ in demonstrations[:8]]))
+    ids, lengths = encode_instructions([i for i, _, _ in demonstrations[:8]])
+    with torch.no_grad():
+        assert torch.equal(loaded(states, ids, lengths), model.eval()(states, ids, lengths))
+
+
+OBJECT_TYPE_IDS = {"key": 5, "ball": 6, "box": 7}  # minigrid's object type indices
+
+
+def test_a_trained_policys_relevance_maps_find_the_instructed_object(trained):
+    """Among the objects in view, the cell a relevance map scores highest is the instructed one far more
+    often than chance: the maps ground the instruction (policy.py)."""
+    model, _ = trained
+    episodes = bot_demonstrations(200, seed=20_000)  # not the training episodes
+    states = torch.from_numpy(np.stack([states[0] for _, states, _ in episodes]))
+    ids, lengths = encode_instructions([instruction for instruction, _, _ in episodes])
+    with torch.no_grad():
+        cells = model.embed_cells(states)
+        maps = model.relevance(cells, model.instruction_encoder(ids, lengths))  # (B, V, V, K)
+        view = to_egocentric(states.long(), model.view_offsets)
+    hits, chance = np.zeros(maps.shape[-1]), 0.0
+    for index, (instruction, _, _) in enumerate(episodes):
+        colour, kind = instruction.split()[-2:]
+        objects = (view[index, ..., 0] >= 5) & (view[index, ..., 0] <= 7)
+        goal = objects & (view[index, ..., 0] == OBJECT_TYPE_IDS[kind])
+        goal &= view[index, ..., 1] == COLOUR_WORDS.index(colour)
+        assert goal.any()  # the whole room is in view
+        chance += goal.sum().item() / objects.sum().item()
+        for k in range(maps.shape[-1]):
+            best = maps[index, ..., k].masked_fill(~objects, float("-inf")).argmax()
+            hits[k] += bool(goal.flatten()[best])
+    hits, chance = hits / len(episodes), chance / len(episodes)
+    print(f"instructed object found: per map {np.round(hits, 3).tolist()}, chance {chance:.3f}")
+    assert hits.max() >= 0.8 and hits.max() >= chance + 0.4
 
 
 def test_evaluation_is_reproducible(trained):
