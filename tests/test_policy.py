@@ -238,3 +238,16 @@ def test_evaluation_counts_its_own_steps_past_the_levels_default_limit():
     late = [s for s, ok in zip(result.episode_steps, result.episode_success, strict=True) if ok and s > 64]
     assert late, "no episode succeeded after step 64: the env's step limit cut the episodes short"
     assert all(s <= 100 for s in result.episode_steps)
+
+
+def test_learner_settings_choose_the_network():
+    from playseg_core.augment.policy import load_policy_learner
+
+    learner = load_policy_learner("babyai.film", {"channels": 24, "relevance_maps": 0, "steps": 7})
+    network = learner.train_config.policy
+    assert (network.channels, network.relevance_maps, learner.train_config.steps) == (24, 0, 7)
+    assert load_policy_learner("babyai.film", {}).train_config.policy.relevance_maps == 4
+    with pytest.raises(ValueError, match="relevance_maps >= 0"):
+        load_policy_learner("babyai.film", {"relevance_maps": -1})
+    with pytest.raises(ValueError, match="unknown settings"):
+        load_policy_learner("babyai.film", {"relevance": 2})

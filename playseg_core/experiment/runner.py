@@ -174,6 +174,7 @@ def run_experiment(
     reported = cached_rows(out)  # what earlier invocations ran too (other conditions, more seeds)
     for condition in {row["condition"] for row in reported} - added.keys():
         added[condition] = AddedSegments.load(out / "added" / f"{condition}.json")
+    added = dict(sorted(added.items(), key=lambda item: table_position(item[0])))
     write_report(out, spec, scale_name, reported, data, added)
     log(f"experiment done in {time.perf_counter() - began:.0f} s: {out / 'results.md'}")
     return rows
@@ -183,8 +184,12 @@ def cached_rows(out: Path) -> list[dict[str, Any]]:
     """Every finished policy run under out/runs, in table order (the known conditions' order, then
     seed)."""
     rows = [json.loads(path.read_text()) for path in (out / "runs").glob("*-seed*.json")]
-    order = {condition: index for index, condition in enumerate(KNOWN_CONDITIONS)}
-    return sorted(rows, key=lambda row: (order.get(row["condition"], len(order)), row["seed"]))
+    return sorted(rows, key=lambda row: (table_position(row["condition"]), row["seed"]))
+
+
+def table_position(condition: str) -> int:
+    """Where a condition's rows go in the report: the known conditions' order, unknown ones last."""
+    return KNOWN_CONDITIONS.index(condition) if condition in KNOWN_CONDITIONS else len(KNOWN_CONDITIONS)
 
 
 def _repeats_start_split(condition: str, data: ExperimentData) -> bool:

@@ -92,6 +92,21 @@ def _experiment() -> Any:
                 description="the paper's split at a sixth of its size: 1,280 annotated start segments of "
                 "a 15,700-segment pool; ~3 minutes per policy run on a shared 2-core CPU",
             ),
+            "medium-film-only": ExperimentScale(
+                "medium",
+                0.10,
+                {
+                    "steps": 3000,
+                    "batch_size": 128,
+                    "channels": 32,
+                    "learning_rate": 2e-3,
+                    "relevance_maps": 0,
+                },
+                512,
+                description="medium's data with the policy's FiLM path only (no relevance maps): the "
+                "paper's data-hungry regime, where training on the large sets is bistable; ~7 minutes "
+                "per policy run",
+            ),
             "paper": ExperimentScale(
                 "paper",
                 0.10,

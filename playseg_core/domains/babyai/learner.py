@@ -44,18 +44,21 @@ class FilmPolicyLearner:
 
     @classmethod
     def from_config(cls, config: dict[str, Any]) -> FilmPolicyLearner:
-        """From plain settings: ``steps``, ``batch_size``, ``seed``, ``channels``, ``eval_max_steps``, and
-        any other field of PolicyTrainConfig; ValueError naming an unknown one."""
+        """From plain settings: ``steps``, ``batch_size``, ``seed``, ``channels``, ``relevance_maps``,
+        ``eval_max_steps``, and any other field of PolicyTrainConfig; ValueError naming an unknown one."""
         config = dict(config)
-        channels = config.pop("channels", None)
+        network = {key: int(config.pop(key)) for key in ("channels", "relevance_maps") if key in config}
         eval_max_steps = int(config.pop("eval_max_steps", 25))
         known = {f.name for f in fields(PolicyTrainConfig)} - {"policy"}
         unknown = sorted(set(config) - known)
         if unknown:
             raise ValueError(f"policy {POLICY_NAME}: unknown settings {unknown} (known: {sorted(known)})")
         train = PolicyTrainConfig(**config)
-        if channels is not None:
-            train = replace(train, policy=replace(train.policy, channels=int(channels)))
+        if network.get("channels", 1) < 1 or network.get("relevance_maps", 0) < 0:
+            raise ValueError(
+                f"policy {POLICY_NAME}: need channels >= 1 and relevance_maps >= 0, got {network}"
+            )
+        train = replace(train, policy=replace(train.policy, **network))
         if eval_max_steps <= 0:
             raise ValueError(f"policy {POLICY_NAME}: eval_max_steps must be > 0, got {eval_max_steps}")
         return cls(train, eval_max_steps)
