@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from minigrid.core.constants import COLOR_TO_IDX, OBJECT_TO_IDX
 
 from playseg_core.checkpoint import CheckpointError
 from playseg_core.domains.babyai.evaluation import RandomPolicy, bot_demonstrations, evaluate_policy
@@ -17,7 +18,6 @@ from playseg_core.domains.babyai.imitation import (
     train_policy,
 )
 from playseg_core.domains.babyai.policy import (
-    COLOUR_WORDS,
     WORD_TO_ID,
     PolicyConfig,
     PolicyNet,
@@ -180,9 +180,6 @@ def test_checkpoint_written_before_relevance_maps_loads_as_film_only(tmp_path: P
         assert torch.equal(loaded(states, ids, lengths), model.eval()(states, ids, lengths))
 
 
-OBJECT_TYPE_IDS = {"key": 5, "ball": 6, "box": 7}  # minigrid's object type indices
-
-
 def test_a_trained_policys_relevance_maps_find_the_instructed_object(trained):
     """Among the objects in view, the cell a relevance map scores highest is the instructed one far more
     often than chance: the maps ground the instruction (policy.py)."""
@@ -195,11 +192,12 @@ def test_a_trained_policys_relevance_maps_find_the_instructed_object(trained):
         maps = model.relevance(cells, model.instruction_encoder(ids, lengths))  # (B, V, V, K)
         view = to_egocentric(states.long(), model.view_offsets)
     hits, chance = np.zeros(maps.shape[-1]), 0.0
+    pickable_types = torch.tensor([OBJECT_TO_IDX[kind] for kind in ("key", "ball", "box")])
     for index, (instruction, _, _) in enumerate(episodes):
         colour, kind = instruction.split()[-2:]
-        objects = (view[index, ..., 0] >= 5) & (view[index, ..., 0] <= 7)
-        goal = objects & (view[index, ..., 0] == OBJECT_TYPE_IDS[kind])
-        goal &= view[index, ..., 1] == COLOUR_WORDS.index(colour)
+        objects = torch.isin(view[index, ..., 0], pickable_types)
+        goal = objects & (view[index, ..., 0] == OBJECT_TO_IDX[kind])
+        goal &= view[index, ..., 1] == COLOR_TO_IDX[colour]
         assert goal.any()  # the whole room is in view
         chance += goal.sum().item() / objects.sum().item()
         for k in range(maps.shape[-1]):

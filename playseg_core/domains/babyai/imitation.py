@@ -5,8 +5,8 @@ cross-entropy, Adam with a linear warm-up and a cosine decay of the learning rat
 Seeded: the same seed and data give the same weights. (Evaluation: evaluation.py.)
 
 Why the decay: at a constant rate the weights end wherever the last noisy minibatches left them.
-Decaying to a small rate lets a run settle where it is. It does not decide where that is: on large sets
-some seeds stay on a loss plateau either way (docs/augmentation.md).
+Decaying to a small rate lets a run settle where it is. It does not decide where that is: without the
+policy's relevance maps, some seeds on large sets stayed on a loss plateau either way (docs/augmentation.md).
 """
 
 from __future__ import annotations
