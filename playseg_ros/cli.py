@@ -185,6 +185,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         args.method,
         args.encoders_from,
         args.label_head,
+        args.augment,
     )
 
 
@@ -252,6 +253,13 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
         metavar="FEATURE=KIND",
         help="step encoder of a feature instead of the default: image_cnn, state_mlp, discrete_action, "
         "continuous_action, a domain's kind (e.g. babyai.grid_tiles), or none (not read); repeatable",
+    )
+    train.add_argument(
+        "--augment",
+        action="store_true",
+        help="rotate/mirror each training clip's camera frames by a random multiple of 90 degrees (PS and the "
+        "labelling model; with --actions none; only where instructions and ends do not depend on "
+        "orientation: a room seen from above, not 'push the block left')",
     )
     train.add_argument(
         "--label-head",

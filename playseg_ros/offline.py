@@ -127,13 +127,14 @@ def train(
     method: str = "ps",
     encoders_from: str | None = None,
     label_head: str | None = None,
+    augment: bool = False,
 ) -> int:
     """Train the PS model (and optionally the stand-alone labeller) on a dataset's train/val splits,
     or another segmentation method (``method``, playseg_core/baselines/registry.py).
 
     ``bounds`` (min_len, max_len, k_max; None = derived, see `segment_bounds`) and ``encoders``
     (``FEATURE=KIND`` overrides of the step encoders) and ``label_head`` (None: the domain's, else
-    linear) come from the command line.
+    linear) and ``augment`` (rotated/mirrored training clips) come from the command line.
 
     The outputs are checked before training starts (a model is never trained only to be lost).
     """
@@ -171,10 +172,15 @@ def train(
     if epochs is not None:  # asked for exactly this many epochs
         cfg = replace(cfg, min_steps=0)
     features, read_actions = _action_features(actions, dataset.features)
+    if augment and read_actions:
+        raise ValueError("--augment: only with --actions none (a mirror would swap left and right turns)")
+    if augment and method not in ("ps", "random", "changepoint"):
+        raise ValueError(f"--augment: only for PS and the labelling model, not {method}")
+    cfg = replace(cfg, augment=augment)
     if method != "ps":
         given = {"seed": seed, "epochs": epochs, "lr": lr, "batch_size": batch_segments}
         training = (dataset, train_eps, val_eps, features, read_actions, bounds, encoders, encoders_from)
-        return _train_method(method, data, out, training, given)
+        return _train_method(method, data, out, training, given, augment)
     model_cfg = model_config_for(
         features,
         dataset.domain,
@@ -220,7 +226,7 @@ def train(
     return 0
 
 
-def _train_method(method: str, data: str, out: str, training: tuple, given: dict) -> int:
+def _train_method(method: str, data: str, out: str, training: tuple, given: dict, augment: bool) -> int:
     """`playseg train --method` for a method other than PS: the same data, options and output."""
     from playseg_core.baselines.common import TrainingData, TrainOptions
     from playseg_core.baselines.registry import train_segmenter
@@ -229,7 +235,7 @@ def _train_method(method: str, data: str, out: str, training: tuple, given: dict
     overrides = _encoder_overrides(encoders or [])
     inputs = TrainingData(
         train_eps, val_eps, list(dataset.instructions), features, dataset.domain, read_actions, overrides,
-        dict(bounds or {}), encoders_from,
+        dict(bounds or {}), encoders_from, augment,
     )  # fmt: skip
     trained = train_segmenter(method, inputs, TrainOptions(**given))  # unset options: the method's defaults
     trained.save(Path(out), {"method": method, "dataset": str(Path(data).resolve())})

@@ -125,3 +125,35 @@ def test_an_output_directory_of_another_experiment_is_refused(experiment: Path, 
     assert cli_main(argv) == 1  # tiny results must never be reported as the small scale's
     error = capsys.readouterr().err.strip()
     assert "holds another experiment (scale, spec differ); use a new --out" in error and "\n" not in error
+
+
+def test_a_scale_s_segmenter_settings_reach_training(experiment: Path, tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    from playseg_core.experiment.runner import ExperimentSpec, train_segmenter
+    from playseg_core.ps.model import load_model
+
+    (tmp_path / "data").symlink_to(experiment / "data")
+    tiny = ExperimentSpec.of_domain("babyai").scale("tiny")
+    rotated = replace(tiny, segmenter_reads_actions=False, segmenter_augment=True)
+    for method, name in (("ps", "ps"), ("random", "random")):
+        train_segmenter(str(tmp_path), method, rotated, 1)
+        model, meta = load_model(tmp_path / "models" / f"{name}.pt")
+        assert meta["train"]["augment"] is True
+        assert not model.encoders.reads_actions  # only the observations are read
+    default_model, default_meta = load_model(experiment / "models" / "random.pt")
+    assert default_model.encoders.reads_actions and default_meta["train"]["augment"] is False
+
+
+def test_an_experiment_recorded_before_a_scale_field_existed_still_resumes(experiment: Path) -> None:
+    record = experiment / "experiment.json"
+    written = record.read_text()
+    held = json.loads(written)
+    for name in ("segmenter_reads_actions", "segmenter_augment"):  # at their defaults in every scale
+        del held["spec"][name]
+    record.write_text(json.dumps(held))
+    try:
+        argv = ["experiment", "babyai", "--scale", "tiny", "--seeds", "1", "--out", str(experiment)]
+        assert cli_main([*argv, "--conditions", "gt_start"]) == 0  # cached: nothing runs again
+    finally:
+        record.write_text(written)

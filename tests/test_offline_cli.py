@@ -16,6 +16,7 @@ import torch
 from playseg_core.data.dataset import PlayDataset
 from playseg_core.data.features import ACTION, Feature
 from playseg_core.domains.babyai.spec import CAMERA
+from playseg_core.ps.model import load_model
 from playseg_ros.cli import main as cli_main
 from playseg_ros.offline import _action_features
 
@@ -79,6 +80,19 @@ def test_actions_option(tiny_data: Path) -> None:
     assert _action_features("auto", continuous) == (continuous, True)  # declared continuous: read as such
     with pytest.raises(ValueError, match="--actions must be a count"):
         _action_features("many", features)
+
+
+def test_augment_trains_on_rotated_clips_and_needs_actions_none(
+    tiny_data: Path, tmp_path: Path, capsys
+) -> None:
+    model = tmp_path / "ps.pt"
+    base = ["train", "--data", str(tiny_data), "--out", str(model), "--epochs", "1", "--augment"]
+    _fails(capsys, base, "--augment", "--actions none")  # a mirror would swap the turns the model reads
+    assert not model.exists()
+    _fails(capsys, [*base, "--actions", "none", "--method", "unloc"], "--augment", "not unloc")
+    assert cli_main([*base, "--actions", "none"]) == 0
+    trained, meta = load_model(model)
+    assert meta["train"]["augment"] is True and not trained.encoders.reads_actions
 
 
 def test_segment_refuses_data_with_other_features(tiny_data: Path, tmp_path: Path, capsys) -> None:

@@ -35,6 +35,8 @@ class TrainingData:
 
     features: the features to build step encoders for (the action possibly re-declared, see
         `playseg train --actions`); read_actions False leaves the previous action unread.
+    augment: rotate/mirror each training segment's camera frames (PS and the labelling model; only
+        for models that read no actions, and only where labels and ends do not depend on orientation).
     bounds: command-line overrides of min_len / max_len / k_max (None: derived, ps.training.segment_bounds).
     """
 
@@ -50,6 +52,7 @@ class TrainingData:
     # paper gives TriDet the labelling model's features and UnLoc frozen CLIP features). None: their own,
     # trained with them.
     encoders_from: str | None = None
+    augment: bool = False
 
     def annotated(self) -> list[Episode]:
         episodes = [episode for episode in self.train if episode.segments]
@@ -128,7 +131,7 @@ def ps_training_setup(data: TrainingData, options: TrainOptions) -> tuple[list[E
     bounds = segment_bounds(train_eps, data.domain, **data.bounds)
     threads = options.num_threads or torch.get_num_threads()
     cfg = TrainConfig(seed=options.seed, k_max=bounds.k_max, num_threads=threads, progress=False)
-    cfg = replace(cfg, log_epochs=bool(options.log_every))
+    cfg = replace(cfg, log_epochs=bool(options.log_every), augment=data.augment)
     if options.epochs is not None:
         cfg = replace(cfg, epochs=options.epochs, min_steps=0)
     if options.steps is not None:

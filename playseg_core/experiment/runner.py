@@ -21,7 +21,7 @@ import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import nullcontext
-from dataclasses import asdict, dataclass, field
+from dataclasses import MISSING, asdict, dataclass, field, fields
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
@@ -61,6 +61,11 @@ class ExperimentScale:
     eval_episodes: int
     segmenter_steps: int | None = None  # optimizer steps of each segmentation method (None: its default)
     description: str = ""
+    # How PS and the labelling model read the start split (TrainingData): whether they read the previous
+    # action, and whether their training clips are rotated/mirrored (only where the domain's labels and
+    # ends do not depend on orientation).
+    segmenter_reads_actions: bool = True
+    segmenter_augment: bool = False
 
 
 @dataclass(frozen=True)
@@ -207,6 +212,11 @@ def _check_same_experiment(out: Path, settings: dict[str, Any]) -> None:
     recorded = json.loads(json.dumps(settings))  # as it reads back (tuples become lists)
     if path.exists():
         held = json.loads(path.read_text())
+        # A scale field added after ``out`` was written, at its default, is what that experiment ran.
+        defaults = {f.name: f.default for f in fields(ExperimentScale) if f.default is not MISSING}
+        held_spec = held.get("spec")
+        if isinstance(held_spec, dict):
+            held["spec"] = {k: defaults[k] for k in defaults.keys() - held_spec.keys()} | held_spec
         if held != recorded:
             changed = sorted(k for k in recorded if held.get(k) != recorded[k])
             raise ValueError(
@@ -235,9 +245,10 @@ def segmenter_methods(conditions: Sequence[str]) -> list[str]:
     return list(dict.fromkeys("random" if m == "oracle_relabel" else m for m in methods))
 
 
-def train_segmenter(out: str, method: str, steps: int | None, threads: int) -> str:
-    """Train ``method`` on the start split of out/data into out/models/<method>.pt (skipped when there);
-    its one-line report. A top-level function so that a process pool can run it."""
+def train_segmenter(out: str, method: str, scale: ExperimentScale, threads: int) -> str:
+    """Train ``method`` on the start split of out/data into out/models/<method>.pt (skipped when there),
+    with the scale's segmenter settings; its one-line report. A top-level function so that a process
+    pool can run it."""
     from playseg_core.baselines.common import TrainingData, TrainOptions
     from playseg_core.baselines.registry import get_method
 
@@ -245,9 +256,18 @@ def train_segmenter(out: str, method: str, steps: int | None, threads: int) -> s
     if path.exists():
         return f"{method}: cached in {path}"
     data = ExperimentData.open(Path(out) / "data")
-    training = TrainingData(data.start, data.val, data.instructions, data.features, data.domain)
+    training = TrainingData(
+        data.start,
+        data.val,
+        data.instructions,
+        data.features,
+        data.domain,
+        read_actions=scale.segmenter_reads_actions,
+        augment=scale.segmenter_augment,
+    )
+    options = TrainOptions(seed=0, steps=scale.segmenter_steps, num_threads=threads)
     with torch_threads(threads):
-        trained = get_method(method).train(training, TrainOptions(seed=0, steps=steps, num_threads=threads))
+        trained = get_method(method).train(training, options)
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(f".{path.name}.partial")
     trained.save(partial, {"experiment": {"start_segments": data.start_segments}})
@@ -262,7 +282,7 @@ def _train_segmenters(out: Path, methods: list[str], scale: ExperimentScale, wor
     if not missing:
         return
     log(f"training {', '.join(missing)} on the start split ({min(workers, len(missing))} at a time) ...")
-    jobs = [(str(out), m, scale.segmenter_steps, RUN_THREADS) for m in missing]
+    jobs = [(str(out), m, scale, RUN_THREADS) for m in missing]
     if workers > 1 and len(missing) > 1:
         with ProcessPoolExecutor(min(workers, len(missing)), mp_context=get_context("spawn")) as pool:
             reports = list(pool.map(train_segmenter, *zip(*jobs, strict=True)))
@@ -278,7 +298,7 @@ def ensure_segmenter(out: Path, method: str, data: ExperimentData, scale: Experi
     from playseg_core.baselines.registry import get_method
 
     if not (out / "models" / f"{method}.pt").exists():
-        log(f"  {train_segmenter(str(out), method, scale.segmenter_steps, RUN_THREADS)}")
+        log(f"  {train_segmenter(str(out), method, scale, RUN_THREADS)}")
     return get_method(method).load(out / "models" / f"{method}.pt", SegmentOptions(seed=0))
 
 
