@@ -14,6 +14,7 @@ import sys
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Generic, TypeVar
@@ -129,16 +130,22 @@ def episode_stream(
             yield seed, generate(config, seed)
             index += 1
     # spawn: the parent may hold threads (tqdm, ROS, torch) that fork would copy half-locked.
-    context = multiprocessing.get_context("spawn")
-    with context.Pool(workers) as pool:
-        pending: deque[tuple[list[int], Any]] = deque()
-        while True:
-            while len(pending) < chunks_per_worker * workers:
-                seeds = [episode_seed(base_seed, index + k) for k in range(chunk_size)]
-                index += chunk_size
-                pending.append((seeds, pool.apply_async(_generate_chunk, (generate, config, seeds))))
-            seeds, result = pending.popleft()
-            yield from zip(seeds, result.get(), strict=True)
+    # An executor, not multiprocessing.Pool: when the caller stops early, the chunks not started are
+    # cancelled and the running ones finish. Pool.terminate instead kills workers that may hold the
+    # task queue's lock, and then waits for that lock forever (seen as a rare hang at the end).
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        pending: deque[tuple[list[int], Future]] = deque()
+        try:
+            while True:
+                while len(pending) < chunks_per_worker * workers:
+                    seeds = [episode_seed(base_seed, index + k) for k in range(chunk_size)]
+                    index += chunk_size
+                    pending.append((seeds, pool.submit(_generate_chunk, generate, config, seeds)))
+                seeds, result = pending.popleft()
+                yield from zip(seeds, result.result(), strict=True)
+        finally:
+            for _, future in pending:
+                future.cancel()
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,7 @@ import multiprocessing
 import shutil
 import sys
 from collections.abc import Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -357,9 +358,15 @@ def _run(tasks: list[_BagTask], workers: int) -> Iterator[WrittenBag]:
     if workers == 1 or len(tasks) <= 1:
         yield from map(_write_dataset_bag, tasks)
         return
-    # spawn: the parent may hold threads (tqdm, ROS, torch) that fork would copy half-locked.
-    with multiprocessing.get_context("spawn").Pool(min(workers, len(tasks))) as pool:
-        yield from pool.imap(_write_dataset_bag, tasks)
+    # spawn: the parent may hold threads (tqdm, ROS, torch) that fork would copy half-locked. An
+    # executor, not multiprocessing.Pool, whose terminate can wait forever for a killed worker's lock
+    # (playseg_core/data/generation.py); stopped early, the bags not started are cancelled.
+    context = multiprocessing.get_context("spawn")
+    pool = ProcessPoolExecutor(min(workers, len(tasks)), mp_context=context)
+    try:
+        yield from pool.map(_write_dataset_bag, tasks)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def write_dataset_bags(
