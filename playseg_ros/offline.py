@@ -174,7 +174,7 @@ def train(
     features, read_actions = _action_features(actions, dataset.features)
     if augment and read_actions:
         raise ValueError("--augment: only with --actions none (a mirror would swap left and right turns)")
-    if augment and method not in ("ps", "random", "changepoint"):
+    if augment and not get_method(method).augments:
         raise ValueError(f"--augment: only for PS and the labelling model, not {method}")
     cfg = replace(cfg, augment=augment)
     if method != "ps":

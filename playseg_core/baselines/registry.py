@@ -85,12 +85,17 @@ class Method:
     tiles: bool  # whether its segments cover the trajectory (else: report precision and label accuracy)
     train: Callable[[TrainingData, TrainOptions], TrainedSegmenter]
     load: Callable[[str | Path, SegmentOptions], Segmenter]
+    # whether its training honours TrainingData.augment (rotated/mirrored clips): PS and the methods
+    # that train the labelling model do
+    augments: bool = False
 
 
 METHODS: dict[str, Method] = {
     method.name: method
     for method in (
-        Method("ps", "Play Segmentation (ps/)", True, train_play_segmentation, load_play_segmenter),
+        Method(
+            "ps", "Play Segmentation (ps/)", True, train_play_segmentation, load_play_segmenter, augments=True
+        ),
         Method(
             "unloc",
             "UnLoc-style per-step classification, background cropped",
@@ -111,6 +116,7 @@ METHODS: dict[str, Method] = {
             True,
             train_random,
             load_random_segmenter,
+            augments=True,
         ),
         Method(
             "changepoint",
@@ -118,6 +124,7 @@ METHODS: dict[str, Method] = {
             True,
             train_changepoint,
             load_changepoint_segmenter,
+            augments=True,
         ),
     )
 }
