@@ -40,6 +40,13 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--episodes", type=int, default=100, help="evaluation episodes per policy")
     parser.add_argument("--seed", type=int, default=0, help="policy seed and the shares' draw")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="any other policy setting (BCTrainConfig), e.g. --set action_head=mixture; repeatable",
+    )
     parser.add_argument("--json", help="write the rows here too")
     return parser.parse_args()
 
@@ -48,6 +55,9 @@ def main() -> None:
     args = parse_args()
     torch.set_num_threads(args.threads)
     shares = [float(s) for s in args.shares.split(",")]
+    extra = dict(item.split("=", 1) for item in args.set if "=" in item)
+    if len(extra) != len(args.set):
+        raise SystemExit(f"--set takes KEY=VALUE, got {args.set}")
     if not all(0.0 < s <= 1.0 for s in shares):
         raise SystemExit(f"--shares must be in (0, 1], got {args.shares}")
     with tempfile.TemporaryDirectory(prefix="bench-tt-policy-") as scratch:
@@ -64,13 +74,14 @@ def main() -> None:
         print(
             f"{data}: {len(clips)} annotated segments; {args.steps} steps x batch {args.batch_size} per "
             f"policy, {args.episodes} evaluation episodes (seeds from {EVAL_SEED}), {args.threads} thread(s)"
+            f"{', settings ' + str(extra) if extra else ''}"
         )
         rows = []
         for share in shares:
             chosen = [clips[i] for i in sorted(order[: max(1, round(share * len(clips)))])]
             config = {
                 "steps": args.steps, "batch_size": args.batch_size, "seed": args.seed,
-                "image_size": image_size, "num_threads": args.threads,
+                "image_size": image_size, "num_threads": args.threads, **extra,
             }  # fmt: skip
             learner = load_policy_learner("tabletop.bc", config)
             began = time.perf_counter()

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from playseg_core.augment.bc_policy import BCPolicyLearner, load_bc_policy
 from playseg_core.augment.policy import load_policy_learner
@@ -154,3 +156,92 @@ def test_no_simulator_so_no_evaluation_and_the_trainer_retrains(tmp_path: Path) 
     assert trainer.evaluate() is None
     assert learner.evaluate(learner.load(Path(version.checkpoint))[0], 4, 0) is None
     trainer.close()
+
+
+def bimodal_clips(num: int, seed: int) -> list[SegmentClip]:
+    """Pairs of clips with the same observations and instruction whose expert moves along the first
+    action axis +1 in one and -1 in the other, never in between; the other axes follow `rule`."""
+    clips = []
+    for clip in make_clips(num // 2, seed):
+        for sign in (1.0, -1.0):
+            actions = clip.actions.copy()
+            actions[:, 0] = sign
+            clips.append(replace(clip, actions=actions))
+    return clips
+
+
+def test_a_bins_head_acts_like_one_of_the_demonstrators_and_regression_averages_them(
+    tmp_path: Path,
+) -> None:
+    clips = bimodal_clips(60, seed=4)
+    probe = make_clips(1, seed=8, length=16)[0]
+    observations = {CAMERA: probe.images[CAMERA], STATE: probe.state}
+    instructions = [INSTRUCTIONS[0]] * 17
+    first_axis = {}
+    for head in ("regress", "bins"):
+        learner = load_policy_learner("bc", {**FAST, "action_head": head}, features=robot_features())
+        policy, report = learner.train(clips)
+        assert report.val_loss < 0.5 * report.baseline_val_loss, (head, report)
+        actions = policy.act(observations, instructions)
+        first_axis[head] = actions[:, 0]
+        if head == "bins":
+            assert report.val_accuracy > 0.5, report
+            learner.save(tmp_path / "b.pt", policy, {})
+            loaded, _ = learner.load(tmp_path / "b.pt")
+            np.testing.assert_array_equal(loaded.act(observations, instructions), actions)
+    # The regression lands between the two ways (mean |a| well under 1); the bins take one of them.
+    assert np.abs(first_axis["regress"]).mean() < 0.5, first_axis
+    assert np.abs(first_axis["bins"]).mean() > 0.9, first_axis
+
+
+def test_bins_span_the_declared_bounds_and_acting_stays_inside_them() -> None:
+    features = robot_features()
+    bounded = features.with_action(
+        Feature(ACTION, "action", "float32", (7,), low=(-0.5,) * 7, high=(0.5,) * 7)
+    )
+    learner = load_policy_learner("bc", {**FAST, "steps": 5, "action_head": "bins"}, features=bounded)
+    clips = make_clips(6, seed=1)
+    policy = learner.build(clips)
+    assert policy.config["action_low"] == [-0.5] * 7 and policy.config["action_high"] == [0.5] * 7
+    unbounded = load_policy_learner("bc", {"action_head": "bins"}, features=features).build(clips)
+    seen = np.concatenate([c.actions for c in clips])
+    np.testing.assert_allclose(unbounded.config["action_low"], seen.min(0), rtol=1e-6)
+    centres = policy.bin_centres(torch.arange(21)[:, None].expand(21, 7))
+    np.testing.assert_allclose(centres[[0, 10, 20], 0].numpy(), [-0.5, 0.0, 0.5], atol=1e-6)
+    np.testing.assert_array_equal(policy.action_bin(centres).numpy(), np.arange(21)[:, None].repeat(7, 1))
+    clip = clips[0]
+    actions = policy.act({CAMERA: clip.images[CAMERA], STATE: clip.state}, [INSTRUCTIONS[0]] * 9)
+    assert actions.min() >= -0.5 and actions.max() <= 0.5
+
+
+def test_bad_action_head_settings_fail_in_one_line() -> None:
+    with pytest.raises(ValueError, match="action_head must be 'regress' or 'bins'.*'flow'"):
+        load_policy_learner("bc", {"action_head": "flow"}, features=robot_features())
+    with pytest.raises(ValueError, match="got 'bins' and 1"):
+        load_policy_learner("bc", {"action_head": "bins", "action_bins": 1}, features=robot_features())
+    with pytest.raises(ValueError, match="'bins' needs a continuous action; 'action' is discrete"):
+        load_policy_learner("bc", {"action_head": "bins"}, features=robot_features(discrete=True))
+
+
+def test_an_instruction_film_head_learns_and_its_flag_reads_from_text(tmp_path: Path) -> None:
+    settings = {**FAST, "instruction_film": "true"}
+    learner = load_policy_learner("bc", settings, features=robot_features())
+    assert learner.settings.instruction_film is True
+    assert (
+        load_policy_learner(
+            "bc", {"instruction_film": "False"}, features=robot_features()
+        ).settings.instruction_film
+        is False
+    )
+    policy, report = learner.train(make_clips(60, seed=1))
+    assert policy.film is not None and report.val_loss < 0.3 * report.baseline_val_loss, report
+    learner.save(tmp_path / "f.pt", policy, {})
+    loaded, _ = learner.load(tmp_path / "f.pt")
+    clip = make_clips(1, seed=9, length=4)[0]
+    observations = {CAMERA: clip.images[CAMERA], STATE: clip.state}
+    np.testing.assert_array_equal(
+        loaded.act(observations, list(INSTRUCTIONS[:2]) * 2 + [""]),
+        policy.act(observations, list(INSTRUCTIONS[:2]) * 2 + [""]),
+    )
+    with pytest.raises(ValueError, match="instruction_film must be true or false, got 'maybe'"):
+        load_policy_learner("bc", {"instruction_film": "maybe"}, features=robot_features())

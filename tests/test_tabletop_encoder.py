@@ -70,6 +70,43 @@ def test_each_colour_map_is_centred_on_that_colours_blocks(size: int) -> None:
     assert masks[:, size - 1, size - 1].max() < 0.05
 
 
+def test_a_keypoint_is_where_its_detector_fires(size: int = 96) -> None:
+    """With the first convolution made to pass the red map through and the next two to copy it, the
+    soft-argmax of keypoint 0 is the red block's image position, in [-1, 1] (x right, y down)."""
+    blocks = PARKED.copy()
+    red_cube = BLOCKS.index("red cube")
+    blocks[BLOCKS.index("red cylinder")] = (0.47, 0.47)  # the other red block out of the way, far corner
+    blocks[red_cube] = (0.35, 0.15)
+    sim = TabletopSim()
+    sim.place(blocks, (0.1, 0.3))
+    frame = torch.from_numpy(Renderer(size).render(sim.scene()))[None]
+    encoder = ObjectMapEncoder(
+        Feature(CAMERA, "image", "uint8", (size, size, 3)), {"pooling": "keypoints", "keypoints": 3}
+    )
+    assert encoder.out_dim == 6
+    patch_conv, _, mix_conv, _, detector = encoder.convs
+    with torch.no_grad():
+        for conv in (patch_conv, mix_conv, detector):
+            conv.weight.zero_()
+            conv.bias.zero_()
+        patch_conv.weight[0, COLOURS.index("red")] = 1.0  # channel 0: red pixels in the patch
+        mix_conv.weight[0, 0, 1, 1] = 1.0
+        detector.weight[0, 0] = 30.0  # sharp: the softmax keeps the bright patches only
+    # Blank out the far red block so that keypoint 0 sees one blob.
+    far = _pixel((0.47, 0.47), size)
+    frame[0, : round(far[0]) + 6, round(far[1]) - 6 :] = 0
+    coordinates = encoder(frame)[0].detach().numpy()
+    row, column = _pixel((0.35, 0.15), size)
+    expected = (column / (size - 1) * 2 - 1, row / (size - 1) * 2 - 1)
+    np.testing.assert_allclose(coordinates[:2], expected, atol=0.06)
+    assert np.abs(coordinates).max() <= 1.0
+
+
+def test_bad_pooling_settings_are_named() -> None:
+    with pytest.raises(FeatureError, match="pooling must be 'grid' or 'keypoints'.*'mean'"):
+        ObjectMapEncoder(Feature(CAMERA, "image", "uint8", (96, 96, 3)), {"pooling": "mean"})
+
+
 def test_the_encoder_refuses_a_frame_it_cannot_read() -> None:
     with pytest.raises(FeatureError, match=f"{KIND}: feature 'observation.images.top'.*at least 16x16"):
         ObjectMapEncoder(Feature(CAMERA, "image", "uint8", (12, 96, 3)), {})

@@ -141,6 +141,29 @@ def test_bad_settings_fail_in_one_line() -> None:
     assert "\n" not in str(error.value)
     with pytest.raises(ValueError, match="eval_max_steps must be > 0"):
         load_policy_learner("tabletop.bc", {"eval_max_steps": 0})
+    with pytest.raises(ValueError, match="camera_encoder must be one of .*got 'resnet' and 16"):
+        load_policy_learner("tabletop.bc", {"camera_encoder": "resnet"})
+
+
+@pytest.mark.parametrize(
+    ("camera_encoder", "kind", "pooling"),
+    [("image_cnn", "image_cnn", None), ("keypoints", "tabletop.object_maps", "keypoints")],
+)
+def test_the_camera_encoder_setting_chooses_what_reads_the_camera(
+    tiny_clips: list, camera_encoder: str, kind: str, pooling: str | None, tmp_path: Path
+) -> None:
+    learner = load_policy_learner(
+        "tabletop.bc",
+        {"steps": 3, "batch_size": 8, "camera_encoder": camera_encoder, "camera_keypoints": 6},
+    )
+    model, _ = learner.train(tiny_clips[:4])
+    learner.save(tmp_path / "p.pt", model, {})
+    loaded, _ = learner.load(tmp_path / "p.pt")
+    camera = loaded.config["encoders"][0]
+    assert camera["kind"] == kind and camera["config"].get("pooling") == pooling
+    assert loaded.encoders.step_dim == model.encoders.step_dim
+    if pooling:
+        assert camera["config"]["keypoints"] == 6
     with pytest.raises(ValueError, match="num_episodes"):
         evaluate_policy(StillPolicy(), 0, SEED)
 

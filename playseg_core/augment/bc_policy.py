@@ -4,8 +4,13 @@ pi(a_t | o_t, instruction): every camera of the data through ``image_cnn``, the 
 through ``state_mlp`` (ps/encoders.py, standardised with the training clips' statistics), the instruction
 through a learned embedding per instruction string seen in training plus a hashed bag of words (so an
 unseen string still gets an embedding; no download), concatenated and mapped by an MLP to the action:
-logits over ``num_values`` for a discrete action (cross-entropy), the standardised action for a
-continuous one (MSE; un-standardised, and clipped to the declared bounds, when acting).
+logits over ``num_values`` for a discrete action (cross-entropy); for a continuous one either the
+standardised action (``action_head="regress"``, MSE; un-standardised when acting) or, per dimension,
+logits over ``action_bins`` evenly spaced values between the declared bounds (``"bins"``, cross-entropy;
+acting takes the most likely bin's value), clipped to the declared bounds when acting. Bins keep apart
+the different ways a demonstrator does the same thing (round an obstacle on the left or on the right),
+which a regression averages into a way nobody took. ``instruction_film`` lets the instruction scale and
+shift the head's hidden units (FiLM). A domain may choose the step encoders (as it does for PS).
 
 `train` holds out a seeded share of the clips and reports the validation loss next to the loss of
 predicting the training clips' mean action (the marginal action frequencies when discrete). There is no
@@ -17,7 +22,7 @@ from __future__ import annotations
 
 import time
 import zlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -42,6 +47,11 @@ from playseg_core.ps.model import instruction_words
 
 POLICY_NAME = "bc"
 
+SampleSymmetry = Callable[
+    [dict[str, np.ndarray], list[str], np.ndarray, np.random.Generator],
+    tuple[dict[str, np.ndarray], list[str], np.ndarray],
+]
+
 
 @dataclass(frozen=True)
 class BCTrainConfig:
@@ -59,6 +69,10 @@ class BCTrainConfig:
     val_fraction: float = 0.1  # share of the clips held out for validation
     image_dim: int = 128
     state_dim: int = 64
+    action_head: str = "regress"  # continuous actions: "regress" (MSE) or "bins" (classes per dimension)
+    action_bins: int = 21
+    instruction_film: bool = False
+    augment: bool = False  # training samples through the domain's symmetries (its `sample_symmetry`)
     log_every: int = 100
     num_threads: int = 1
 
@@ -93,7 +107,20 @@ class BCPolicy(nn.Module):
         self.words = nn.EmbeddingBag(self.buckets, dim, mode="mean")
         action = features.action
         self.discrete = action.is_discrete
-        out = action.num_values if self.discrete else action.size
+        # Checkpoints written before the other heads existed regress.
+        head = settings.get("action_head", "regress")
+        self.bins = int(settings["action_bins"]) if head == "bins" else 0
+        if self.discrete:
+            out = action.num_values
+        elif self.bins:
+            out = self.bins * action.size
+            self.register_buffer("action_low", torch.tensor(self.config["action_low"], dtype=torch.float32))
+            self.register_buffer("action_high", torch.tensor(self.config["action_high"], dtype=torch.float32))
+        else:
+            out = action.size
+        # FiLM: the instruction scales and shifts every hidden unit, so it can select which features of
+        # the observation count (which object to go to) instead of only adding to them.
+        self.film = nn.Linear(dim, 2 * hidden) if settings.get("instruction_film") else None
         self.head = nn.Sequential(
             nn.Linear(self.encoders.step_dim + dim, hidden),
             nn.GELU(),
@@ -124,13 +151,26 @@ class BCPolicy(nn.Module):
         """Observation rows by feature (N each) and instruction ids -> (N, out) logits or standardised
         actions."""
         instruction = self.known(known) + self.words(words, offsets)
-        return self.head(torch.cat([self.encoders(inputs), instruction], dim=-1))
+        hidden = self.head[:2](torch.cat([self.encoders(inputs), instruction], dim=-1))
+        if self.film is not None:
+            scale, shift = self.film(instruction).chunk(2, dim=-1)
+            hidden = hidden * (1.0 + scale) + shift
+        return self.head[2:](hidden)
 
     def observation_inputs(
         self, observations: Mapping[str, np.ndarray], rows: int
     ) -> dict[str, torch.Tensor]:
         """The batch of observations as input tensors; FeatureError naming a missing or mis-shaped one."""
         return as_tensors(self.encoders.observation_inputs(observations, f"policy {POLICY_NAME}", rows))
+
+    def action_bin(self, actions: torch.Tensor) -> torch.Tensor:
+        """(N, D) actions -> (N, D) indices of their nearest bin centres."""
+        share = (actions - self.action_low) / (self.action_high - self.action_low)
+        return (share * (self.bins - 1)).round().long().clamp(0, self.bins - 1)
+
+    def bin_centres(self, bins: torch.Tensor) -> torch.Tensor:
+        """(N, D) bin indices -> (N, D) actions."""
+        return self.action_low + bins.float() / (self.bins - 1) * (self.action_high - self.action_low)
 
     @torch.no_grad()
     def act(self, observations: Mapping[str, np.ndarray], instructions: Sequence[str]) -> np.ndarray:
@@ -147,6 +187,9 @@ class BCPolicy(nn.Module):
             self.train(was_training)
         if self.discrete:
             return out.argmax(dim=-1).numpy()
+        if self.bins:
+            out = self.bin_centres(out.reshape(len(out), -1, self.bins).argmax(dim=-1))
+            out = (out - self.action_mean) / self.action_std
         action = self.features.action
         values = (out * self.action_std + self.action_mean).numpy().astype(np.float32)
         if action.low is not None or action.high is not None:
@@ -187,6 +230,15 @@ class _Steps:
         return observations, instructions, self.actions[which]
 
 
+def _setting(name: str, kind: type, value: Any) -> Any:
+    """``value`` as the setting's type; a flag also from the words true/false (command lines give text)."""
+    if kind is bool and isinstance(value, str):
+        if value.lower() not in ("true", "false", "1", "0"):
+            raise ValueError(f"policy {POLICY_NAME}: {name} must be true or false, got {value!r}")
+        return value.lower() in ("true", "1")
+    return kind(value)
+
+
 @dataclass
 class BCPolicyLearner:
     """`augment.policy.PolicyLearner` of the ``bc`` policy for data with ``data_features``."""
@@ -194,12 +246,25 @@ class BCPolicyLearner:
     data_features: Features
     settings: BCTrainConfig = BCTrainConfig()
     name: str = POLICY_NAME
+    # features -> step encoder per feature (a domain's choice, as ps/encoders.py `choose_encoders`
+    # takes it); None: the generic encoders
+    encoder_choice: Callable[[Features], dict[str, EncoderSpec | None]] | None = None
+    # (observations, instructions, actions, rng) -> the same samples, each under a symmetry of the
+    # domain's world drawn at random (`augment`); None: the data has none declared
+    sample_symmetry: SampleSymmetry | None = None
 
     @classmethod
-    def from_config(cls, config: Mapping[str, Any], features: Features | None) -> BCPolicyLearner:
+    def from_config(
+        cls,
+        config: Mapping[str, Any],
+        features: Features | None,
+        encoder_choice: Callable[[Features], dict[str, EncoderSpec | None]] | None = None,
+        sample_symmetry: SampleSymmetry | None = None,
+    ) -> BCPolicyLearner:
         """From plain settings (any field of BCTrainConfig; ``channels`` is ``hidden``; ``eval_max_steps``
-        is accepted and unused: there is no simulator) and the data's features; ValueError naming an
-        unknown setting, FeatureError when the features are missing or hold nothing to read."""
+        is accepted and unused: there is no simulator), the data's features, and from a domain its choice
+        of step encoders (None: the generic ones) and its symmetries (for ``augment``); ValueError naming
+        an unknown or bad setting, FeatureError when the features are missing or hold nothing to read."""
         config = dict(config)
         if "channels" in config:
             config["hidden"] = config.pop("channels")
@@ -209,14 +274,29 @@ class BCPolicyLearner:
         if unknown:
             raise ValueError(f"policy {POLICY_NAME}: unknown settings {unknown} (known: {sorted(known)})")
         types = {f.name: type(getattr(BCTrainConfig(), f.name)) for f in fields(BCTrainConfig)}
-        settings = BCTrainConfig(**{k: types[k](v) for k, v in config.items()})
+        settings = BCTrainConfig(**{k: _setting(k, types[k], v) for k, v in config.items()})
         if settings.steps <= 0 or settings.batch_size <= 0 or not 0.0 <= settings.val_fraction < 1.0:
             raise ValueError(
                 f"policy {POLICY_NAME}: steps and batch_size must be > 0, val_fraction in [0, 1)"
             )
+        if settings.action_head not in ("regress", "bins") or settings.action_bins < 2:
+            raise ValueError(
+                f"policy {POLICY_NAME}: action_head must be 'regress' or 'bins' and action_bins >= 2, got "
+                f"{settings.action_head!r} and {settings.action_bins}"
+            )
         if features is None:
             raise FeatureError(f"policy {POLICY_NAME} needs the data's declared features (none were given)")
-        return cls(features, settings)
+        if settings.action_head != "regress" and features.action.is_discrete:
+            raise ValueError(
+                f"policy {POLICY_NAME}: action_head {settings.action_head!r} needs a continuous action; "
+                f"{features.action.name!r} is discrete"
+            )
+        if settings.augment and sample_symmetry is None:
+            raise ValueError(
+                f"policy {POLICY_NAME}: augment needs the symmetries of the data's world, which only a "
+                "domain's policy declares"
+            )
+        return cls(features, settings, encoder_choice=encoder_choice, sample_symmetry=sample_symmetry)
 
     @property
     def features(self) -> Features:
@@ -244,11 +324,11 @@ class BCPolicyLearner:
         episodes = [clip.as_episode(f"clip{i}") for i, clip in enumerate(clips)]
         names = ([STATE] if features.state is not None else []) + ([] if action.is_discrete else [ACTION])
         statistics = feature_statistics(episodes, names)
-        specs = choose_encoders(features, None, statistics, read_actions=False)
+        specs = choose_encoders(features, None, statistics, read_actions=False, choice=self.encoder_choice)
+        dims = {"image_cnn": self.settings.image_dim, "state_mlp": self.settings.state_dim}
         for spec in specs:
-            spec.config["dim"] = (
-                self.settings.image_dim if spec.kind == "image_cnn" else self.settings.state_dim
-            )
+            if spec.kind in dims:  # a domain's own encoder keeps its own settings
+                spec.config["dim"] = dims[spec.kind]
         config: dict[str, Any] = {
             "policy": POLICY_NAME,
             "settings": asdict(self.settings),
@@ -258,6 +338,14 @@ class BCPolicyLearner:
         if not action.is_discrete:
             config["action_mean"] = statistics[ACTION]["mean"]
             config["action_std"] = statistics[ACTION]["std"]
+        if self.settings.action_head == "bins":  # the declared bounds, else the clips' own range
+            seen = np.concatenate(
+                [np.asarray(c.actions, np.float32).reshape(len(c.actions), -1) for c in clips]
+            )
+            low = np.broadcast_to(action.low if action.low is not None else seen.min(0), (action.size,))
+            high = np.broadcast_to(action.high if action.high is not None else seen.max(0), (action.size,))
+            config["action_low"] = [float(v) for v in low]
+            config["action_high"] = [float(v) for v in np.maximum(high, low + 1e-6)]
         return BCPolicy(config, features)
 
     def _loss(
@@ -276,6 +364,11 @@ class BCPolicyLearner:
         if model.discrete:
             target = torch.from_numpy(actions)
             return F.cross_entropy(out, target), (out.argmax(-1) == target).float()
+        if model.bins:
+            target = model.action_bin(torch.from_numpy(actions))
+            logits = out.reshape(len(out), -1, model.bins)
+            loss = F.cross_entropy(logits.transpose(1, 2), target)
+            return loss, (logits.argmax(-1) == target).float().mean(-1)
         target = (torch.from_numpy(actions) - model.action_mean) / model.action_std
         return F.mse_loss(out, target), out.new_zeros(0)
 
@@ -291,7 +384,18 @@ class BCPolicyLearner:
                 correct += float(hits.sum())
         model.train()
         result = {"val_loss": total / len(steps)}
-        if model.discrete:
+        if model.bins:  # per dimension: the marginal bin frequencies of the training actions
+            result["val_accuracy"] = correct / len(steps)
+            bins = [model.action_bin(torch.from_numpy(s.actions)).numpy() for s in (train, steps)]
+            log_p = [
+                np.log(np.bincount(bins[0][:, d], minlength=model.bins) + 1.0)
+                - np.log(len(bins[0]) + model.bins)
+                for d in range(bins[0].shape[1])
+            ]
+            result["baseline_val_loss"] = float(
+                -np.mean([log_p[d][bins[1][:, d]].mean() for d in range(len(log_p))])
+            )
+        elif model.discrete:
             num_values = model.features.action.num_values
             counts = np.bincount(train.actions, minlength=num_values) + 1.0  # add-one: no log(0)
             log_p = np.log(counts / counts.sum())
@@ -325,7 +429,10 @@ class BCPolicyLearner:
             for step in range(1, s.steps + 1):
                 which = rng.integers(0, len(train_steps), size=s.batch_size)
                 drop = rng.random(s.batch_size) < s.instruction_dropout
-                loss, _ = self._loss(model, train_steps.batch(which), drop)
+                batch = train_steps.batch(which)
+                if s.augment and self.sample_symmetry is not None:
+                    batch = self.sample_symmetry(*batch, rng)
+                loss, _ = self._loss(model, batch, drop)
                 optimiser.zero_grad(set_to_none=True)
                 loss.backward()
                 nn.utils.clip_grad_norm_(model.parameters(), 1.0)

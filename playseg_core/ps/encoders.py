@@ -352,12 +352,14 @@ def choose_encoders(
     statistics: dict[str, dict[str, list[float]]] | None = None,
     read_actions: bool = True,
     overrides: dict[str, str] | None = None,
+    choice: Callable[[Features], dict[str, EncoderSpec | None]] | None = None,
 ) -> list[EncoderSpec]:
     """Step encoders for data with ``features``, in order: every camera, the state, then the previous
     action (observation encoders first: the auxiliary frame-label loss reads their columns).
 
     Each feature gets, in this order of preference: ``overrides[name]`` (a kind, or "none" to leave it
-    unread), the domain's choice (its ``step_encoders(features)``: a spec, or None for "not read"), the
+    unread), the domain's choice (``choice(features)`` when given, else the domain's
+    ``step_encoders(features)``: a spec, or None for "not read"), the
     generic default (``image_cnn`` per camera, ``state_mlp``, ``discrete_action`` or
     ``continuous_action``). ``read_actions`` False leaves the action unread. ``statistics``
     (`feature_statistics`) standardise the state and a continuous action. FeatureError when nothing
@@ -367,7 +369,8 @@ def choose_encoders(
     statistics = statistics or {}
     for name in overrides:
         features[name]  # FeatureError naming a feature the data lacks
-    choice = getattr(load_domain(domain), "step_encoders", None) if domain else None
+    if choice is None and domain:
+        choice = getattr(load_domain(domain), "step_encoders", None)
     chosen = choice(features) if choice else {}
     action = features.action
     defaults = {name: "image_cnn" for name in features.cameras}

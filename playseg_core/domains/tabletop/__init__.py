@@ -7,7 +7,8 @@ encoders read the state and the action; the camera gets this package's object-ma
 and the label heads score instructions from their words (``LABEL_HEAD``): 197 compositional instructions
 meet a few annotated segments each. No segment-length bounds: the ones derived from the annotated
 segments apply. Its policy ``tabletop.bc`` is the generic ``bc`` policy evaluated in the simulator
-(learner.py, evaluation.py). Importing it registers the encoder and imports neither pymunk nor OpenCV;
+(learner.py, evaluation.py), with a choice of camera encoder and the table's 8 symmetries to train on
+(symmetry.py). Importing it registers the encoder and imports neither pymunk nor OpenCV;
 the modules that run the world do.
 """
 

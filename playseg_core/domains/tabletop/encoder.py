@@ -27,6 +27,10 @@ class ObjectMapConfig:
     patch: int = 4  # the first conv reads non-overlapping patch x patch pixel squares
     channels: int = 32
     feature_dim: int = 128
+    # "grid": features of an 8x8 grid (what PS reads); "keypoints": the image coordinates of `keypoints`
+    # learnt detectors (a spatial soft-argmax each), what the policy reads
+    pooling: str = "grid"
+    keypoints: int = 16
 
 
 @register_encoder(KIND)
@@ -52,6 +56,29 @@ class ObjectMapEncoder(ObservationEncoder):
         palette = [COLOUR_RGB[colour] for colour in COLOURS] + [EFFECTOR_RGB]
         self.register_buffer("palette", torch.tensor(palette, dtype=torch.float32) / 255.0, persistent=False)
         self.inverse_variance = (255.0 / cfg.colour_sigma) ** 2 / 2.0
+        if cfg.pooling not in ("grid", "keypoints") or cfg.keypoints < 1:
+            raise FeatureError(
+                f"{KIND}: pooling must be 'grid' or 'keypoints' with keypoints >= 1, got {cfg.pooling!r} "
+                f"and {cfg.keypoints}"
+            )
+        self.keypoints = cfg.keypoints if cfg.pooling == "keypoints" else 0
+        if self.keypoints:
+            # Full patch resolution (the soft-argmax is exact to a fraction of a patch); a 3x3 conv lets
+            # a detector tell one block from its same-coloured twin by its outline.
+            self.out_dim = 2 * cfg.keypoints
+            self.convs = nn.Sequential(
+                nn.Conv2d(len(palette), cfg.channels, cfg.patch, stride=cfg.patch),
+                nn.GELU(),
+                nn.Conv2d(cfg.channels, cfg.channels, 3, padding=1),
+                nn.GELU(),
+                nn.Conv2d(cfg.channels, cfg.keypoints, 1),
+            )
+            rows, columns = height // cfg.patch, width // cfg.patch
+            grid_y, grid_x = torch.meshgrid(
+                torch.linspace(-1.0, 1.0, rows), torch.linspace(-1.0, 1.0, columns), indexing="ij"
+            )
+            self.register_buffer("grid", torch.stack([grid_x, grid_y]).reshape(2, -1), persistent=False)
+            return
         self.out_dim = cfg.feature_dim
         self.convs = nn.Sequential(
             nn.Conv2d(len(palette), cfg.channels, cfg.patch, stride=cfg.patch),
@@ -72,7 +99,10 @@ class ObjectMapEncoder(ObservationEncoder):
         return torch.exp(-distance.clamp_min(0) * self.inverse_variance).permute(0, 3, 1, 2)
 
     def forward(self, frames: torch.Tensor) -> torch.Tensor:
-        """(N, H, W, 3) uint8 -> (N, feature_dim)."""
+        """(N, H, W, 3) uint8 -> (N, feature_dim), or (N, 2 * keypoints) coordinates in [-1, 1]."""
+        if self.keypoints:
+            weights = torch.softmax(self.convs(self.masks(frames)).flatten(2), dim=-1)  # (N, K, cells)
+            return (weights @ self.grid.T).flatten(1)  # (N, K, 2) expected (x, y) -> (N, 2K)
         return self.proj(self.convs(self.masks(frames)))
 
 

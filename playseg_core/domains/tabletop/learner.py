@@ -1,6 +1,7 @@
-"""The tabletop policy ``tabletop.bc``: the generic behaviour-cloning policy (augment/bc_policy.py: camera
-through image_cnn, state, instruction embedding, continuous velocity) trained as it is, evaluated in the
-tabletop simulator (evaluation.py) instead of not at all."""
+"""The tabletop policy ``tabletop.bc``: the generic behaviour-cloning policy (augment/bc_policy.py: camera,
+state, instruction embedding, continuous velocity) evaluated in the tabletop simulator (evaluation.py)
+instead of not at all. Its camera goes through the generic CNN, or, by the ``camera_encoder`` setting,
+through this domain's object maps (encoder.py) pooled to a grid or to keypoints."""
 
 from __future__ import annotations
 
@@ -13,9 +14,16 @@ from playseg_core.augment.bc_policy import BCPolicy, BCPolicyLearner
 from playseg_core.augment.policy import PolicyTrainReport
 from playseg_core.data.episode import SegmentClip
 from playseg_core.data.features import Features
-from playseg_core.domains.tabletop.spec import DEFAULT_IMAGE_SIZE, DOMAIN, EVAL_STEP_BUDGET
+from playseg_core.domains.tabletop.encoder import ObjectMapConfig, object_map_spec
+from playseg_core.domains.tabletop.spec import CAMERA, DEFAULT_IMAGE_SIZE, DOMAIN, EVAL_STEP_BUDGET
+from playseg_core.ps.encoders import EncoderSpec
 
 POLICY_NAME = f"{DOMAIN}.bc"
+
+CAMERA_ENCODERS: dict[str, str | None] = {"image_cnn": None, "object_maps": "grid", "keypoints": "keypoints"}
+"""The policy's ``camera_encoder`` setting -> the object-map encoder's pooling (None: the generic CNN).
+``keypoints`` gives the image coordinates of ``camera_keypoints`` learnt detectors (a spatial soft-argmax
+each), ``object_maps`` the 8x8-grid features PS reads (encoder.py)."""
 
 
 @dataclass
@@ -31,17 +39,36 @@ class TabletopPolicyLearner:
     @classmethod
     def from_config(cls, config: dict[str, Any]) -> TabletopPolicyLearner:
         """From plain settings: ``image_size`` (the dataset's camera side, default 96), ``eval_max_steps``
-        (default spec.EVAL_STEP_BUDGET) and any setting of the ``bc`` policy (BCTrainConfig, ``channels``
-        = ``hidden``); ValueError naming an unknown or bad one."""
+        (default spec.EVAL_STEP_BUDGET), ``camera_encoder`` (CAMERA_ENCODERS, default the generic CNN) and
+        ``camera_keypoints``, and any setting of the ``bc`` policy (BCTrainConfig, ``channels`` =
+        ``hidden``); ValueError naming an unknown or bad one."""
         from playseg_core.domains.tabletop.play import PlayConfig  # the physics: only when built
+        from playseg_core.domains.tabletop.symmetry import random_symmetry
 
         config = dict(config)
         image_size = int(config.pop("image_size", DEFAULT_IMAGE_SIZE))
+        camera = str(config.pop("camera_encoder", "image_cnn"))
+        keypoints = int(config.pop("camera_keypoints", ObjectMapConfig.keypoints))
         eval_max_steps = int(config.pop("eval_max_steps", EVAL_STEP_BUDGET))
         if eval_max_steps <= 0:
             raise ValueError(f"policy {POLICY_NAME}: eval_max_steps must be > 0, got {eval_max_steps}")
         features = PlayConfig(image_size=image_size).features  # ValueError naming a bad image size
-        return cls(BCPolicyLearner.from_config(config, features), image_size, eval_max_steps)
+        if camera not in CAMERA_ENCODERS or keypoints < 1:
+            raise ValueError(
+                f"policy {POLICY_NAME}: camera_encoder must be one of {list(CAMERA_ENCODERS)} and "
+                f"camera_keypoints >= 1, got {camera!r} and {keypoints}"
+            )
+        pooling = CAMERA_ENCODERS[camera]
+
+        def encoder_choice(data: Features) -> dict[str, EncoderSpec | None]:
+            if pooling is None or CAMERA not in data:
+                return {}  # the generic CNN
+            return {
+                CAMERA: object_map_spec(data[CAMERA], ObjectMapConfig(pooling=pooling, keypoints=keypoints))
+            }
+
+        bc = BCPolicyLearner.from_config(config, features, encoder_choice, random_symmetry)
+        return cls(bc, image_size, eval_max_steps)
 
     @property
     def features(self) -> Features:

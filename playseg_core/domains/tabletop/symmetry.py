@@ -1,0 +1,121 @@
+"""The square table's 8 symmetries (rotations by quarter turns, and those after a mirror), applied to
+training samples: the camera frame, the state, the commanded velocity and the instruction's words.
+
+The camera looks straight down at the centre of a square table, so turning the world a quarter turn
+turns the frame a quarter turn, exactly (render.py centres the table in the frame). Blocks look the
+same turned; what changes is every position and velocity, and the words that name a side: "left"
+becomes "down" under a quarter turn, "the top left corner" the "bottom left corner". Each symmetry is
+the matrix M = R^k F^m about the table's centre (R a quarter turn anticlockwise, F the mirror x -> -x).
+A policy trained on all 8 sees 8 layouts for each recorded one, with instructions that still match.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from playseg_core.data.features import STATE
+from playseg_core.domains.tabletop.instructions import (
+    DIRECTIONS,
+    FAMILIES,
+    REGION_CELLS,
+    TASK_BY_TEXT,
+    Task,
+)
+from playseg_core.domains.tabletop.spec import CAMERA, TABLE_SIZE
+
+_QUARTER_TURN = np.array([[0, -1], [1, 0]])
+_MIRROR = np.array([[-1, 0], [0, 1]])
+SYMMETRIES: tuple[tuple[int, bool], ...] = tuple((k, m) for m in (False, True) for k in range(4))
+"""(quarter turns anticlockwise, mirrored first) of each of the 8 symmetries; (0, False) is the identity."""
+
+
+def symmetry_matrix(quarter_turns: int, mirror: bool) -> np.ndarray:
+    """The 2x2 integer matrix of the symmetry on table vectors (x right, y up)."""
+    return np.linalg.matrix_power(_QUARTER_TURN, quarter_turns) @ (
+        _MIRROR if mirror else np.eye(2, dtype=int)
+    )
+
+
+def _direction_word(vector: np.ndarray) -> str:
+    return next(word for word, unit in DIRECTIONS.items() if np.array_equal(np.asarray(unit), vector))
+
+
+def _region_name(offset: np.ndarray) -> str:
+    cell = (int(offset[0]) + 1, int(offset[1]) + 1)
+    return next(name for name, at in REGION_CELLS.items() if at == cell)
+
+
+def transformed_task(task: Task, matrix: np.ndarray) -> Task:
+    """The task that says the same of the transformed table (same blocks, turned region or direction)."""
+    region, direction = task.region, task.direction
+    if region:
+        column, row = REGION_CELLS[region]
+        region = _region_name(matrix @ np.array([column - 1, row - 1]))
+    if direction:
+        direction = _direction_word(matrix @ np.asarray(DIRECTIONS[direction], dtype=int))
+    return _TASKS[(task.family, task.block, task.other, region, direction)]
+
+
+_TASKS: dict[tuple[str, int, int, str, str], Task] = {
+    (t.family, t.block, t.other, t.region, t.direction): t
+    for family in FAMILIES.values()
+    for t in family.tasks
+}
+
+
+def transform_instruction(text: str, matrix: np.ndarray) -> str:
+    """The instruction ``text`` for the transformed table; a text that is no tabletop instruction (a
+    label from elsewhere) is returned as it is."""
+    task = TASK_BY_TEXT.get(text)
+    return text if task is None else transformed_task(task, matrix).text
+
+
+def transform_frames(frames: np.ndarray, quarter_turns: int, mirror: bool) -> np.ndarray:
+    """(N, H, W, C) top-down frames of a square view, as the transformed table would be seen."""
+    if mirror:
+        frames = frames[:, :, ::-1]
+    return np.rot90(frames, k=quarter_turns, axes=(1, 2))
+
+
+def transform_points(points: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """(..., 2) table positions turned about the table's centre."""
+    centre = TABLE_SIZE / 2
+    return (points - centre) @ matrix.T.astype(points.dtype) + centre
+
+
+def random_symmetry(
+    observations: dict[str, np.ndarray],
+    instructions: Sequence[str],
+    actions: np.ndarray,
+    rng: np.random.Generator,
+) -> tuple[dict[str, np.ndarray], list[str], np.ndarray]:
+    """A batch of training samples (the ``bc`` policy's: observations by feature, instructions, (N, 2)
+    velocity commands), each under one of the 8 symmetries drawn at random (the identity among them)."""
+    chosen = rng.integers(len(SYMMETRIES), size=len(instructions))
+    frames, state = observations[CAMERA].copy(), observations[STATE].copy()
+    actions, instructions = np.array(actions, copy=True), list(instructions)
+    for index, (quarter_turns, mirror) in enumerate(SYMMETRIES):
+        rows = np.flatnonzero(chosen == index)
+        if index == 0 or len(rows) == 0:
+            continue
+        matrix = symmetry_matrix(quarter_turns, mirror)
+        frames[rows] = transform_frames(frames[rows], quarter_turns, mirror)
+        state[rows, :2] = transform_points(state[rows, :2], matrix)  # spec.STATE_NAMES: x, y, vx, vy
+        state[rows, 2:4] = state[rows, 2:4] @ matrix.T.astype(state.dtype)
+        actions[rows] = actions[rows] @ matrix.T.astype(actions.dtype)
+        for row in rows:
+            instructions[row] = transform_instruction(instructions[row], matrix)
+    return {**observations, CAMERA: frames, STATE: state}, instructions, actions
+
+
+__all__ = [
+    "SYMMETRIES",
+    "random_symmetry",
+    "symmetry_matrix",
+    "transform_frames",
+    "transform_instruction",
+    "transform_points",
+    "transformed_task",
+]

@@ -1,0 +1,134 @@
+"""The square table's 8 symmetries (playseg_core/domains/tabletop/symmetry.py): a transformed frame is
+the frame of the transformed table, and a transformed instruction is done exactly when the original is,
+on the transformed scenes; the policy trains with them (``augment``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from playseg_core.augment.policy import load_policy_learner
+from playseg_core.data.features import STATE
+from playseg_core.domains.tabletop.instructions import INSTRUCTIONS, is_done, task_for
+from playseg_core.domains.tabletop.render import Renderer
+from playseg_core.domains.tabletop.sim import Scene, TabletopSim
+from playseg_core.domains.tabletop.spec import BLOCKS, CAMERA, COLOUR_RGB, EFFECTOR_RGB
+from playseg_core.domains.tabletop.symmetry import (
+    SYMMETRIES,
+    random_symmetry,
+    symmetry_matrix,
+    transform_frames,
+    transform_instruction,
+    transform_points,
+)
+
+
+def scene_of(blocks: np.ndarray, effector: np.ndarray, angles: np.ndarray) -> Scene:
+    sim = TabletopSim()
+    sim.place(blocks, effector, angles)
+    return sim.scene()
+
+
+def transformed_scene(scene: Scene, quarter_turns: int, mirror: bool) -> Scene:
+    matrix = symmetry_matrix(quarter_turns, mirror)
+    angles = (-scene.angles if mirror else scene.angles) + quarter_turns * math.pi / 2
+    return scene_of(transform_points(scene.blocks, matrix), transform_points(scene.effector, matrix), angles)
+
+
+@pytest.mark.parametrize(("quarter_turns", "mirror"), SYMMETRIES)
+def test_a_transformed_frame_is_the_frame_of_the_transformed_table(quarter_turns: int, mirror: bool) -> None:
+    rng = np.random.default_rng(quarter_turns + 4 * mirror)
+    sim = TabletopSim()
+    sim.place_randomly(rng)
+    scene = sim.scene()
+    renderer = Renderer(96)
+    expected = renderer.render(transformed_scene(scene, quarter_turns, mirror)).astype(int)
+    turned = transform_frames(renderer.render(scene)[None], quarter_turns, mirror)[0].astype(int)
+    # OpenCV's anti-aliased rectangle shades the table's rim differently on opposite sides (a pixel line
+    # or two): the rim is left out. Elsewhere only shapes' edge pixels may be shaded differently, and
+    # each colour lies where it should within a pixel (anti-aliasing is not symmetric either).
+    background = renderer._background.astype(int)
+    rim = np.abs(transform_frames(background[None], quarter_turns, mirror)[0] - background).max(-1) > 0
+    assert rim.mean() < 0.08
+    differs = np.abs(turned - expected).max(-1) > 8
+    assert differs[~rim].mean() < 0.03, differs[~rim].sum()
+    rows, columns = np.mgrid[0:96, 0:96]
+    for colour in [*COLOUR_RGB.values(), EFFECTOR_RGB]:
+        centres = []
+        for frame in (turned, expected):
+            mask = (np.abs(frame - np.array(colour)).max(-1) < 30) & ~rim
+            centres.append(
+                (float((mask * rows).sum() / mask.sum()), float((mask * columns).sum() / mask.sum()))
+            )
+        np.testing.assert_allclose(centres[0], centres[1], atol=1.0)
+
+
+@pytest.mark.parametrize(("quarter_turns", "mirror"), SYMMETRIES[1:])
+def test_a_transformed_instruction_is_done_when_the_original_is(quarter_turns: int, mirror: bool) -> None:
+    rng = np.random.default_rng(7)
+    matrix = symmetry_matrix(quarter_turns, mirror)
+    changed, agreements = 0, 0
+    for _ in range(40):
+        start, end = TabletopSim(), TabletopSim()
+        start.place_randomly(rng)
+        end.place_randomly(rng)
+        # Half the time the end is a small move of the start, so that some tasks are done.
+        moved = start.scene().blocks + rng.normal(0, 0.06, (len(BLOCKS), 2))
+        end_scene = scene_of(np.clip(moved, 0.03, 0.47), end.scene().effector, start.scene().angles)
+        for text in rng.choice(INSTRUCTIONS, size=20, replace=False):
+            task = task_for(str(text))
+            turned = task_for(transform_instruction(task.text, matrix))
+            changed += turned.text != task.text
+            done = is_done(task, end_scene, start.scene())
+            turned_done = is_done(
+                turned,
+                transformed_scene(end_scene, quarter_turns, mirror),
+                transformed_scene(start.scene(), quarter_turns, mirror),
+            )
+            agreements += done == turned_done
+    assert agreements == 40 * 20
+    assert changed > 100  # regions and directions did turn
+
+
+def test_words_follow_the_table() -> None:
+    quarter = symmetry_matrix(1, False)
+    assert transform_instruction("push the red cube left", quarter) == "push the red cube down"
+    assert transform_instruction("move the arm to the top left corner", quarter) == (
+        "move the arm to the bottom left corner"
+    )
+    mirror = symmetry_matrix(0, True)
+    assert transform_instruction("push the blue cylinder to the right edge", mirror) == (
+        "push the blue cylinder to the left edge"
+    )
+    assert transform_instruction("separate the red cube from the blue cube", quarter) == (
+        "separate the red cube from the blue cube"
+    )
+    assert transform_instruction("wave hello", quarter) == "wave hello"
+
+
+def test_a_batch_keeps_its_shapes_and_each_sample_moves_as_one() -> None:
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 255, (64, 96, 96, 3), dtype=np.uint8)
+    state = rng.uniform(0, 0.5, (64, 4)).astype(np.float32)
+    actions = rng.uniform(-0.2, 0.2, (64, 2)).astype(np.float32)
+    texts = ["push the red cube left"] * 64
+    observations, instructions, turned = random_symmetry(
+        {CAMERA: frames, STATE: state}, texts, actions, np.random.default_rng(1)
+    )
+    assert observations[CAMERA].shape == frames.shape and turned.shape == actions.shape
+    assert len(set(instructions)) == 4  # left, right, up and down all drawn
+    # Lengths and the effector's distance from the table's centre are kept; the inputs are untouched.
+    np.testing.assert_allclose(np.hypot(*turned.T), np.hypot(*actions.T), rtol=1e-6)
+    np.testing.assert_allclose(
+        np.hypot(*(observations[STATE][:, :2] - 0.25).T), np.hypot(*(state[:, :2] - 0.25).T), rtol=1e-5
+    )
+    assert texts == ["push the red cube left"] * 64 and observations[CAMERA] is not frames
+
+
+def test_the_policy_trains_with_the_symmetries_and_the_generic_one_refuses_them() -> None:
+    learner = load_policy_learner("tabletop.bc", {"augment": True, "steps": 2, "batch_size": 4})
+    assert learner.bc.settings.augment and learner.bc.sample_symmetry is random_symmetry
+    with pytest.raises(ValueError, match="augment needs the symmetries of the data's world"):
+        load_policy_learner("bc", {"augment": True}, features=learner.features)
