@@ -45,7 +45,7 @@ def parse_args() -> argparse.Namespace:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="any other policy setting (BCTrainConfig), e.g. --set action_head=mixture; repeatable",
+        help="any other policy setting (BCTrainConfig), e.g. --set camera_encoder=keypoints; repeatable",
     )
     parser.add_argument("--json", help="write the rows here too")
     return parser.parse_args()

@@ -26,6 +26,7 @@ STREAM_TIMEOUT_S = 120.0
 REPLAY_RATE = 1.0
 """Recorded speed: /cmd_vel has no header, so its time is the adapter's clock (the replay's /clock); as fast
 as possible the clock runs ahead of the messages still queued in the adapter."""
+RECORDER_SETTLE_S = 1.0
 IDLE_TIMEOUT_S = 4.0  # the adapter ends the episode after this long without a message (the bag is over)
 
 
@@ -154,6 +155,9 @@ def _stream_live(play_bag: Path, mapping: Path, model: Path, run_dir: Path, expe
             f"topic_adapter published {steps[0]} PlaySteps, the segments reach step {ends[0]}, "
             f"in {time.monotonic() - started:.1f} s"
         )
+        # The recorder gets the last segment when this node does, but a node stopped before its callback
+        # ran loses it: a moment for the recorder to take it before the SIGINT.
+        spin_until(lambda: False, RECORDER_SETTLE_S)
     finally:
         executor.shutdown()
         node.destroy_node()
@@ -255,7 +259,18 @@ def run_robot_half(bags_dir: Path, run_dir: Path, model: Path) -> RobotHalfResul
     }
     (robot_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     if not same:
-        print(f"warning: the live segments differ from convert --segment's ({len(stored)})", file=sys.stderr)
+        live_rows = [(s.start, s.end, s.instruction) for s in confident]
+        stored_rows = [(s.start, s.end, s.instruction) for s in stored]
+        first = next(
+            (i for i, (a, b) in enumerate(zip(live_rows, stored_rows, strict=False)) if a != b),
+            min(len(live_rows), len(stored_rows)),
+        )
+        print(
+            f"warning: the live segments ({len(live_rows)}) differ from convert --segment's "
+            f"({len(stored_rows)}) from segment {first}: live {live_rows[first : first + 2]}, "
+            f"convert {stored_rows[first : first + 2]}",
+            file=sys.stderr,
+        )
     return RobotHalfResult(summary, table)
 
 

@@ -211,6 +211,8 @@ def test_bins_span_the_declared_bounds_and_acting_stays_inside_them() -> None:
     np.testing.assert_array_equal(policy.action_bin(centres).numpy(), np.arange(21)[:, None].repeat(7, 1))
     clip = clips[0]
     actions = policy.act({CAMERA: clip.images[CAMERA], STATE: clip.state}, [INSTRUCTIONS[0]] * 9)
+    # Every value is a bin centre: -0.5, -0.45, ..., 0.5.
+    np.testing.assert_allclose(actions * 20, np.round(actions * 20), atol=1e-4)
     assert actions.min() >= -0.5 and actions.max() <= 0.5
 
 

@@ -41,7 +41,8 @@ def test_robot_half_live_equals_convert_and_exports_lerobot(tmp_path: Path) -> N
     assert [e.episode_id for e in steps] == [f"{PLAY_BAG}:0"] and steps[0].num_steps == 219
     # Uncalibrated: every segment is stored, and they are the live ones; live, they tile the episode.
     assert summary["label_threshold"] == 0.0
-    assert summary["live_equals_convert"] and summary["stored_segments"] == summary["segments"] > 0
+    assert summary["live_equals_convert"], summary  # the demo's warning on stderr says where they differ
+    assert summary["stored_segments"] == summary["segments"] > 0
     lerobot = summary["lerobot"]
     assert (lerobot["codebase_version"], lerobot["episodes"], lerobot["frames"]) == ("v3.0", 2, 631)
     assert lerobot["videos"] == [f"videos/{CAMERA}/chunk-000/file-000.mp4"]

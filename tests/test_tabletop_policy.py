@@ -143,11 +143,17 @@ def test_bad_settings_fail_in_one_line() -> None:
         load_policy_learner("tabletop.bc", {"eval_max_steps": 0})
     with pytest.raises(ValueError, match="camera_encoder must be one of .*got 'resnet' and 16"):
         load_policy_learner("tabletop.bc", {"camera_encoder": "resnet"})
+    with pytest.raises(ValueError, match="num_episodes"):
+        evaluate_policy(StillPolicy(), 0, SEED)
 
 
 @pytest.mark.parametrize(
     ("camera_encoder", "kind", "pooling"),
-    [("image_cnn", "image_cnn", None), ("keypoints", "tabletop.object_maps", "keypoints")],
+    [
+        ("image_cnn", "image_cnn", None),
+        ("object_maps", "tabletop.object_maps", "grid"),
+        ("keypoints", "tabletop.object_maps", "keypoints"),
+    ],
 )
 def test_the_camera_encoder_setting_chooses_what_reads_the_camera(
     tiny_clips: list, camera_encoder: str, kind: str, pooling: str | None, tmp_path: Path
@@ -164,8 +170,6 @@ def test_the_camera_encoder_setting_chooses_what_reads_the_camera(
     assert loaded.encoders.step_dim == model.encoders.step_dim
     if pooling:
         assert camera["config"]["keypoints"] == 6
-    with pytest.raises(ValueError, match="num_episodes"):
-        evaluate_policy(StillPolicy(), 0, SEED)
 
 
 def test_the_domain_declares_its_experiment() -> None:

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from playseg_core.augment.policy import load_policy_learner
+from playseg_core.data.episode import Segment, SegmentClip
 from playseg_core.data.features import STATE
 from playseg_core.domains.tabletop.instructions import INSTRUCTIONS, is_done, task_for
 from playseg_core.domains.tabletop.render import Renderer
@@ -17,12 +18,26 @@ from playseg_core.domains.tabletop.sim import Scene, TabletopSim
 from playseg_core.domains.tabletop.spec import BLOCKS, CAMERA, COLOUR_RGB, EFFECTOR_RGB
 from playseg_core.domains.tabletop.symmetry import (
     SYMMETRIES,
+    apply_symmetries,
     random_symmetry,
     symmetry_matrix,
     transform_frames,
     transform_instruction,
     transform_points,
 )
+
+
+def tiny_clip() -> SegmentClip:
+    """A short recorded clip: the tabletop's own features (96x96 frames, 4-D state, 2-D commands)."""
+    rng = np.random.default_rng(3)
+    return SegmentClip(
+        episode_id="e0",
+        segment=Segment(0, 6, "push the red cube left"),
+        actions=rng.uniform(-0.2, 0.2, (6, 2)).astype(np.float32),
+        images={CAMERA: rng.integers(0, 255, (7, 96, 96, 3), dtype=np.uint8)},
+        state=rng.uniform(0, 0.5, (7, 4)).astype(np.float32),
+        source="annotation",
+    )
 
 
 def scene_of(blocks: np.ndarray, effector: np.ndarray, angles: np.ndarray) -> Scene:
@@ -69,12 +84,12 @@ def test_a_transformed_frame_is_the_frame_of_the_transformed_table(quarter_turns
 def test_a_transformed_instruction_is_done_when_the_original_is(quarter_turns: int, mirror: bool) -> None:
     rng = np.random.default_rng(7)
     matrix = symmetry_matrix(quarter_turns, mirror)
-    changed, agreements = 0, 0
+    changed, agreements, done_pairs = 0, 0, 0
     for _ in range(40):
         start, end = TabletopSim(), TabletopSim()
         start.place_randomly(rng)
         end.place_randomly(rng)
-        # Half the time the end is a small move of the start, so that some tasks are done.
+        # The end: the start's blocks moved a little, so that some tasks are done and some not.
         moved = start.scene().blocks + rng.normal(0, 0.06, (len(BLOCKS), 2))
         end_scene = scene_of(np.clip(moved, 0.03, 0.47), end.scene().effector, start.scene().angles)
         for text in rng.choice(INSTRUCTIONS, size=20, replace=False):
@@ -88,7 +103,9 @@ def test_a_transformed_instruction_is_done_when_the_original_is(quarter_turns: i
                 transformed_scene(start.scene(), quarter_turns, mirror),
             )
             agreements += done == turned_done
+            done_pairs += done
     assert agreements == 40 * 20
+    assert done_pairs >= 20, done_pairs  # both outcomes occur
     assert changed > 100  # regions and directions did turn
 
 
@@ -108,27 +125,51 @@ def test_words_follow_the_table() -> None:
     assert transform_instruction("wave hello", quarter) == "wave hello"
 
 
-def test_a_batch_keeps_its_shapes_and_each_sample_moves_as_one() -> None:
+def test_each_sample_moves_as_one_under_its_own_symmetry() -> None:
     rng = np.random.default_rng(0)
-    frames = rng.integers(0, 255, (64, 96, 96, 3), dtype=np.uint8)
-    state = rng.uniform(0, 0.5, (64, 4)).astype(np.float32)
-    actions = rng.uniform(-0.2, 0.2, (64, 2)).astype(np.float32)
-    texts = ["push the red cube left"] * 64
-    observations, instructions, turned = random_symmetry(
-        {CAMERA: frames, STATE: state}, texts, actions, np.random.default_rng(1)
+    frames = rng.integers(0, 255, (16, 96, 96, 3), dtype=np.uint8)
+    state = rng.uniform(0, 0.5, (16, 4)).astype(np.float32)
+    actions = rng.uniform(-0.2, 0.2, (16, 2)).astype(np.float32)
+    texts = [str(t) for t in rng.choice(INSTRUCTIONS, size=16)]
+    kept = (frames.copy(), state.copy(), actions.copy(), list(texts))
+    chosen = np.arange(16) % len(SYMMETRIES)
+    observations, instructions, turned = apply_symmetries(
+        {CAMERA: frames, STATE: state}, texts, actions, chosen
     )
-    assert observations[CAMERA].shape == frames.shape and turned.shape == actions.shape
-    assert len(set(instructions)) == 4  # left, right, up and down all drawn
-    # Lengths and the effector's distance from the table's centre are kept; the inputs are untouched.
-    np.testing.assert_allclose(np.hypot(*turned.T), np.hypot(*actions.T), rtol=1e-6)
-    np.testing.assert_allclose(
-        np.hypot(*(observations[STATE][:, :2] - 0.25).T), np.hypot(*(state[:, :2] - 0.25).T), rtol=1e-5
+    for i, (quarter_turns, mirror) in enumerate(SYMMETRIES[c] for c in chosen):
+        matrix = symmetry_matrix(quarter_turns, mirror)
+        np.testing.assert_array_equal(
+            observations[CAMERA][i], transform_frames(frames[i : i + 1], quarter_turns, mirror)[0]
+        )
+        np.testing.assert_allclose(
+            observations[STATE][i, :2], transform_points(state[i, :2], matrix), atol=1e-6
+        )
+        np.testing.assert_allclose(observations[STATE][i, 2:], matrix @ state[i, 2:], atol=1e-6)
+        np.testing.assert_allclose(turned[i], matrix @ actions[i], atol=1e-6)
+        assert instructions[i] == transform_instruction(texts[i], matrix)
+    # The identity leaves a sample as it was; the inputs are not touched.
+    np.testing.assert_array_equal(observations[CAMERA][0], frames[0])
+    for before, after in zip(kept, (frames, state, actions, texts), strict=True):
+        np.testing.assert_array_equal(np.asarray(before), np.asarray(after))
+    # Random draws differ between samples: all four direction words come up.
+    _, drawn, _ = random_symmetry(
+        {CAMERA: frames, STATE: state}, ["push the red cube left"] * 16, actions, np.random.default_rng(1)
     )
-    assert texts == ["push the red cube left"] * 64 and observations[CAMERA] is not frames
+    assert len(set(drawn)) == 4
 
 
 def test_the_policy_trains_with_the_symmetries_and_the_generic_one_refuses_them() -> None:
     learner = load_policy_learner("tabletop.bc", {"augment": True, "steps": 2, "batch_size": 4})
     assert learner.bc.settings.augment and learner.bc.sample_symmetry is random_symmetry
+    calls = []
+
+    def counted(*batch):
+        calls.append(len(batch[1]))
+        return random_symmetry(*batch)
+
+    learner.bc.sample_symmetry = counted
+    clip = tiny_clip()
+    _, report = learner.train([clip, clip])
+    assert calls == [4, 4] and report.steps == 2
     with pytest.raises(ValueError, match="augment needs the symmetries of the data's world"):
         load_policy_learner("bc", {"augment": True}, features=learner.features)

@@ -189,9 +189,10 @@ class BCPolicy(nn.Module):
             return out.argmax(dim=-1).numpy()
         if self.bins:
             out = self.bin_centres(out.reshape(len(out), -1, self.bins).argmax(dim=-1))
-            out = (out - self.action_mean) / self.action_std
+        else:
+            out = out * self.action_std + self.action_mean
         action = self.features.action
-        values = (out * self.action_std + self.action_mean).numpy().astype(np.float32)
+        values = out.numpy().astype(np.float32)
         if action.low is not None or action.high is not None:
             low = None if action.low is None else np.asarray(action.low, np.float32)
             high = None if action.high is None else np.asarray(action.high, np.float32)

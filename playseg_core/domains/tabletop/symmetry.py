@@ -94,6 +94,16 @@ def random_symmetry(
     """A batch of training samples (the ``bc`` policy's: observations by feature, instructions, (N, 2)
     velocity commands), each under one of the 8 symmetries drawn at random (the identity among them)."""
     chosen = rng.integers(len(SYMMETRIES), size=len(instructions))
+    return apply_symmetries(observations, instructions, actions, chosen)
+
+
+def apply_symmetries(
+    observations: dict[str, np.ndarray],
+    instructions: Sequence[str],
+    actions: np.ndarray,
+    chosen: np.ndarray,
+) -> tuple[dict[str, np.ndarray], list[str], np.ndarray]:
+    """The samples, sample i under ``SYMMETRIES[chosen[i]]``; new arrays, the inputs left as they are."""
     frames, state = observations[CAMERA].copy(), observations[STATE].copy()
     actions, instructions = np.array(actions, copy=True), list(instructions)
     for index, (quarter_turns, mirror) in enumerate(SYMMETRIES):
@@ -112,6 +122,7 @@ def random_symmetry(
 
 __all__ = [
     "SYMMETRIES",
+    "apply_symmetries",
     "random_symmetry",
     "symmetry_matrix",
     "transform_frames",
