@@ -133,19 +133,18 @@ def episode_stream(
     # An executor, not multiprocessing.Pool: when the caller stops early, the chunks not started are
     # cancelled and the running ones finish. Pool.terminate instead kills workers that may hold the
     # task queue's lock, and then waits for that lock forever (seen as a rare hang at the end).
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        pending: deque[tuple[list[int], Future]] = deque()
-        try:
-            while True:
-                while len(pending) < chunks_per_worker * workers:
-                    seeds = [episode_seed(base_seed, index + k) for k in range(chunk_size)]
-                    index += chunk_size
-                    pending.append((seeds, pool.submit(_generate_chunk, generate, config, seeds)))
-                seeds, result = pending.popleft()
-                yield from zip(seeds, result.result(), strict=True)
-        finally:
-            for _, future in pending:
-                future.cancel()
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+    pending: deque[tuple[list[int], Future]] = deque()
+    try:
+        while True:
+            while len(pending) < chunks_per_worker * workers:
+                seeds = [episode_seed(base_seed, index + k) for k in range(chunk_size)]
+                index += chunk_size
+                pending.append((seeds, pool.submit(_generate_chunk, generate, config, seeds)))
+            seeds, result = pending.popleft()
+            yield from zip(seeds, result.result(), strict=True)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 @dataclass(frozen=True)
