@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 import torch
 
-from playseg_core.augment.bc_policy import BCPolicyLearner, load_bc_policy
+from playseg_core.augment.bc_policy import BCPolicyLearner, InstructionAttention, load_bc_policy
 from playseg_core.augment.policy import load_policy_learner
 from playseg_core.augment.retraining import AugmentationTrainer, TrainerConfig
 from playseg_core.checkpoint import CheckpointError, read_checkpoint
 from playseg_core.data.episode import Segment, SegmentClip
 from playseg_core.data.features import ACTION, STATE, Feature, FeatureError, Features
+from playseg_core.ps.encoders import cell_entities
 
 CAMERA = "observation.images.wrist"
 INSTRUCTIONS = ("push the block left", "push the block right", "hold the gripper still")
@@ -247,3 +248,109 @@ def test_an_instruction_film_head_learns_and_its_flag_reads_from_text(tmp_path: 
     )
     with pytest.raises(ValueError, match="instruction_film must be true or false, got 'maybe'"):
         load_policy_learner("bc", {"instruction_film": "maybe"}, features=robot_features())
+
+
+def test_attention_positions_are_where_the_matching_cell_is() -> None:
+    attention = InstructionAttention(instruction_dim=3, entity_dim=4, queries=2)
+    with torch.no_grad():  # query 0 looks for channel 0, query 1 for channel 1, sharply
+        attention.query.weight.zero_()
+        attention.query.bias.zero_()
+        attention.query.weight[0, 0] = 50.0
+        attention.query.weight[4 + 1, 0] = 50.0
+    cells = torch.zeros(1, 4, 3, 5)  # 3 rows, 5 columns
+    cells[0, 0, 2, 4] = 1.0  # bottom row, last column
+    cells[0, 1, 0, 1] = 1.0  # top row, second column
+    out = attention(*cell_entities(cells), torch.tensor([[1.0, 0.0, 0.0]]))
+    assert out.shape == (1, attention.out_dim) and attention.out_dim == 2 * (2 + 4)
+    where = out.view(2, 6)[:, :2]
+    torch.testing.assert_close(where, torch.tensor([[1.0, 1.0], [-0.5, -1.0]]), atol=0.02, rtol=0)
+    torch.testing.assert_close(out.view(2, 6)[:, 2:4], torch.eye(2), atol=0.02, rtol=0)
+
+
+def square_clips(num: int, seed: int) -> list[SegmentClip]:
+    """A red and a blue square anywhere in a 32x32 frame; the action is the named square's centre."""
+    rng = np.random.default_rng(seed)
+    colours = {"reach the red square": (255, 0, 0), "reach the blue square": (0, 0, 255)}
+    clips = []
+    for i in range(num):
+        frames = np.zeros((5, 32, 32, 3), np.uint8)
+        actions = np.zeros((4, 2), np.float32)
+        names = list(colours)
+        named = names[i % 2]
+        for t in range(5):
+            corners = rng.integers(0, 26, size=(2, 2))
+            for name, (row, column) in zip(names, corners, strict=True):
+                frames[t, row : row + 6, column : column + 6] = colours[name]
+                if name == named and t < 4:
+                    actions[t] = [(column + 3) / 16 - 1, (row + 3) / 16 - 1]
+        clips.append(
+            SegmentClip(f"ep{i}", Segment(0, 4, named), actions, {CAMERA: frames}, None, "annotation")
+        )
+    return clips
+
+
+def test_instruction_attention_finds_the_named_object_and_round_trips(tmp_path: Path) -> None:
+    features = Features.of(
+        [Feature(CAMERA, "image", "uint8", (32, 32, 3)), Feature(ACTION, "action", "float32", (2,))], 10.0
+    )
+    settings = {**FAST, "steps": 400, "instruction_attention": 2, "instruction_dropout": 0.0}
+    learner = load_policy_learner("bc", settings, features=features)
+    policy, report = learner.train(square_clips(200, seed=3))
+    assert len(policy.attention) == 1
+    assert report.val_loss < 0.3 * report.baseline_val_loss, report
+    learner.save(tmp_path / "a.pt", policy, {})
+    loaded, _ = learner.load(tmp_path / "a.pt")
+    clip = square_clips(2, seed=9)[1]
+    observations = {CAMERA: clip.images[CAMERA]}
+    instructions = ["reach the red square", "reach the blue square"] * 2 + ["reach the red square"]
+    np.testing.assert_array_equal(
+        loaded.act(observations, instructions), policy.act(observations, instructions)
+    )
+    with pytest.raises(ValueError, match="instruction_attention needs a camera encoder that gives entities"):
+        state_only = Features.of([robot_features()[STATE], robot_features()[ACTION]], 10.0)
+        load_policy_learner("bc", {**FAST, "instruction_attention": 1}, features=state_only).train(
+            make_clips(6, seed=1)
+        )
+    with pytest.raises(ValueError, match="instruction_attention must be >= 0, got -1"):
+        load_policy_learner("bc", {"instruction_attention": -1}, features=features)
+
+
+def test_excluded_state_dimensions_are_not_read() -> None:
+    names = tuple(f"joint_{i}" for i in range(7))
+    base = robot_features()
+    features = Features.of(
+        [base[CAMERA], Feature(STATE, "state", "float32", (7,), names=names), base[ACTION]], 10.0
+    )
+    learner = load_policy_learner("bc", {**FAST, "state_exclude": "joint_0, joint_1"}, features=features)
+    clips = make_clips(60, seed=1)
+    policy, _ = learner.train(clips)
+    clip = clips[0]
+    changed = clip.state.copy()
+    changed[:, :2] += 5.0
+    instructions = [clip.segment.instruction] * len(changed)
+    np.testing.assert_array_equal(
+        policy.act({CAMERA: clip.images[CAMERA], STATE: changed}, instructions),
+        policy.act({CAMERA: clip.images[CAMERA], STATE: clip.state}, instructions),
+    )
+    changed[:, 2] += 5.0
+    assert not np.array_equal(
+        policy.act({CAMERA: clip.images[CAMERA], STATE: changed}, instructions),
+        policy.act({CAMERA: clip.images[CAMERA], STATE: clip.state}, instructions),
+    )
+    with pytest.raises(ValueError, match=r"state_exclude names \['elbow'\].*joint_0"):
+        load_policy_learner("bc", {"state_exclude": "elbow"}, features=features)
+    with pytest.raises(ValueError, match="none declared"):
+        load_policy_learner("bc", {"state_exclude": "joint_0"}, features=robot_features())
+
+
+def test_without_known_instructions_only_the_words_count() -> None:
+    clips = make_clips(60, seed=1)
+    observations = {CAMERA: clips[0].images[CAMERA][:1], STATE: clips[0].state[:1]}
+    shuffled = "left block the push"  # the words of INSTRUCTIONS[0] in another order
+    for known, same in ((False, True), (True, False)):
+        learner = load_policy_learner("bc", {**FAST, "known_instructions": known}, features=robot_features())
+        policy, report = learner.train(clips)
+        assert report.val_loss < 0.3 * report.baseline_val_loss, report
+        assert policy.known.num_embeddings == (len(INSTRUCTIONS) + 1 if known else 1)
+        acted = [policy.act(observations, [text]) for text in (INSTRUCTIONS[0], shuffled)]
+        assert bool(np.allclose(*acted, atol=1e-5)) is same  # (the mean of the words: any order)

@@ -143,6 +143,8 @@ def test_bad_settings_fail_in_one_line() -> None:
         load_policy_learner("tabletop.bc", {"eval_max_steps": 0})
     with pytest.raises(ValueError, match="camera_encoder must be one of .*got 'resnet' and 16"):
         load_policy_learner("tabletop.bc", {"camera_encoder": "resnet"})
+    with pytest.raises(ValueError, match="'keypoints' gives no entities for instruction_attention"):
+        load_policy_learner("tabletop.bc", {"camera_encoder": "keypoints", "instruction_attention": 1})
     with pytest.raises(ValueError, match="num_episodes"):
         evaluate_policy(StillPolicy(), 0, SEED)
 
@@ -153,6 +155,7 @@ def test_bad_settings_fail_in_one_line() -> None:
         ("image_cnn", "image_cnn", None),
         ("object_maps", "tabletop.object_maps", "grid"),
         ("keypoints", "tabletop.object_maps", "keypoints"),
+        ("blocks", "tabletop.object_maps", "blocks"),
     ],
 )
 def test_the_camera_encoder_setting_chooses_what_reads_the_camera(
@@ -160,14 +163,17 @@ def test_the_camera_encoder_setting_chooses_what_reads_the_camera(
 ) -> None:
     learner = load_policy_learner(
         "tabletop.bc",
-        {"steps": 3, "batch_size": 8, "camera_encoder": camera_encoder, "camera_keypoints": 6},
-    )
+        {
+            "steps": 3, "batch_size": 8, "camera_encoder": camera_encoder, "camera_keypoints": 6,
+        },
+    )  # fmt: skip
     model, _ = learner.train(tiny_clips[:4])
     learner.save(tmp_path / "p.pt", model, {})
     loaded, _ = learner.load(tmp_path / "p.pt")
     camera = loaded.config["encoders"][0]
     assert camera["kind"] == kind and camera["config"].get("pooling") == pooling
     assert loaded.encoders.step_dim == model.encoders.step_dim
+    assert len(loaded.attention) == (0 if camera_encoder == "keypoints" else 1)
     if pooling:
         assert camera["config"]["keypoints"] == 6
 

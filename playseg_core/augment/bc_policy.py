@@ -2,15 +2,20 @@
 
 pi(a_t | o_t, instruction): every camera of the data through ``image_cnn``, the state (when declared)
 through ``state_mlp`` (ps/encoders.py, standardised with the training clips' statistics), the instruction
-through a learned embedding per instruction string seen in training plus a hashed bag of words (so an
-unseen string still gets an embedding; no download), concatenated and mapped by an MLP to the action:
-logits over ``num_values`` for a discrete action (cross-entropy); for a continuous one either the
-standardised action (``action_head="regress"``, MSE; un-standardised when acting) or, per dimension,
-logits over ``action_bins`` evenly spaced values between the declared bounds (``"bins"``, cross-entropy;
-acting takes the most likely bin's value), clipped to the declared bounds when acting. Bins keep apart
-the different ways a demonstrator does the same thing (round an obstacle on the left or on the right),
-which a regression averages into a way nobody took. ``instruction_film`` lets the instruction scale and
-shift the head's hidden units (FiLM). A domain may choose the step encoders (as it does for PS).
+through a learned embedding per instruction string seen in training (``known_instructions``) plus a
+hashed bag of words (so an unseen string still gets an embedding; no download), concatenated and mapped
+by an MLP to the action: logits over ``num_values`` for a discrete action (cross-entropy); for a
+continuous one either the standardised action (``action_head="regress"``, MSE; un-standardised when
+acting) or, per dimension, logits over ``action_bins`` evenly spaced values between the declared bounds
+(``"bins"``, cross-entropy; acting takes the most likely bin's value), clipped to the declared bounds
+when acting. Bins keep apart the different ways a demonstrator does the same thing (round an obstacle on
+the left or on the right), which a regression averages into a way nobody took. ``instruction_film`` lets
+the instruction scale and shift the head's hidden units (FiLM). ``instruction_attention`` adds, for
+every camera whose encoder gives entities (a convolution's cells, objects it found), where in the image
+the instruction's things are (`InstructionAttention`). ``state_exclude`` names state dimensions the
+policy does not read: a measured velocity, say, from which a policy learns to repeat the last command
+instead of choosing it (the copycat problem of behaviour cloning). A domain may choose the step encoders
+(as it does for PS).
 
 `train` holds out a seeded share of the clips and reports the validation loss next to the loss of
 predicting the training clips' mean action (the marginal action frequencies when discrete). There is no
@@ -66,12 +71,18 @@ class BCTrainConfig:
     instruction_dim: int = 32
     hash_buckets: int = 512  # bag-of-words buckets for the instruction
     instruction_dropout: float = 0.2  # share of training samples that see only the bag of words
+    # a learned embedding per instruction string seen in training, beside the bag of words (False: the
+    # words only, so what instructions share is all there is to learn from)
+    known_instructions: bool = True
     val_fraction: float = 0.1  # share of the clips held out for validation
     image_dim: int = 128
     state_dim: int = 64
     action_head: str = "regress"  # continuous actions: "regress" (MSE) or "bins" (classes per dimension)
     action_bins: int = 21
     instruction_film: bool = False
+    # instruction queries over every camera's entities (0: none): where the instruction's things are
+    instruction_attention: int = 0
+    state_exclude: str = ""  # comma-separated names of state dimensions the policy does not read
     augment: bool = False  # training samples through the domain's symmetries (its `sample_symmetry`)
     log_every: int = 100
     num_threads: int = 1
@@ -81,6 +92,50 @@ def hashed_instruction_words(instruction: str, buckets: int) -> list[int]:
     """The hashed bag of words of ``instruction``: its words (`instruction_words`) -> bucket ids (crc32,
     the same in every process)."""
     return [zlib.crc32(word.encode()) % buckets for word in instruction_words(instruction)]
+
+
+def state_mask(features: Features, exclude: str) -> torch.Tensor | None:
+    """1 for each state dimension the policy reads, 0 for those named in ``exclude`` (comma-separated
+    `Feature.names`); None when nothing is excluded. ValueError naming an unknown dimension."""
+    names = [name.strip() for name in exclude.split(",") if name.strip()]
+    if not names:
+        return None
+    state = features.state
+    known = list(state.names or ()) if state is not None else []
+    unknown = [name for name in names if name not in known]
+    if unknown:
+        raise ValueError(
+            f"policy {POLICY_NAME}: state_exclude names {unknown}, not dimensions of the state "
+            f"(its names: {known or 'none declared'})"
+        )
+    return torch.tensor([0.0 if name in names else 1.0 for name in known])
+
+
+class InstructionAttention(nn.Module):
+    """Where the instruction's things are among a camera's entities (`encode_with_entities`), and what
+    they are.
+
+    Each of ``queries`` vectors made from the instruction weighs every entity by its dot product with the
+    entity's features (a softmax over entities); the output is, per query, the weighted mean of the
+    entities' image positions and of their features. Pooling the whole image first would mix the thing
+    the instruction names with everything else in view, and an MLP after it would have to learn to tell
+    them apart for every instruction separately; the positions say where to go directly.
+    """
+
+    def __init__(self, instruction_dim: int, entity_dim: int, queries: int) -> None:
+        super().__init__()
+        self.queries, self.entity_dim = queries, entity_dim
+        self.query = nn.Linear(instruction_dim, queries * entity_dim)
+        self.out_dim = queries * (2 + entity_dim)
+
+    def forward(
+        self, entities: torch.Tensor, positions: torch.Tensor, instruction: torch.Tensor
+    ) -> torch.Tensor:
+        """(N, E, C) entities at (N, E, 2) positions, (N, D) instruction -> (N, queries * (2 + C))."""
+        batch, _, width = entities.shape
+        queries = self.query(instruction).view(batch, self.queries, width)
+        weights = torch.softmax(queries @ entities.transpose(1, 2) / width**0.5, dim=-1)  # (N, Q, E)
+        return torch.cat([weights @ positions, weights @ entities], dim=-1).flatten(1)
 
 
 class BCPolicy(nn.Module):
@@ -102,8 +157,10 @@ class BCPolicy(nn.Module):
             [EncoderSpec.from_json(raw) for raw in self.config["encoders"]], features
         )
         self.vocabulary = [str(s) for s in self.config["vocabulary"]]
-        self._index = {s: i + 1 for i, s in enumerate(self.vocabulary)}  # 0: unknown string
-        self.known = nn.Embedding(len(self.vocabulary) + 1, dim, padding_idx=0)
+        # 0: an unknown string; without known_instructions every string is read by its words only
+        known = self.vocabulary if settings.get("known_instructions", True) else []
+        self._index = {s: i + 1 for i, s in enumerate(known)}
+        self.known = nn.Embedding(len(known) + 1, dim, padding_idx=0)
         self.words = nn.EmbeddingBag(self.buckets, dim, mode="mean")
         action = features.action
         self.discrete = action.is_discrete
@@ -121,8 +178,23 @@ class BCPolicy(nn.Module):
         # FiLM: the instruction scales and shifts every hidden unit, so it can select which features of
         # the observation count (which object to go to) instead of only adding to them.
         self.film = nn.Linear(dim, 2 * hidden) if settings.get("instruction_film") else None
+        queries = int(settings.get("instruction_attention", 0))
+        self.attention = nn.ModuleDict(  # by the camera encoder's position (feature names hold dots)
+            {
+                str(index): InstructionAttention(dim, encoder.entity_dim, queries)
+                for index, encoder in enumerate(self.encoders.encoders)
+                if queries and getattr(encoder, "entity_dim", 0)
+            }
+        )
+        if queries and not self.attention:
+            raise ValueError(
+                f"policy {POLICY_NAME}: instruction_attention needs a camera encoder that gives entities; "
+                f"the encoders are {[spec.kind for spec in self.encoders.specs]}"
+            )
+        self.register_buffer("state_keep", state_mask(features, settings.get("state_exclude", "")), False)
+        attended = sum(module.out_dim for module in self.attention.values())
         self.head = nn.Sequential(
-            nn.Linear(self.encoders.step_dim + dim, hidden),
+            nn.Linear(self.encoders.step_dim + attended + dim, hidden),
             nn.GELU(),
             nn.Linear(hidden, hidden),
             nn.GELU(),
@@ -151,7 +223,22 @@ class BCPolicy(nn.Module):
         """Observation rows by feature (N each) and instruction ids -> (N, out) logits or standardised
         actions."""
         instruction = self.known(known) + self.words(words, offsets)
-        hidden = self.head[:2](torch.cat([self.encoders(inputs), instruction], dim=-1))
+        if self.state_keep is not None:
+            inputs = {**inputs, STATE: inputs[STATE] * self.state_keep.view(self.features.state.shape)}
+        if self.attention:
+            parts = []
+            for index, (spec, encoder) in enumerate(
+                zip(self.encoders.specs, self.encoders.encoders, strict=True)
+            ):
+                if str(index) in self.attention:
+                    pooled, entities, positions = encoder.encode_with_entities(inputs[spec.feature])
+                    parts += [pooled, self.attention[str(index)](entities, positions, instruction)]
+                else:
+                    parts.append(encoder(inputs[spec.feature]))
+            observed = torch.cat(parts, dim=-1)
+        else:
+            observed = self.encoders(inputs)
+        hidden = self.head[:2](torch.cat([observed, instruction], dim=-1))
         if self.film is not None:
             scale, shift = self.film(instruction).chunk(2, dim=-1)
             hidden = hidden * (1.0 + scale) + shift
@@ -292,6 +379,11 @@ class BCPolicyLearner:
                 f"policy {POLICY_NAME}: action_head {settings.action_head!r} needs a continuous action; "
                 f"{features.action.name!r} is discrete"
             )
+        if settings.instruction_attention < 0:
+            raise ValueError(
+                f"policy {POLICY_NAME}: instruction_attention must be >= 0, got {settings.instruction_attention}"
+            )
+        state_mask(features, settings.state_exclude)  # ValueError naming an unknown dimension
         if settings.augment and sample_symmetry is None:
             raise ValueError(
                 f"policy {POLICY_NAME}: augment needs the symmetries of the data's world, which only a "
@@ -494,7 +586,9 @@ __all__ = [
     "BCPolicy",
     "BCPolicyLearner",
     "BCTrainConfig",
+    "InstructionAttention",
     "hashed_instruction_words",
     "load_bc_policy",
     "save_bc_policy",
+    "state_mask",
 ]

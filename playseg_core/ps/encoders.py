@@ -54,7 +54,14 @@ class StepEncoder(nn.Module):
 
 
 class ObservationEncoder(StepEncoder):
-    """An encoder of an observation feature (a camera or the state)."""
+    """An encoder of an observation feature (a camera or the state).
+
+    A camera encoder may also give the things it sees as entities (``entity_dim`` > 0): a feature vector
+    and an image position each (the cells of a convolution map, or objects it found). That is what a
+    model looking for the thing an instruction names attends over, see `encode_with_entities`.
+    """
+
+    entity_dim: int = 0  # width of the entities `encode_with_entities` gives; 0: this encoder has none
 
     def __init__(self, feature: Feature) -> None:
         super().__init__()
@@ -67,6 +74,24 @@ class ObservationEncoder(StepEncoder):
                 f"{where}: the model reads feature {self.feature.name!r}, the episode lacks it"
             )
         return rows
+
+    def encode_with_entities(
+        self, rows: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+        """(N, out_dim) as ``forward``, with (N, E, entity_dim) entities and their (N, E, 2) image positions
+        (x, y in [-1, 1]; None without entities), from one pass."""
+        return self(rows), None, None
+
+
+def cell_entities(cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A (N, C, H, W) convolution map as entities: (N, H * W, C) cell features and (N, H * W, 2) cell
+    centres (x from left to right, y from top to bottom, in [-1, 1])."""
+    batch, _, height, width = cells.shape
+    ys, xs = torch.meshgrid(
+        torch.linspace(-1.0, 1.0, height), torch.linspace(-1.0, 1.0, width), indexing="ij"
+    )
+    positions = torch.stack([xs.flatten(), ys.flatten()], dim=-1).expand(batch, -1, -1)
+    return cells.flatten(2).transpose(1, 2), positions
 
 
 class PreviousActionEncoder(StepEncoder):
@@ -159,10 +184,18 @@ class ImageEncoder(ObservationEncoder):
             previous = width
         self.convs = nn.Sequential(*layers, nn.AdaptiveAvgPool2d(pool))
         self.proj = nn.Sequential(nn.Flatten(), nn.Linear(previous * pool * pool, self.out_dim), nn.GELU())
+        self.entity_dim = previous
 
     def forward(self, frames: torch.Tensor) -> torch.Tensor:
         """(N, H, W, 3) uint8 -> (N, dim)."""
         return self.proj(self.convs(frames.permute(0, 3, 1, 2).float() / 255.0))
+
+    def encode_with_entities(
+        self, frames: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+        """(N, dim), and the last convolution's cells (before the pool) as entities."""
+        cells = self.convs[:-1](frames.permute(0, 3, 1, 2).float() / 255.0)
+        return self.proj(self.convs[-1](cells)), *cell_entities(cells)
 
 
 @register_encoder("state_mlp")

@@ -1,7 +1,8 @@
 """The tabletop policy ``tabletop.bc``: the generic behaviour-cloning policy (augment/bc_policy.py: camera,
 state, instruction embedding, continuous velocity) evaluated in the tabletop simulator (evaluation.py)
-instead of not at all. Its camera goes through the generic CNN, or, by the ``camera_encoder`` setting,
-through this domain's object maps (encoder.py) pooled to a grid or to keypoints."""
+instead of not at all. Its camera goes through this domain's object maps (encoder.py) found as blocks,
+or, by the ``camera_encoder`` setting, pooled to a grid or to keypoints, or through the generic CNN;
+`POLICY_DEFAULTS` are its settings unless told otherwise."""
 
 from __future__ import annotations
 
@@ -20,10 +21,27 @@ from playseg_core.ps.encoders import EncoderSpec
 
 POLICY_NAME = f"{DOMAIN}.bc"
 
-CAMERA_ENCODERS: dict[str, str | None] = {"image_cnn": None, "object_maps": "grid", "keypoints": "keypoints"}
+CAMERA_ENCODERS: dict[str, str | None] = {
+    "image_cnn": None,
+    "object_maps": "grid",
+    "keypoints": "keypoints",
+    "blocks": "blocks",
+}
 """The policy's ``camera_encoder`` setting -> the object-map encoder's pooling (None: the generic CNN).
-``keypoints`` gives the image coordinates of ``camera_keypoints`` learnt detectors (a spatial soft-argmax
-each), ``object_maps`` the 8x8-grid features PS reads (encoder.py)."""
+``blocks`` gives each block where its colour is (the default), ``keypoints`` the image coordinates of
+``camera_keypoints`` learnt detectors (a spatial soft-argmax each), ``object_maps`` the 8x8-grid features
+PS reads (encoder.py)."""
+
+POLICY_DEFAULTS: dict[str, Any] = {
+    "camera_encoder": "blocks",
+    "instruction_attention": 2,
+    "instruction_film": True,
+    "known_instructions": False,
+    "state_exclude": "effector_velocity_x,effector_velocity_y",
+}
+"""What ``tabletop.bc`` sets unless told otherwise (docs/tabletop.md "The policy"): the blocks as entities
+the instruction attends over (which block, which other block), read through the instruction's words only,
+and not the measured velocity, which lets behaviour cloning repeat the last command."""
 
 
 @dataclass
@@ -39,15 +57,17 @@ class TabletopPolicyLearner:
     @classmethod
     def from_config(cls, config: dict[str, Any]) -> TabletopPolicyLearner:
         """From plain settings: ``image_size`` (the dataset's camera side, default 96), ``eval_max_steps``
-        (default spec.EVAL_STEP_BUDGET), ``camera_encoder`` (CAMERA_ENCODERS, default the generic CNN) and
-        ``camera_keypoints``, and any setting of the ``bc`` policy (BCTrainConfig, ``channels`` =
+        (default spec.EVAL_STEP_BUDGET), ``camera_encoder`` (CAMERA_ENCODERS) and ``camera_keypoints``, and
+        any setting of the ``bc`` policy (BCTrainConfig, ``channels`` =
         ``hidden``); ValueError naming an unknown or bad one."""
         from playseg_core.domains.tabletop.play import PlayConfig  # the physics: only when built
         from playseg_core.domains.tabletop.symmetry import random_symmetry
 
-        config = dict(config)
+        if config.get("camera_encoder") == "keypoints":  # keypoints are no entities to attend over
+            config = {"instruction_attention": 0, **config}
+        config = {**POLICY_DEFAULTS, **config}
         image_size = int(config.pop("image_size", DEFAULT_IMAGE_SIZE))
-        camera = str(config.pop("camera_encoder", "image_cnn"))
+        camera = str(config.pop("camera_encoder"))
         keypoints = int(config.pop("camera_keypoints", ObjectMapConfig.keypoints))
         eval_max_steps = int(config.pop("eval_max_steps", EVAL_STEP_BUDGET))
         if eval_max_steps <= 0:
@@ -59,6 +79,11 @@ class TabletopPolicyLearner:
                 f"camera_keypoints >= 1, got {camera!r} and {keypoints}"
             )
         pooling = CAMERA_ENCODERS[camera]
+        if pooling == "keypoints" and int(config.get("instruction_attention", 0)) > 0:
+            raise ValueError(
+                f"policy {POLICY_NAME}: camera_encoder 'keypoints' gives no entities for "
+                "instruction_attention; set instruction_attention=0 or another camera_encoder"
+            )
 
         def encoder_choice(data: Features) -> dict[str, EncoderSpec | None]:
             if pooling is None or CAMERA not in data:
@@ -94,4 +119,4 @@ class TabletopPolicyLearner:
         return self.bc.load(path)
 
 
-__all__ = ["POLICY_NAME", "TabletopPolicyLearner"]
+__all__ = ["CAMERA_ENCODERS", "POLICY_DEFAULTS", "POLICY_NAME", "TabletopPolicyLearner"]
