@@ -135,6 +135,10 @@ def test_blocks_pooling_finds_every_block_and_pairs_each_colours_blocks() -> Non
 def test_bad_pooling_settings_are_named() -> None:
     with pytest.raises(FeatureError, match="pooling must be 'grid', 'keypoints' or 'blocks'.*'mean'"):
         ObjectMapEncoder(Feature(CAMERA, "image", "uint8", (96, 96, 3)), {"pooling": "mean"})
+    with pytest.raises(FeatureError, match="blob_iterations must be >= 1, got 0"):
+        ObjectMapEncoder(
+            Feature(CAMERA, "image", "uint8", (96, 96, 3)), {"pooling": "blocks", "blob_iterations": 0}
+        )
 
 
 def test_the_encoder_refuses_a_frame_it_cannot_read() -> None:

@@ -174,6 +174,7 @@ def test_the_camera_encoder_setting_chooses_what_reads_the_camera(
     assert camera["kind"] == kind and camera["config"].get("pooling") == pooling
     assert loaded.encoders.step_dim == model.encoders.step_dim
     assert len(loaded.attention) == (0 if camera_encoder == "keypoints" else 1)
+    assert loaded.state_keep.tolist() == [1.0, 1.0, 0.0, 0.0]  # the default: the velocity not read
     if pooling:
         assert camera["config"]["keypoints"] == 6
 

@@ -64,6 +64,8 @@ class ObjectMapEncoder(ObservationEncoder):
                 f"{KIND}: pooling must be 'grid', 'keypoints' or 'blocks' with keypoints >= 1, got "
                 f"{cfg.pooling!r} and {cfg.keypoints}"
             )
+        if cfg.blob_iterations < 1:
+            raise FeatureError(f"{KIND}: blob_iterations must be >= 1, got {cfg.blob_iterations}")
         self.keypoints = cfg.keypoints if cfg.pooling == "keypoints" else 0
         self.blocks = cfg.pooling == "blocks"
         self.patch, self.blob_iterations = cfg.patch, cfg.blob_iterations

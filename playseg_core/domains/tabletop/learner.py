@@ -16,7 +16,13 @@ from playseg_core.augment.policy import PolicyTrainReport
 from playseg_core.data.episode import SegmentClip
 from playseg_core.data.features import Features
 from playseg_core.domains.tabletop.encoder import ObjectMapConfig, object_map_spec
-from playseg_core.domains.tabletop.spec import CAMERA, DEFAULT_IMAGE_SIZE, DOMAIN, EVAL_STEP_BUDGET
+from playseg_core.domains.tabletop.spec import (
+    CAMERA,
+    DEFAULT_IMAGE_SIZE,
+    DOMAIN,
+    EVAL_STEP_BUDGET,
+    STATE_NAMES,
+)
 from playseg_core.ps.encoders import EncoderSpec
 
 POLICY_NAME = f"{DOMAIN}.bc"
@@ -37,9 +43,9 @@ POLICY_DEFAULTS: dict[str, Any] = {
     "instruction_attention": 2,
     "instruction_film": True,
     "known_instructions": False,
-    "state_exclude": "effector_velocity_x,effector_velocity_y",
+    "state_exclude": ",".join(name for name in STATE_NAMES if "velocity" in name),
 }
-"""What ``tabletop.bc`` sets unless told otherwise (docs/tabletop.md "The policy"): the blocks as entities
+"""What ``tabletop.bc`` sets unless told otherwise (docs/tabletop.md "The policy and its evaluation"): the blocks as entities
 the instruction attends over (which block, which other block), read through the instruction's words only,
 and not the measured velocity, which lets behaviour cloning repeat the last command."""
 
