@@ -83,14 +83,20 @@ class ObservationEncoder(StepEncoder):
         return self(rows), None, None
 
 
-def cell_entities(cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """A (N, C, H, W) convolution map as entities: (N, H * W, C) cell features and (N, H * W, 2) cell
-    centres (x from left to right, y from top to bottom, in [-1, 1])."""
-    batch, _, height, width = cells.shape
+def cell_centres(height: int, width: int) -> torch.Tensor:
+    """(height * width, 2) image positions of a map's cells, row by row: x from left to right, y from top
+    to bottom, both in [-1, 1]."""
     ys, xs = torch.meshgrid(
         torch.linspace(-1.0, 1.0, height), torch.linspace(-1.0, 1.0, width), indexing="ij"
     )
-    positions = torch.stack([xs.flatten(), ys.flatten()], dim=-1).expand(batch, -1, -1)
+    return torch.stack([xs.flatten(), ys.flatten()], dim=-1)
+
+
+def cell_entities(cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A (N, C, H, W) convolution map as entities: (N, H * W, C) cell features and their (N, H * W, 2)
+    `cell_centres`."""
+    batch, _, height, width = cells.shape
+    positions = cell_centres(height, width).expand(batch, -1, -1)
     return cells.flatten(2).transpose(1, 2), positions
 
 

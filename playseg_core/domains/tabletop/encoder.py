@@ -16,7 +16,13 @@ from torch.nn import functional as F
 
 from playseg_core.data.features import Feature, FeatureError
 from playseg_core.domains.tabletop.spec import COLOUR_RGB, COLOURS, EFFECTOR_RGB, SHAPES
-from playseg_core.ps.encoders import EncoderSpec, ObservationEncoder, cell_entities, register_encoder
+from playseg_core.ps.encoders import (
+    EncoderSpec,
+    ObservationEncoder,
+    cell_centres,
+    cell_entities,
+    register_encoder,
+)
 
 KIND = "tabletop.object_maps"
 
@@ -69,40 +75,25 @@ class ObjectMapEncoder(ObservationEncoder):
         self.keypoints = cfg.keypoints if cfg.pooling == "keypoints" else 0
         self.blocks = cfg.pooling == "blocks"
         self.patch, self.blob_iterations = cfg.patch, cfg.blob_iterations
-        if self.blocks:
-            # Patch resolution, as the keypoints; no detector to learn: the colours find the blocks.
-            self.convs = nn.Sequential(
+        if self.keypoints or self.blocks:
+            # Full patch resolution (a soft-argmax or a blob's centre is exact to a fraction of a patch);
+            # a 3x3 conv lets the features tell one block from its same-coloured twin by its outline.
+            layers = [
                 nn.Conv2d(len(palette), cfg.channels, cfg.patch, stride=cfg.patch),
                 nn.GELU(),
                 nn.Conv2d(cfg.channels, cfg.channels, 3, padding=1),
                 nn.GELU(),
-            )
-            self.identity = nn.Parameter(torch.randn(len(COLOURS), cfg.channels) * 0.1)  # per colour
-            self.entity_dim = cfg.channels
-            self.out_dim = 2 * len(COLOURS) * len(SHAPES)
-            rows, columns = height // cfg.patch, width // cfg.patch
-            grid_y, grid_x = torch.meshgrid(
-                torch.linspace(-1.0, 1.0, rows), torch.linspace(-1.0, 1.0, columns), indexing="ij"
-            )
-            centres = torch.stack([grid_x, grid_y], -1).reshape(-1, 2)
+            ]
+            centres = cell_centres(height // cfg.patch, width // cfg.patch)
             self.register_buffer("cell_centres", centres, persistent=False)  # (cells, 2) x, y
-            return
-        if self.keypoints:
-            # Full patch resolution (the soft-argmax is exact to a fraction of a patch); a 3x3 conv lets
-            # a detector tell one block from its same-coloured twin by its outline.
-            self.out_dim = 2 * cfg.keypoints
-            self.convs = nn.Sequential(
-                nn.Conv2d(len(palette), cfg.channels, cfg.patch, stride=cfg.patch),
-                nn.GELU(),
-                nn.Conv2d(cfg.channels, cfg.channels, 3, padding=1),
-                nn.GELU(),
-                nn.Conv2d(cfg.channels, cfg.keypoints, 1),
-            )
-            rows, columns = height // cfg.patch, width // cfg.patch
-            grid_y, grid_x = torch.meshgrid(
-                torch.linspace(-1.0, 1.0, rows), torch.linspace(-1.0, 1.0, columns), indexing="ij"
-            )
-            self.register_buffer("grid", torch.stack([grid_x, grid_y]).reshape(2, -1), persistent=False)
+            if self.keypoints:
+                self.out_dim = 2 * cfg.keypoints
+                self.convs = nn.Sequential(*layers, nn.Conv2d(cfg.channels, cfg.keypoints, 1))
+            else:  # no detector to learn: the colours find the blocks
+                self.convs = nn.Sequential(*layers)
+                self.identity = nn.Parameter(torch.randn(len(COLOURS), cfg.channels) * 0.1)  # per colour
+                self.entity_dim = cfg.channels
+                self.out_dim = 2 * len(COLOURS) * len(SHAPES)
             return
         self.out_dim = cfg.feature_dim
         self.convs = nn.Sequential(
@@ -151,7 +142,9 @@ class ObjectMapEncoder(ObservationEncoder):
     def forward(self, frames: torch.Tensor) -> torch.Tensor:
         """(N, H, W, 3) uint8 -> (N, feature_dim), or (N, 2 * keypoints) or (N, 2 * blocks) coordinates
         in [-1, 1]."""
-        return self.encode_with_entities(frames)[0]
+        if self.keypoints or self.blocks:
+            return self.encode_with_entities(frames)[0]
+        return self.proj(self.convs(self.masks(frames)))  # the grid: no entities to build
 
     def encode_with_entities(
         self, frames: torch.Tensor
@@ -162,7 +155,11 @@ class ObjectMapEncoder(ObservationEncoder):
         masks = self.masks(frames)
         if self.keypoints:
             weights = torch.softmax(self.convs(masks).flatten(2), dim=-1)  # (N, K, cells)
-            return (weights @ self.grid.T).flatten(1), None, None  # (N, K, 2) expected (x, y) -> (N, 2K)
+            return (
+                (weights @ self.cell_centres).flatten(1),
+                None,
+                None,
+            )  # (N, K, 2) expected (x, y) -> (N, 2K)
         cells = self.convs[:4](masks)
         if not self.blocks:
             return self.proj(self.convs[4](cells)), *cell_entities(cells)
