@@ -257,9 +257,10 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     train.add_argument(
         "--augment",
         action="store_true",
-        help="rotate/mirror each training clip's camera frames by a random multiple of 90 degrees (PS and the "
-        "labelling model; with --actions none; only where instructions and ends do not depend on "
-        "orientation: a room seen from above, not 'push the block left')",
+        help="each training clip under a random symmetry of the domain's world, its instruction turned with "
+        "it (tabletop: the table's 8); for a domain without symmetries, rotate/mirror the camera frames "
+        "by a random multiple of 90 degrees (with --actions none; only where instructions and ends do not "
+        "depend on orientation: a room seen from above, not 'push the block left'); PS and the labelling model",
     )
     train.add_argument(
         "--label-head",

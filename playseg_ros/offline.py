@@ -134,7 +134,8 @@ def train(
 
     ``bounds`` (min_len, max_len, k_max; None = derived, see `segment_bounds`) and ``encoders``
     (``FEATURE=KIND`` overrides of the step encoders) and ``label_head`` (None: the domain's, else
-    linear) and ``augment`` (rotated/mirrored training clips) come from the command line.
+    linear) and ``augment`` (training clips under the domain's symmetries, or rotated/mirrored frames)
+    come from the command line.
 
     The outputs are checked before training starts (a model is never trained only to be lost).
     """
@@ -143,6 +144,7 @@ def train(
     from playseg_core.ps.model import save_model
     from playseg_core.ps.training import (
         TrainConfig,
+        clip_symmetry_of,
         model_config_for,
         segment_bounds,
         train_labeller,
@@ -172,11 +174,14 @@ def train(
     if epochs is not None:  # asked for exactly this many epochs
         cfg = replace(cfg, min_steps=0)
     features, read_actions = _action_features(actions, dataset.features)
-    if augment and read_actions:
-        raise ValueError("--augment: only with --actions none (a mirror would swap left and right turns)")
+    if augment and read_actions and clip_symmetry_of(dataset.domain) is None:
+        raise ValueError(
+            "--augment: only with --actions none (a mirror would swap left and right turns), or for a "
+            "domain whose symmetries turn the actions too (its clip_symmetry)"
+        )
     if augment and not get_method(method).augments:
         raise ValueError(f"--augment: only for PS and the labelling model, not {method}")
-    cfg = replace(cfg, augment=augment)
+    cfg = replace(cfg, augment=augment, domain=dataset.domain)
     if method != "ps":
         given = {"seed": seed, "epochs": epochs, "lr": lr, "batch_size": batch_segments}
         training = (dataset, train_eps, val_eps, features, read_actions, bounds, encoders, encoders_from)

@@ -10,7 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from playseg_core.augment.bc_policy import BCPolicyLearner, InstructionAttention, load_bc_policy
+from playseg_core.augment.bc_policy import (
+    BCPolicyLearner,
+    InstructionAttention,
+    load_bc_policy,
+    save_bc_policy,
+)
 from playseg_core.augment.policy import load_policy_learner
 from playseg_core.augment.retraining import AugmentationTrainer, TrainerConfig
 from playseg_core.checkpoint import CheckpointError, read_checkpoint
@@ -354,3 +359,27 @@ def test_without_known_instructions_only_the_words_count() -> None:
         assert policy.known.num_embeddings == (len(INSTRUCTIONS) + 1 if known else 1)
         acted = [policy.act(observations, [text]) for text in (INSTRUCTIONS[0], shuffled)]
         assert bool(np.allclose(*acted, atol=1e-5)) is same  # (the mean of the words: any order)
+
+
+def test_word_order_tells_the_subject_from_the_object(tmp_path: Path) -> None:
+    """With ``word_order`` the words are read with their positions and pairs: "push the red block next to
+    the blue block" and the same with the colours swapped differ; a bag of words reads them alike. The
+    setting survives a checkpoint."""
+    from playseg_core.augment.bc_policy import hashed_instruction_words
+
+    one, other = "push the red block next to the blue block", "push the blue block next to the red block"
+    assert sorted(hashed_instruction_words(one, 512)) == sorted(hashed_instruction_words(other, 512))
+    assert sorted(hashed_instruction_words(one, 4096, True)) != sorted(
+        hashed_instruction_words(other, 4096, True)
+    )
+    clips = make_clips(20, seed=2)
+    observations = {CAMERA: clips[0].images[CAMERA][:1], STATE: clips[0].state[:1]}
+    for word_order in (False, True):
+        settings = {**FAST, "steps": 5, "known_instructions": False, "word_order": word_order}
+        policy, _ = load_policy_learner("bc", settings, features=robot_features()).train(clips)
+        acted = [policy.act(observations, [text]) for text in (one, other)]
+        assert bool(np.allclose(*acted, atol=1e-6)) is not word_order
+        save_bc_policy(tmp_path / "p.pt", policy, {})
+        loaded, _ = load_bc_policy(tmp_path / "p.pt")
+        assert loaded.word_order is word_order
+        np.testing.assert_allclose(loaded.act(observations, [other]), acted[1], atol=1e-6)

@@ -181,6 +181,9 @@ def test_the_camera_encoder_setting_chooses_what_reads_the_camera(
 
 def test_the_domain_declares_its_experiment() -> None:
     spec = ExperimentSpec.of_domain("tabletop")
-    assert spec.policy == "tabletop.bc" and set(spec.scales) == {"tiny", "small", "paper"}
-    assert all(scale.start_share == 0.25 and scale.preset == name for name, scale in spec.scales.items())
+    assert spec.policy == "tabletop.bc" and set(spec.scales) == {"tiny", "small", "medium", "paper"}
+    presets = {"tiny": "tiny", "small": "small", "medium": "paper", "paper": "paper"}
+    assert all(scale.start_share == 0.25 and scale.preset == presets[n] for n, scale in spec.scales.items())
+    # PS and the labelling model train on the table's symmetries from the small scale up
+    assert [n for n, scale in spec.scales.items() if scale.segmenter_augment] == ["small", "medium", "paper"]
     assert spec.paper == {}  # CALVIN's figures count tasks in a row, not a success rate

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from playseg_core.augment.policy import load_policy_learner
-from playseg_core.data.episode import Segment, SegmentClip
-from playseg_core.data.features import STATE
+from playseg_core.data.episode import Episode, Segment, SegmentClip
+from playseg_core.data.features import ACTION, STATE
+from playseg_core.domains import tabletop
 from playseg_core.domains.tabletop.instructions import INSTRUCTIONS, is_done, task_for
 from playseg_core.domains.tabletop.render import Renderer
 from playseg_core.domains.tabletop.sim import Scene, TabletopSim
@@ -19,6 +20,7 @@ from playseg_core.domains.tabletop.spec import BLOCKS, CAMERA, COLOUR_RGB, EFFEC
 from playseg_core.domains.tabletop.symmetry import (
     SYMMETRIES,
     apply_symmetries,
+    random_clip_symmetry,
     random_symmetry,
     symmetry_matrix,
     transform_frames,
@@ -173,3 +175,86 @@ def test_the_policy_trains_with_the_symmetries_and_the_generic_one_refuses_them(
     assert calls == [4, 4] and report.steps == 2
     with pytest.raises(ValueError, match="augment needs the symmetries of the data's world"):
         load_policy_learner("bc", {"augment": True}, features=learner.features)
+
+
+def test_a_segmentation_clip_turns_as_one_with_its_instruction() -> None:
+    """PS's training clips (``playseg train --augment``): every row of a clip under the same symmetry, the
+    one `apply_symmetries` gives, with the instruction turned; a clip without some features is fine."""
+    rng = np.random.default_rng(0)
+    clip = {
+        CAMERA: rng.integers(0, 255, (9, 96, 96, 3), dtype=np.uint8),
+        STATE: rng.uniform(0, 0.5, (9, 4)).astype(np.float32),
+        ACTION: rng.uniform(-0.2, 0.2, (9, 2)).astype(np.float32),
+    }
+    kept = {feature: array.copy() for feature, array in clip.items()}
+    draws = np.random.default_rng(5)
+    texts = set()
+    for _ in range(40):
+        state = draws.bit_generator.state
+        turned, text = random_clip_symmetry(clip, "push the red cube left", draws)
+        probe = np.random.default_rng()
+        probe.bit_generator.state = state
+        index = int(probe.integers(len(SYMMETRIES)))
+        expected, words, actions = apply_symmetries(
+            {CAMERA: clip[CAMERA], STATE: clip[STATE]}, ["push the red cube left"] * 9, clip[ACTION],
+            np.full(9, index),
+        )  # fmt: skip
+        np.testing.assert_array_equal(turned[CAMERA], expected[CAMERA])
+        np.testing.assert_allclose(turned[STATE], expected[STATE], atol=1e-6)
+        np.testing.assert_allclose(turned[ACTION], actions, atol=1e-6)
+        assert text == words[0]
+        texts.add(text)
+    assert texts == {f"push the red cube {d}" for d in ("left", "right", "up", "down")}
+    for feature, array in kept.items():
+        np.testing.assert_array_equal(clip[feature], array)
+    only_camera, text = random_clip_symmetry({CAMERA: clip[CAMERA]}, "move the arm to the centre", draws)
+    assert set(only_camera) == {CAMERA} and text == "move the arm to the centre"
+
+
+def test_ps_trains_on_turned_clips_with_turned_labels() -> None:
+    """make_batch with the domain's clip_symmetry: a model that reads the commands may augment, and each
+    segment's label is its turned instruction's class."""
+    from playseg_core.domains.tabletop.play import PlayConfig
+    from playseg_core.ps.model import PSModel
+    from playseg_core.ps.samples import label_index, make_batch
+    from playseg_core.ps.training import clip_symmetry_of, model_config_for
+
+    assert clip_symmetry_of("tabletop") is tabletop.clip_symmetry and clip_symmetry_of(None) is None
+    rng = np.random.default_rng(1)
+    steps = 30
+    episode = Episode(
+        "e",
+        rng.uniform(-0.2, 0.2, (steps, 2)).astype(np.float32),
+        {CAMERA: rng.integers(0, 255, (steps + 1, 96, 96, 3), dtype=np.uint8)},
+        rng.uniform(0, 0.5, (steps + 1, 4)).astype(np.float32),
+        segments=[Segment(2, 12, "push the red cube left"), Segment(14, 28, "move the arm to the top edge")],
+    )
+    classes = label_index(list(INSTRUCTIONS))
+    config = model_config_for(
+        PlayConfig().features, "tabletop", len(INSTRUCTIONS), max_len=20, episodes=[episode]
+    )
+    model = PSModel(config, list(INSTRUCTIONS))
+    assert model.encoders.reads_actions
+    items = [(episode, segment) for segment in episode.segments]
+    seen = set()
+    for seed in range(24):
+        batch = make_batch(
+            items, classes, model.encoders, 20, 2, np.random.default_rng(seed),
+            augment=True, clip_symmetry=tabletop.clip_symmetry,
+        )  # fmt: skip
+        words = [INSTRUCTIONS[int(label)] for label in batch.labels]
+        assert all(
+            task_for(word).family == task_for(s.instruction).family
+            for word, s in zip(words, episode.segments, strict=True)
+        )
+        seen.update(words)
+        # The first clip's first frame is the recorded frame under the symmetry its label says.
+        first = batch.inputs[CAMERA][0].numpy()
+        matches = [
+            (k, m) for k, m in SYMMETRIES
+            if transform_instruction("push the red cube left", symmetry_matrix(k, m)) == words[0]
+            and np.array_equal(transform_frames(episode.images[CAMERA][:1], k, m)[0], first)
+        ]  # fmt: skip
+        assert matches, words[0]
+    assert len({w for w in seen if w.startswith("push the red cube")}) == 4
+    assert len({w for w in seen if w.startswith("move the arm")}) > 1

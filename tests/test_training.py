@@ -241,3 +241,19 @@ def test_small_datasets_train_for_at_least_min_steps() -> None:
     assert epochs_to_train(TrainConfig(epochs=16, min_steps=3200), steps_per_epoch=100) == 32  # demo scale
     assert epochs_to_train(TrainConfig(epochs=16, min_steps=3200), steps_per_epoch=99) == 33
     assert epochs_to_train(TrainConfig(epochs=3, min_steps=0), steps_per_epoch=1) == 3
+
+
+def test_a_recorded_clip_gives_the_episode_s_rows() -> None:
+    """`recorded_clip` then `clip_inputs` (what make_batch does, a domain's symmetry between them) give the
+    rows `episode_inputs` gives for o_first..o_last: from o_0 (its previous action "none") and from later
+    steps (o_first's previous action a_{first-1}), for a discrete action here."""
+    cfg = tiny_model_config(num_actions=3)
+    encoders = StepEncoders(cfg.encoders, cfg.features)
+    episode = synthetic_episode(4, ends_in_actions=True)
+    whole = encoders.episode_inputs(episode)
+    for first, last in ((0, 5), (3, 9), (1, episode.num_steps)):
+        recorded = encoders.recorded_clip(episode, first, last)
+        rows = encoders.clip_inputs(recorded, first, "episode")
+        assert set(rows) == set(whole)
+        for feature, expected in whole.items():
+            np.testing.assert_array_equal(rows[feature], expected[first : last + 1])

@@ -48,7 +48,7 @@ from playseg_core.ps.encoders import (
     choose_encoders,
     feature_statistics,
 )
-from playseg_core.ps.model import instruction_words
+from playseg_core.ps.model import instruction_tokens, instruction_words
 
 POLICY_NAME = "bc"
 
@@ -74,6 +74,9 @@ class BCTrainConfig:
     # a learned embedding per instruction string seen in training, beside the bag of words (False: the
     # words only, so what instructions share is all there is to learn from)
     known_instructions: bool = True
+    # the words also with their positions and adjacent pairs (`instruction_tokens`): which block is the
+    # subject and which the object; False, as checkpoints written before it: a bag of words
+    word_order: bool = False
     val_fraction: float = 0.1  # share of the clips held out for validation
     image_dim: int = 128
     state_dim: int = 64
@@ -88,10 +91,11 @@ class BCTrainConfig:
     num_threads: int = 1
 
 
-def hashed_instruction_words(instruction: str, buckets: int) -> list[int]:
-    """The hashed bag of words of ``instruction``: its words (`instruction_words`) -> bucket ids (crc32,
-    the same in every process)."""
-    return [zlib.crc32(word.encode()) % buckets for word in instruction_words(instruction)]
+def hashed_instruction_words(instruction: str, buckets: int, word_order: bool = False) -> list[int]:
+    """The hashed bag of words of ``instruction``: its words (`instruction_words`), or with
+    ``word_order`` its `instruction_tokens`, -> bucket ids (crc32, the same in every process)."""
+    tokens = instruction_tokens(instruction) if word_order else instruction_words(instruction)
+    return [zlib.crc32(token.encode()) % buckets for token in tokens]
 
 
 def state_mask(features: Features, exclude: str) -> torch.Tensor | None:
@@ -151,6 +155,7 @@ class BCPolicy(nn.Module):
         self.features = features
         settings = self.config["settings"]
         self.buckets = int(settings["hash_buckets"])
+        self.word_order = bool(settings.get("word_order", False))
         dim = int(settings["instruction_dim"])
         hidden = int(settings["hidden"])
         self.encoders = StepEncoders(
@@ -208,7 +213,7 @@ class BCPolicy(nn.Module):
     def instruction_ids(self, instructions: Sequence[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(known-string ids (N,), flat word ids, bag offsets (N,)) of ``instructions``."""
         known = torch.tensor([self._index.get(s, 0) for s in instructions], dtype=torch.long)
-        bags = [hashed_instruction_words(s, self.buckets) for s in instructions]
+        bags = [hashed_instruction_words(s, self.buckets, self.word_order) for s in instructions]
         flat = torch.tensor([w for bag in bags for w in bag], dtype=torch.long)
         offsets = torch.tensor(np.cumsum([0, *[len(bag) for bag in bags[:-1]]]), dtype=torch.long)
         return known, flat, offsets

@@ -35,8 +35,9 @@ class TrainingData:
 
     features: the features to build step encoders for (the action possibly re-declared, see
         `playseg train --actions`); read_actions False leaves the previous action unread.
-    augment: rotate/mirror each training segment's camera frames (PS and the labelling model; only
-        for models that read no actions, and only where labels and ends do not depend on orientation).
+    augment: each training segment under a random symmetry of the domain's world (its
+        ``clip_symmetry``), else with its camera frames rotated/mirrored (only for models that read no
+        actions, and only where labels and ends do not depend on orientation); PS and the labelling model.
     bounds: command-line overrides of min_len / max_len / k_max (None: derived, ps.training.segment_bounds).
     """
 
@@ -131,7 +132,7 @@ def ps_training_setup(data: TrainingData, options: TrainOptions) -> tuple[list[E
     bounds = segment_bounds(train_eps, data.domain, **data.bounds)
     threads = options.num_threads or torch.get_num_threads()
     cfg = TrainConfig(seed=options.seed, k_max=bounds.k_max, num_threads=threads, progress=False)
-    cfg = replace(cfg, log_epochs=bool(options.log_every), augment=data.augment)
+    cfg = replace(cfg, log_epochs=bool(options.log_every), augment=data.augment, domain=data.domain)
     if options.epochs is not None:
         cfg = replace(cfg, epochs=options.epochs, min_steps=0)
     if options.steps is not None:

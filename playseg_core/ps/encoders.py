@@ -288,6 +288,32 @@ class StepEncoders(nn.Module):
             for spec, enc in zip(self.specs, self.encoders, strict=True)
         }
 
+    def recorded_clip(self, episode: Episode, first: int, last: int) -> dict[str, np.ndarray]:
+        """What was recorded of the observations o_first..o_last that the encoders read, by feature, and
+        of the actions that led to them (a_{first-1}..a_{last-1}; from a_0 when ``first`` is 0): the
+        values a domain's `clip_symmetry` transforms before `clip_inputs`."""
+        where = f"episode {episode.episode_id!r}"
+        return {
+            spec.feature: episode.actions[max(first - 1, 0) : last]
+            if isinstance(encoder, PreviousActionEncoder)
+            else encoder.input_rows(episode, where)[first : last + 1]
+            for spec, encoder in zip(self.specs, self.encoders, strict=True)
+        }
+
+    def clip_inputs(
+        self, recorded: Mapping[str, np.ndarray], first: int, where: str
+    ) -> dict[str, np.ndarray]:
+        """The encoders' input rows of a `recorded_clip` that starts at o_first: `episode_inputs`' rows
+        first..last, from the clip's values."""
+        inputs = {}
+        for spec, encoder in zip(self.specs, self.encoders, strict=True):
+            rows = np.asarray(recorded[spec.feature])
+            if isinstance(encoder, PreviousActionEncoder):
+                rows = encoder.previous_action_rows(rows, f"{where} {spec.feature}")
+                rows = rows[1:] if first > 0 else rows  # o_first's row is a_{first-1}'s, not "none"
+            inputs[spec.feature] = rows
+        return inputs
+
     def observation_inputs(
         self, observations: Mapping[str, np.ndarray], where: str, rows: int | None = None
     ) -> dict[str, np.ndarray]:

@@ -172,24 +172,30 @@ def instruction_words(instruction: str) -> list[str]:
     return _WORD.findall(instruction.lower())
 
 
+def instruction_tokens(instruction: str) -> list[str]:
+    """The words of an instruction, each word with its position (``"2:red"``) and each adjacent pair
+    (``"red cube"``): with order in them, "the red block next to the blue one" and "the blue block next
+    to the red one" differ, where their bags of words are the same."""
+    words = instruction_words(instruction)
+    pairs = [f"{a} {b}" for a, b in zip(words, words[1:], strict=False)]
+    return words + [f"{i}:{w}" for i, w in enumerate(words)] + pairs
+
+
 class TextLabelHead(nn.Module):
     """Scores every instruction from its words: logit = <query(hidden), mean of its tokens' embeddings> +
     a per-instruction bias.
 
-    Tokens are the words, the words with their position and adjacent word pairs, so "the red block next
-    to the blue one" and "the blue block next to the red one" differ. Instructions sharing words share
-    parameters: with many instructions and few annotated segments each (compositional instruction sets),
-    one example of "push the red cube left" also teaches "red cube" and "left", where a linear head
-    learns each instruction from its own examples only.
+    Tokens are `instruction_tokens`: the words, the words with their position and adjacent word pairs.
+    Instructions sharing words share parameters: with many instructions and few annotated segments each
+    (compositional instruction sets), one example of "push the red cube left" also teaches "red cube"
+    and "left", where a linear head learns each instruction from its own examples only.
     """
 
     def __init__(self, in_dim: int, instructions: list[str], dim: int = 64) -> None:
         super().__init__()
         token_lists = []
         for text in instructions:
-            words = instruction_words(text) or [text]
-            pairs = [f"{a} {b}" for a, b in zip(words, words[1:], strict=False)]
-            token_lists.append(words + [f"{i}:{w}" for i, w in enumerate(words)] + pairs)
+            token_lists.append(instruction_tokens(text) or [text])
         vocabulary = {token: i for i, token in enumerate(sorted({t for ts in token_lists for t in ts}))}
         tokens = torch.zeros(len(instructions), len(vocabulary))
         for row, token_list in enumerate(token_lists):

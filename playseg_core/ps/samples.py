@@ -12,7 +12,7 @@ Steps are encoded once per batch; windows are gathered from those features by in
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -100,6 +100,12 @@ class Batch:
         return (positions * (self.end_weight > 0)).amax(1) + 1
 
 
+ClipSymmetry = Callable[[dict[str, np.ndarray], str, np.random.Generator], tuple[dict[str, np.ndarray], str]]
+"""A domain's ``clip_symmetry`` (playseg_core/domains): a clip as recorded (`StepEncoders.recorded_clip`:
+observations and the actions that led to them, by feature) and its instruction under a random symmetry
+of the world."""
+
+
 def label_index(instructions: Sequence[str]) -> dict[str, int]:
     return {text: index for index, text in enumerate(instructions)}
 
@@ -115,6 +121,7 @@ def make_batch(
     dense_prefix_negatives: bool = False,
     augment: bool = False,
     dense_window_negatives: bool = False,
+    clip_symmetry: ClipSymmetry | None = None,
 ) -> Batch:
     """The windows of the annotated segments `items` (only positives if not `negatives`).
 
@@ -122,11 +129,13 @@ def make_batch(
     segments from many episodes, which trains far faster than whole episodes (many scenes per step).
     With `dense_prefix_negatives`, the true-start window is also supervised as "not ended" at every
     position before the end and at every position up to k_max after it (the end-earlier and end-later
-    negatives for all k at once). With `augment`, each segment's camera frames get one random rotation
-    by a multiple of 90 degrees and an optional mirror (the whole clip alike), for top-down views whose
-    instructions do not change under them. The batch carries every step encoder's input rows.
+    negatives for all k at once). With `augment`, each segment's clip goes through `clip_symmetry`, the
+    world's symmetries that also turn the instruction (a transformed instruction the classes lack leaves
+    the clip as it was); without one, its camera frames get one random rotation by a multiple of 90
+    degrees and an optional mirror (the whole clip alike), for top-down views whose instructions do not
+    change under them. The batch carries every step encoder's input rows.
     """
-    if augment and encoders.reads_actions:
+    if augment and clip_symmetry is None and encoders.reads_actions:
         # A mirror swaps left and right turns: the actions would need the env's own remapping.
         raise ValueError("augment is not supported for models that read actions")
     regions = [(max(0, seg.start - k_max), min(ep.num_steps, seg.end + k_max)) for ep, seg in items]
@@ -138,14 +147,20 @@ def make_batch(
     offset = 0
     cameras = encoders.cameras
     for (ep, seg), (lo, hi) in zip(items, regions, strict=True):
-        rotation, mirror = (int(rng.integers(4)), bool(rng.integers(2))) if augment else (0, False)
-        for feature, array in encoders.episode_inputs(ep).items():
-            clip = np.array(array[lo : hi + 1])
-            if augment and feature in cameras:
-                clip = np.rot90(clip, k=rotation, axes=(1, 2))
-                if mirror:
-                    clip = clip[:, :, ::-1]
-            inputs[feature].append(torch.from_numpy(np.ascontiguousarray(clip)))
+        recorded = encoders.recorded_clip(ep, lo, hi)
+        label = classes[seg.instruction]
+        if augment and clip_symmetry is not None:
+            turned, instruction = clip_symmetry(recorded, seg.instruction, rng)
+            if instruction in classes:
+                recorded, label = turned, classes[instruction]
+        clips = encoders.clip_inputs(recorded, lo, f"episode {ep.episode_id!r}")
+        if augment and clip_symmetry is None:
+            rotation, mirror = int(rng.integers(4)), bool(rng.integers(2))
+            for feature in cameras:
+                clip = np.rot90(clips[feature], k=rotation, axes=(1, 2))
+                clips[feature] = clip[:, :, ::-1] if mirror else clip
+        for feature, clip in clips.items():
+            inputs[feature].append(torch.from_numpy(np.array(clip)))
         samples = segment_samples(seg.start, seg.end, ep.num_steps, max_len, k_max, rng)
         windows: dict[int, int] = {}  # start -> row
         for sample in samples:
@@ -164,7 +179,7 @@ def make_batch(
             if sample.is_end:
                 label_window.append(row)
                 label_position.append(position)
-                labels.append(classes[seg.instruction])
+                labels.append(label)
         if negatives and dense_prefix_negatives and seg.start in windows:
             row, length = windows[seg.start], seg.end - seg.start
             last = min(length + k_max, max_len, ep.num_steps - seg.start)

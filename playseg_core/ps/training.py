@@ -22,7 +22,7 @@ from playseg_core.data.features import Features
 from playseg_core.domains import load_domain
 from playseg_core.ps.encoders import choose_encoders, feature_statistics
 from playseg_core.ps.model import LabelModel, ModelConfig, PSModel, TrunkConfig
-from playseg_core.ps.samples import Batch, label_index, make_batch
+from playseg_core.ps.samples import Batch, ClipSymmetry, label_index, make_batch
 
 
 @dataclass
@@ -38,7 +38,8 @@ class TrainConfig:
     k_max: int = 5  # negatives shift by 1..k_max steps
     dense_prefix_negatives: bool = True
     dense_window_negatives: bool = False  # windows starting off a true start: every position is "no end"
-    augment: bool = False  # random rotation/mirror per training segment (slower to learn; see docs)
+    augment: bool = False  # each training clip under a random symmetry (`clip_symmetry_of`; see docs)
+    domain: str | None = None  # the data's domain, whose `clip_symmetry` augment applies if it has one
     label_weight: float = 1.0
     frame_label_weight: float = 1.0  # auxiliary label loss on the end observation's encoding
     end_pos_weight: float = 4.0  # weight of the end head's positives in the BCE (ends are rare)
@@ -244,6 +245,12 @@ def _summarise(epoch: int, stats: list[BatchStats]) -> EpochReport:
     )
 
 
+def clip_symmetry_of(domain: str | None) -> ClipSymmetry | None:
+    """The ``clip_symmetry`` of ``domain`` (playseg_core/domains), or None: `augment` then turns camera
+    frames only."""
+    return getattr(load_domain(domain), "clip_symmetry", None) if domain else None
+
+
 def _annotated(episodes: Sequence[Episode]) -> list[Episode]:
     return [ep for ep in episodes if ep.segments]
 
@@ -255,6 +262,8 @@ def _run_epoch(loss_fn, model, episodes, classes, cfg, rng, optimizer, epoch, de
     items = [(ep, seg) for ep in episodes for seg in ep.segments]
     order = rng.permutation(len(items)) if training else np.arange(len(items))
     size = cfg.segments_per_batch
+    augment = training and cfg.augment
+    symmetry = clip_symmetry_of(cfg.domain) if augment else None
     batches = [order[i : i + size] for i in range(0, len(order), size)]
     stats: list[BatchStats] = []
     bar = tqdm(batches, desc=desc, file=sys.stderr, disable=not cfg.progress, leave=False)
@@ -269,7 +278,8 @@ def _run_epoch(loss_fn, model, episodes, classes, cfg, rng, optimizer, epoch, de
             negatives=isinstance(model, PSModel),
             dense_prefix_negatives=cfg.dense_prefix_negatives,
             dense_window_negatives=cfg.dense_window_negatives,
-            augment=training and cfg.augment,
+            augment=augment,
+            clip_symmetry=symmetry,
         )
         if batch.labels.numel() == 0:
             continue

@@ -3,10 +3,11 @@ rendering), a scripted teleoperator carrying out instructions one after another,
 decides completion, and generator presets. See docs/tabletop.md.
 
 The data is robot-shaped (a camera, a state vector, a continuous 2-D velocity action). The generic step
-encoders read the state and the action; the camera gets this package's object-map encoder (encoder.py),
-and the label heads score instructions from their words (``LABEL_HEAD``): 197 compositional instructions
-meet a few annotated segments each. No segment-length bounds: the ones derived from the annotated
-segments apply. Its policy ``tabletop.bc`` is the generic ``bc`` policy evaluated in the simulator
+encoders read the state and the action; the camera gets this package's object-map encoder (encoder.py)
+as the 8 blocks' positions, found by colour and size, and the label heads score instructions from their
+words (``LABEL_HEAD``): 197 compositional instructions meet a few annotated segments each. PS trains on
+the table's symmetries with ``--augment`` (``clip_symmetry``). No segment-length bounds: the ones
+derived from the annotated segments apply. Its policy ``tabletop.bc`` is the generic ``bc`` policy evaluated in the simulator
 (learner.py, evaluation.py), with a choice of camera encoder and the table's 8 symmetries to train on
 (symmetry.py). Importing it registers the encoder and imports neither pymunk nor OpenCV;
 the modules that run the world do.
@@ -18,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from playseg_core.data.features import Features
-from playseg_core.domains.tabletop.encoder import object_map_spec
+from playseg_core.domains.tabletop.encoder import ObjectMapConfig, object_map_spec
 from playseg_core.domains.tabletop.spec import CAMERA, DOMAIN
 from playseg_core.ps.encoders import EncoderSpec
 
@@ -27,9 +28,19 @@ LABEL_HEAD = "text"
 
 
 def step_encoders(features: Features) -> dict[str, EncoderSpec | None]:
-    """The tabletop's choice of step encoders (ps/encoders.py `choose_encoders`): the object-map encoder
-    for its camera; the generic ones for the state and the action."""
-    return {CAMERA: object_map_spec(features[CAMERA])} if CAMERA in features else {}
+    """The tabletop's choice of step encoders (ps/encoders.py `choose_encoders`): for its camera, the
+    object-map encoder's blocks (where each block is, nothing learnt); the generic ones for the state
+    and the action."""
+    config = ObjectMapConfig(pooling="blocks", twins_by_size=True)
+    return {CAMERA: object_map_spec(features[CAMERA], config)} if CAMERA in features else {}
+
+
+def clip_symmetry(inputs: dict[str, Any], instruction: str, rng: Any) -> tuple[dict[str, Any], str]:
+    """A Play Segmentation training clip as recorded and its instruction under one of the table's 8 symmetries drawn
+    at random (symmetry.py `random_clip_symmetry`): what ``playseg train --augment`` applies here."""
+    from playseg_core.domains.tabletop.symmetry import random_clip_symmetry
+
+    return random_clip_symmetry(inputs, instruction, rng)
 
 
 def _bc_policy(config: dict[str, Any]) -> Any:
@@ -98,6 +109,17 @@ def _experiment() -> Any:
                 100,
                 segmenter_steps=400,
                 description="100 annotated start segments of a 400-segment pool",
+                segmenter_augment=True,
+            ),
+            "medium": ExperimentScale(
+                "paper",
+                0.25,
+                {"steps": 3000, "batch_size": 32},
+                100,
+                segmenter_steps=612,
+                description="the paper preset's split (1,000 annotated start segments of a 4,000-segment "
+                "pool) at budgets this 2-core machine gives in about an hour",
+                segmenter_augment=True,
             ),
             "paper": ExperimentScale(
                 "paper",
@@ -105,6 +127,7 @@ def _experiment() -> Any:
                 {"steps": 4000, "batch_size": 64},
                 500,
                 description="the paper's CALVIN split: 1,000 annotated start segments of a 4,000-segment pool",
+                segmenter_augment=True,
             ),
         },  # fmt: skip
         # The paper's CALVIN table scores the average number of tasks completed in a row (of 5 per
@@ -123,6 +146,7 @@ a 25% annotated start split as in the paper's CALVIN experiment."""
 __all__ = [
     "LABEL_HEAD",
     "CAMERA",
+    "clip_symmetry",
     "DOMAIN",
     "EXPERIMENT",
     "POLICIES",

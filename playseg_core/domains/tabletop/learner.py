@@ -43,11 +43,15 @@ POLICY_DEFAULTS: dict[str, Any] = {
     "instruction_attention": 2,
     "instruction_film": True,
     "known_instructions": False,
+    "word_order": True,
+    "hash_buckets": 4096,
     "state_exclude": ",".join(name for name in STATE_NAMES if "velocity" in name),
 }
 """What ``tabletop.bc`` sets unless told otherwise (docs/tabletop.md "The policy and its evaluation"): the blocks as entities
-the instruction attends over (which block, which other block), read through the instruction's words only,
-and not the measured velocity, which lets behaviour cloning repeat the last command."""
+the instruction attends over (which block, which other block), read through the instruction's words only
+with their order (which block is pushed next to which: a bag of words has the two the same; more hash
+buckets for the ~300 tokens), and not the measured velocity, which lets behaviour cloning repeat the
+last command."""
 
 
 @dataclass
@@ -95,7 +99,9 @@ class TabletopPolicyLearner:
             if pooling is None or CAMERA not in data:
                 return {}  # the generic CNN
             return {
-                CAMERA: object_map_spec(data[CAMERA], ObjectMapConfig(pooling=pooling, keypoints=keypoints))
+                CAMERA: object_map_spec(
+                    data[CAMERA], ObjectMapConfig(pooling=pooling, keypoints=keypoints, twins_by_size=True)
+                )
             }
 
         bc = BCPolicyLearner.from_config(config, features, encoder_choice, random_symmetry)

@@ -15,7 +15,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from playseg_core.data.features import STATE
+from playseg_core.data.features import ACTION, STATE
 from playseg_core.domains.tabletop.instructions import (
     DIRECTIONS,
     FAMILIES,
@@ -106,23 +106,60 @@ def apply_symmetries(
     """The samples, sample i under ``SYMMETRIES[chosen[i]]``; new arrays, the inputs left as they are."""
     frames, state = observations[CAMERA].copy(), observations[STATE].copy()
     actions, instructions = np.array(actions, copy=True), list(instructions)
-    for index, (quarter_turns, mirror) in enumerate(SYMMETRIES):
+    for index, symmetry in enumerate(SYMMETRIES):
         rows = np.flatnonzero(chosen == index)
         if index == 0 or len(rows) == 0:
             continue
-        matrix = symmetry_matrix(quarter_turns, mirror)
-        frames[rows] = transform_frames(frames[rows], quarter_turns, mirror)
-        state[rows, :2] = transform_points(state[rows, :2], matrix)  # spec.STATE_NAMES: x, y, vx, vy
-        state[rows, 2:4] = state[rows, 2:4] @ matrix.T.astype(state.dtype)
-        actions[rows] = actions[rows] @ matrix.T.astype(actions.dtype)
+        frames[rows], state[rows], actions[rows] = _transform_arrays(
+            frames[rows], state[rows], actions[rows], *symmetry
+        )
+        matrix = symmetry_matrix(*symmetry)
         for row in rows:
             instructions[row] = transform_instruction(instructions[row], matrix)
     return {**observations, CAMERA: frames, STATE: state}, instructions, actions
 
 
+def random_clip_symmetry(
+    inputs: dict[str, np.ndarray], instruction: str, rng: np.random.Generator
+) -> tuple[dict[str, np.ndarray], str]:
+    """A training clip of Play Segmentation as recorded (the camera's frames, the states, the velocity
+    commands, by feature; any of them may be absent) and its instruction, all under one of the 8
+    symmetries drawn at random (the identity among them): the domain's ``clip_symmetry``."""
+    index = int(rng.integers(len(SYMMETRIES)))
+    if index == 0:
+        return inputs, instruction
+    empty = np.zeros((0, 4), np.float32)
+    frames, state, actions = _transform_arrays(
+        inputs.get(CAMERA),
+        np.asarray(inputs[STATE]) if STATE in inputs else empty,
+        np.asarray(inputs[ACTION]) if ACTION in inputs else empty[:, :2],
+        *SYMMETRIES[index],
+    )
+    out = dict(inputs)
+    for feature, array in ((CAMERA, frames), (STATE, state), (ACTION, actions)):
+        if feature in inputs:
+            out[feature] = array
+    return out, transform_instruction(instruction, symmetry_matrix(*SYMMETRIES[index]))
+
+
+def _transform_arrays(
+    frames: np.ndarray | None, state: np.ndarray, actions: np.ndarray, quarter_turns: int, mirror: bool
+) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+    """Frames (N, H, W, C) or None, states (N, 4) and velocity commands (N, 2) of one symmetry, as new
+    arrays."""
+    matrix = symmetry_matrix(quarter_turns, mirror)
+    if frames is not None:
+        frames = transform_frames(np.asarray(frames), quarter_turns, mirror)
+    state = np.array(state, copy=True)
+    state[:, :2] = transform_points(state[:, :2], matrix)  # spec.STATE_NAMES: x, y, vx, vy
+    state[:, 2:4] = state[:, 2:4] @ matrix.T.astype(state.dtype)
+    return frames, state, np.asarray(actions) @ matrix.T.astype(np.asarray(actions).dtype)
+
+
 __all__ = [
     "SYMMETRIES",
     "apply_symmetries",
+    "random_clip_symmetry",
     "random_symmetry",
     "symmetry_matrix",
     "transform_frames",
