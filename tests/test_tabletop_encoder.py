@@ -228,3 +228,17 @@ def test_a_text_head_labels_combinations_never_seen_in_training() -> None:
         accuracy[kind] = float((predicted == test).mean())
     assert accuracy["text"] > 0.8, accuracy
     assert accuracy["linear"] < 0.2, accuracy
+
+
+def test_a_text_head_s_tokens_are_the_ones_its_checkpoints_hold() -> None:
+    """The text head's vocabulary is rebuilt from the instructions when a checkpoint loads, so it must
+    stay what it was: words, words at their positions, adjacent pairs; an instruction without words is
+    itself at position 0."""
+    from playseg_core.ps.model import instruction_tokens
+
+    assert instruction_tokens("Push the red cube") == [
+        "push", "the", "red", "cube", "0:push", "1:the", "2:red", "3:cube",
+        "push the", "the red", "red cube",
+    ]  # fmt: skip
+    head = TextLabelHead(8, ["拿起红色方块", "go left"])
+    assert head.token_embedding.shape[0] == 7  # 2 for the first, go, left, 0:go, 1:left, "go left"

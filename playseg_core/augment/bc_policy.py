@@ -74,7 +74,7 @@ class BCTrainConfig:
     # a learned embedding per instruction string seen in training, beside the bag of words (False: the
     # words only, so what instructions share is all there is to learn from)
     known_instructions: bool = True
-    # the words also with their positions and adjacent pairs (`instruction_tokens`): which block is the
+    # the words also with their positions and adjacent pairs (`instruction_tokens`): which thing is the
     # subject and which the object; False, as checkpoints written before it: a bag of words
     word_order: bool = False
     val_fraction: float = 0.1  # share of the clips held out for validation

@@ -309,7 +309,8 @@ class StepEncoders(nn.Module):
         for spec, encoder in zip(self.specs, self.encoders, strict=True):
             rows = np.asarray(recorded[spec.feature])
             if isinstance(encoder, PreviousActionEncoder):
-                rows = encoder.previous_action_rows(rows, f"{where} {spec.feature}")
+                clip = f"{where} {spec.feature} (a clip from step {max(first - 1, 0)})"
+                rows = encoder.previous_action_rows(rows, clip)
                 rows = rows[1:] if first > 0 else rows  # o_first's row is a_{first-1}'s, not "none"
             inputs[spec.feature] = rows
         return inputs

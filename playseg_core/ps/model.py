@@ -195,7 +195,9 @@ class TextLabelHead(nn.Module):
         super().__init__()
         token_lists = []
         for text in instructions:
-            token_lists.append(instruction_tokens(text) or [text])
+            # an instruction without words is its own word, at position 0 (as checkpoints have it)
+            words = instruction_tokens(text) if instruction_words(text) else [text, f"0:{text}"]
+            token_lists.append(words)
         vocabulary = {token: i for i, token in enumerate(sorted({t for ts in token_lists for t in ts}))}
         tokens = torch.zeros(len(instructions), len(vocabulary))
         for row, token_list in enumerate(token_lists):

@@ -44,7 +44,7 @@ class ObjectMapConfig:
     patch: int = 4  # the first conv reads non-overlapping patch x patch pixel squares
     channels: int = 32
     feature_dim: int = 128
-    # "grid": features of an 8x8 grid (what PS reads); "keypoints": the image coordinates of `keypoints`
+    # "grid": features of an 8x8 grid (what PS read before the blocks); "keypoints": the image coordinates of `keypoints`
     # learnt detectors (a spatial soft-argmax each); "blocks": where each block is,
     # found by colour (`ObjectMapEncoder.blobs`), as entities with what the convolutions see there
     pooling: str = "grid"
@@ -64,13 +64,14 @@ SHAPE_SPREAD = {"cube": CUBE_SIDE**2 / 6, "cylinder": CYLINDER_RADIUS**2 / 2}
 
 @register_encoder(KIND)
 class ObjectMapEncoder(ObservationEncoder):
-    """Soft colour masks (one per block colour, one for the effector), then two convolutions.
+    """Soft colour masks (one per block colour, one for the effector), then where each block is
+    (``blocks``: found by colour and size, nothing learnt; convolutions give the entities' features) or
+    two convolutions pooled to a grid or to keypoints.
 
     The masks separate the things a label names (which block, where, next to which) before anything is
     learnt, so few annotated segments suffice; learning the same from raw RGB took the generic CNN far
     more optimizer steps than a 2-core machine gives it (docs/tabletop.md). The patch conv keeps full
-    resolution inside a patch, which is what tells a cube's corners from a cylinder's round edge; the
-    final grid keeps where things are.
+    resolution inside a patch; the grid keeps where things are.
     """
 
     def __init__(self, feature: Feature, config: dict[str, Any]) -> None:
@@ -100,6 +101,10 @@ class ObjectMapEncoder(ObservationEncoder):
             self.spread_pool = max(1, min(height, width) // _SPREAD_PIXELS)
             rows, columns = height // self.spread_pool, width // self.spread_pool
             self.register_buffer("pixel_centres", cell_centres(rows, columns), persistent=False)
+            # [-1, 1] spans the patches' centres in `blobs`, the pixels' centres here: the scale between
+            pool = self.spread_pool
+            scale = [(width - cfg.patch) / (width - pool), (height - cfg.patch) / (height - pool)]
+            self.register_buffer("patch_to_pixel", torch.tensor(scale), persistent=False)
             # (row, column) offsets of the window read around each block: _WINDOW of the frame's side
             side = min(rows, columns, math.ceil(_WINDOW * max(rows, columns)))
             offsets = torch.arange(side)
@@ -195,8 +200,9 @@ class ObjectMapEncoder(ObservationEncoder):
             mass = F.avg_pool2d(mass, self.spread_pool)
         height, width = mass.shape[-2:]
         side = self.window_side
+        at = centres * self.patch_to_pixel  # (N, G, S, 2) in pixel_centres' coordinates
         # the window's top-left pixel, inside the frame
-        corner = (centres + 1) / 2 * torch.tensor([width - 1, height - 1]) - side // 2
+        corner = (at + 1) / 2 * torch.tensor([width - 1, height - 1]) - side // 2
         column = corner[..., 0].round().clamp(0, width - side).long()
         row = corner[..., 1].round().clamp(0, height - side).long()
         index = (row[..., None] + self.window[:, 0]) * width + column[..., None] + self.window[:, 1]
@@ -207,7 +213,7 @@ class ObjectMapEncoder(ObservationEncoder):
             torch.arange(batch)[:, None, None, None], index, torch.arange(colours)[None, :, None, None]
         ]
         where = self.pixel_centres[index]  # (N, G, S, window pixels, 2)
-        distance = (where[..., None, :] - centres[:, :, None, None]).square().sum(-1)  # (.., S)
+        distance = (where[..., None, :] - at[:, :, None, None]).square().sum(-1)  # (.., S)
         own = torch.softmax(-distance / 0.002, dim=-1).diagonal(dim1=2, dim2=4)  # (N, G, window, S)
         weight = inside * own.transpose(2, 3)
         total = weight.sum(-1).clamp_min(1e-6)

@@ -36,7 +36,7 @@ CAMERA_ENCODERS: dict[str, str | None] = {
 """The policy's ``camera_encoder`` setting -> the object-map encoder's pooling (None: the generic CNN).
 ``blocks`` gives each block where its colour is (the default), ``keypoints`` the image coordinates of
 ``camera_keypoints`` learnt detectors (a spatial soft-argmax each), ``object_maps`` the 8x8-grid features
-PS reads (encoder.py)."""
+PS read before the blocks (encoder.py)."""
 
 POLICY_DEFAULTS: dict[str, Any] = {
     "camera_encoder": "blocks",
