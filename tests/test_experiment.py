@@ -9,7 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from playseg_core.experiment.conditions import AddedSegments, check_conditions, ground_truth_added
+from playseg_core.experiment.conditions import (
+    AddedSegments,
+    balance_labels,
+    check_conditions,
+    ground_truth_added,
+)
 from playseg_core.experiment.runner import ExperimentData
 from playseg_ros.cli import main as cli_main
 
@@ -157,3 +162,46 @@ def test_an_experiment_recorded_before_a_scale_field_existed_still_resumes(exper
         assert cli_main([*argv, "--conditions", "gt_start"]) == 0  # cached: nothing runs again
     finally:
         record.write_text(written)
+
+
+def test_balancing_caps_each_instruction_at_its_start_split_share() -> None:
+    from playseg_core.data.episode import Episode, Segment
+
+    def episode(name: str, labels: list[str], confidences: list[float] | None = None) -> Episode:
+        confidences = confidences or [1.0] * len(labels)
+        segments = [
+            Segment(2 * i, 2 * i + 2, label, c)
+            for i, (label, c) in enumerate(zip(labels, confidences, strict=True))
+        ]
+        return Episode(name, np.zeros((2 * len(labels), 1), np.float32), segments=segments)
+
+    start = [episode("s", ["a", "a", "a", "b"])]  # a: 3/4, b: 1/4
+    found = episode("p", ["a"] * 6 + ["b"] * 3 + ["c"], [0.1, 0.9, 0.2, 0.8, 0.3, 0.7, 0.5, 0.6, 0.4, 1.0])
+    added = AddedSegments("ps", {"p": found.segments})
+    balanced = balance_labels(added, "ps_balanced", start, target_segments=4)  # caps: a 3, b 1, c 0
+    kept = balanced.by_episode["p"]
+    assert balanced.condition == "ps_balanced" and balanced.count == 4
+    assert [(s.instruction, s.confidence) for s in kept] == [("a", 0.9), ("a", 0.8), ("a", 0.7), ("b", 0.6)]
+    assert balance_labels(added, "ps_balanced", start, target_segments=100).count == 9  # only c dropped
+    with pytest.raises(ValueError, match="start split with annotated segments"):
+        balance_labels(added, "ps_balanced", [episode("s", [])], 4)
+
+
+def test_the_balanced_condition_caps_what_ps_kept(experiment: Path, tmp_path: Path) -> None:
+    from playseg_core.data.episode import Segment
+    from playseg_core.experiment.runner import ExperimentSpec, _ensure_added
+
+    data = ExperimentData.open(experiment / "data")
+    start_labels = [s.instruction for e in data.start for s in e.segments]
+    most = max(set(start_labels), key=start_labels.count)
+    piled = {  # a segmenter that calls every true span of play the start split's commonest instruction
+        e.episode_id: [Segment(s.start, s.end, most, 1.0) for s in e.segments] for e in data.play
+    }
+    (tmp_path / "added").mkdir()
+    AddedSegments("ps", piled).save(tmp_path / "added" / "ps.json")
+    tiny = ExperimentSpec.of_domain("babyai").scale("tiny")
+    balanced = _ensure_added(tmp_path, "ps_balanced", data, tiny, lambda line: None)
+    play_segments = sum(len(e.segments) for e in data.play)
+    cap = -(-start_labels.count(most) * play_segments // len(start_labels))
+    assert balanced.count == min(cap, sum(len(g) for g in piled.values())) < play_segments
+    assert AddedSegments.load(tmp_path / "added" / "ps_balanced.json").count == balanced.count

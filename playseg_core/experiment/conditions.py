@@ -10,7 +10,9 @@ from the rest of the pool (the play split, whose ground truth the segmenters nev
 - ``random_relabel``: random windows of play (lengths between the shortest and longest annotated
   segment), labelled by the labelling model;
 - ``ps`` and the baselines (``unloc``, ``tridet``, ``changepoint``): what that segmentation method
-  extracts from play, kept when its label confidence reaches the method's calibrated threshold.
+  extracts from play, kept when its label confidence reaches the method's calibrated threshold;
+- ``ps_balanced``: what ``ps`` keeps, each instruction capped at the count its share of the start split
+  predicts for play (`balance_labels`; the most confident first).
 
 The ground-truth curve (``--conditions curve``) adds ``gt_<p>pct``: the first p% of the whole pool's
 ground-truth segments (the start split's first, then play's), fewer than the start split when p is below
@@ -21,6 +23,8 @@ leaves.
 from __future__ import annotations
 
 import json
+import math
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,14 +32,23 @@ from pathlib import Path
 from playseg_core.data.episode import Episode, Segment
 
 GT_MULTIPLES = {"gt_2x": 2, "gt_4x": 4}
-SEGMENTER_CONDITIONS = {"ps": "ps", "random_relabel": "random", "unloc": "unloc", "tridet": "tridet"}
+SEGMENTER_CONDITIONS = {
+    "ps": "ps",
+    "ps_balanced": "ps",
+    "random_relabel": "random",
+    "unloc": "unloc",
+    "tridet": "tridet",
+}
 """condition -> the segmentation method (baselines/registry.py) whose segments it adds."""
 CONDITIONS = ("gt_start", "gt_2x", "gt_4x", "gt_100", "oracle_relabel", "random_relabel", "ps")
-"""The default conditions, in table order; ``unloc``, ``tridet`` and ``changepoint`` on request."""
+"""The default conditions, in table order; ``ps_balanced``, ``unloc``, ``tridet`` and ``changepoint`` on
+request."""
+BALANCED = {"ps_balanced": "ps"}
+"""condition -> the condition whose kept segments it caps per instruction (`balance_labels`)."""
 POOL_PERCENTS = (1, 2, 5, 10, 25, 50)
 """The ground-truth curve's shares of the pool besides the start split and 100% (``gt_<p>pct``)."""
 CURVE_CONDITIONS = tuple(f"gt_{p}pct" for p in POOL_PERCENTS)
-KNOWN_CONDITIONS = (*CONDITIONS, "unloc", "tridet", "changepoint", *CURVE_CONDITIONS)
+KNOWN_CONDITIONS = (*CONDITIONS, "ps_balanced", "unloc", "tridet", "changepoint", *CURVE_CONDITIONS)
 CONDITION_GROUPS = {
     "default": CONDITIONS,
     "curve": ("gt_start", "gt_100", *CURVE_CONDITIONS),
@@ -122,3 +135,41 @@ def ground_truth_added(condition: str, play: Sequence[Episode], start_segments: 
             by_episode.setdefault(episode.episode_id, []).append(segment)
             taken += 1
     return AddedSegments(condition, by_episode)
+
+
+def balance_labels(
+    added: AddedSegments, condition: str, start: Sequence[Episode], target_segments: int
+) -> AddedSegments:
+    """``added`` with each instruction's segments capped at ceil(its share of the start split's segments x
+    ``target_segments``), keeping the most confident (ties: play order), the rest in play order.
+
+    A segmenter's labels can pile onto the instructions it learnt best (the paper's CALVIN result,
+    attributed to label imbalance); the cap keeps the added set's mix of instructions at most the start
+    split's. ``target_segments`` is how many segments the augmentation may add at most (the experiment
+    passes play's size, the 100% set less the start split); an instruction the start split lacks gets
+    none.
+    """
+    start_counts = Counter(s.instruction for episode in start for s in episode.segments)
+    total = sum(start_counts.values())
+    if total == 0:
+        raise ValueError("balance_labels needs a start split with annotated segments")
+    caps = {label: math.ceil(count * target_segments / total) for label, count in start_counts.items()}
+    ranked = sorted(
+        (
+            (episode_id, index, segment)
+            for episode_id, group in added.by_episode.items()
+            for index, segment in enumerate(group)
+        ),
+        key=lambda item: -item[2].confidence,
+    )
+    taken: Counter[str] = Counter()
+    kept: set[tuple[str, int]] = set()
+    for episode_id, index, segment in ranked:
+        if taken[segment.instruction] < caps.get(segment.instruction, 0):
+            taken[segment.instruction] += 1
+            kept.add((episode_id, index))
+    by_episode = {
+        episode_id: [s for index, s in enumerate(group) if (episode_id, index) in kept]
+        for episode_id, group in added.by_episode.items()
+    }
+    return AddedSegments(condition, {e: group for e, group in by_episode.items() if group})

@@ -73,7 +73,13 @@ def targets_text(summary: dict[str, dict[str, Any]]) -> list[str]:
             f"- gt_100 ({full:.3f}) does not score above gt_start ({start:.3f}): no gap from gt_start to "
             "gt_100 to recover at this scale."
         )
-    for condition, goal in (("ps", ">= 0.90"), ("oracle_relabel", ""), ("random_relabel", "well below PS")):
+    gap_goals = (
+        ("ps", ">= 0.90"),
+        ("ps_balanced", ""),
+        ("oracle_relabel", ""),
+        ("random_relabel", "well below PS"),
+    )
+    for condition, goal in gap_goals:
         share = gap_recovered(summary, condition)
         if share is not None:
             target = f" (target {goal})" if goal else ""

@@ -33,10 +33,12 @@ from playseg_core.data.episode import Episode
 from playseg_core.data.features import Features
 from playseg_core.domains import load_domain
 from playseg_core.experiment.conditions import (
+    BALANCED,
     CONDITIONS,
     KNOWN_CONDITIONS,
     SEGMENTER_CONDITIONS,
     AddedSegments,
+    balance_labels,
     check_conditions,
     ground_truth_added,
     pool_percent,
@@ -310,6 +312,11 @@ def _ensure_added(
         return AddedSegments.load(path)
     if condition.startswith("gt_"):
         added = ground_truth_added(condition, data.play, data.start_segments)
+    elif condition in BALANCED:
+        base = _ensure_added(out, BALANCED[condition], data, scale, log)
+        play_segments = sum(len(episode.segments) for episode in data.play)
+        added = balance_labels(base, condition, data.start, play_segments)
+        log(f"  {condition}: {added.count} of {base.count} segments kept, each instruction capped")
     elif condition == "oracle_relabel":
         from playseg_core.baselines.labelled_pieces import label_pieces
 
