@@ -176,15 +176,22 @@ def test_balancing_caps_each_instruction_at_its_start_split_share() -> None:
         return Episode(name, np.zeros((2 * len(labels), 1), np.float32), segments=segments)
 
     start = [episode("s", ["a", "a", "a", "b"])]  # a: 3/4, b: 1/4
-    found = episode("p", ["a"] * 6 + ["b"] * 3 + ["c"], [0.1, 0.9, 0.2, 0.8, 0.3, 0.7, 0.5, 0.6, 0.4, 1.0])
+    found = episode("p", ["b"] * 7 + ["a"] * 2 + ["c"], [0.1, 0.9, 0.2, 0.8, 0.3, 0.7, 0.5, 0.6, 0.4, 1.0])
     added = AddedSegments("ps", {"p": found.segments})
-    balanced = balance_labels(added, "ps_balanced", start, target_segments=4)  # caps: a 3, b 1, c 0
+    balanced = balance_labels(added, "ps_balanced", start)  # of 10: a <= 8, b <= ceil(2.5) = 3, c 0
     kept = balanced.by_episode["p"]
-    assert balanced.condition == "ps_balanced" and balanced.count == 4
-    assert [(s.instruction, s.confidence) for s in kept] == [("a", 0.9), ("a", 0.8), ("a", 0.7), ("b", 0.6)]
-    assert balance_labels(added, "ps_balanced", start, target_segments=100).count == 9  # only c dropped
+    assert balanced.condition == "ps_balanced" and balanced.count == 5
+    assert [(s.instruction, s.confidence) for s in kept] == [
+        ("b", 0.9),
+        ("b", 0.8),
+        ("b", 0.7),
+        ("a", 0.6),
+        ("a", 0.4),
+    ]
+    even = AddedSegments("ps", {"p": found.segments[:1] + found.segments[7:9]})  # b, a, a: within the caps
+    assert balance_labels(even, "ps_balanced", start).by_episode == even.by_episode
     with pytest.raises(ValueError, match="start split with annotated segments"):
-        balance_labels(added, "ps_balanced", [episode("s", [])], 4)
+        balance_labels(added, "ps_balanced", [episode("s", [])])
 
 
 def test_the_balanced_condition_caps_what_ps_kept(experiment: Path, tmp_path: Path) -> None:
@@ -201,7 +208,7 @@ def test_the_balanced_condition_caps_what_ps_kept(experiment: Path, tmp_path: Pa
     AddedSegments("ps", piled).save(tmp_path / "added" / "ps.json")
     tiny = ExperimentSpec.of_domain("babyai").scale("tiny")
     balanced = _ensure_added(tmp_path, "ps_balanced", data, tiny, lambda line: None)
-    play_segments = sum(len(e.segments) for e in data.play)
-    cap = -(-start_labels.count(most) * play_segments // len(start_labels))
-    assert balanced.count == min(cap, sum(len(g) for g in piled.values())) < play_segments
+    kept = sum(len(group) for group in piled.values())
+    cap = -(-start_labels.count(most) * kept // len(start_labels))  # ceil(share of the start split x kept)
+    assert balanced.count == cap < kept
     assert AddedSegments.load(tmp_path / "added" / "ps_balanced.json").count == balanced.count

@@ -132,14 +132,15 @@ def test_blocks_pooling_finds_every_block_and_pairs_each_colours_blocks() -> Non
     assert worst < 0.06, worst
 
 
-def test_blocks_pooling_by_size_tells_each_colours_cube_from_its_cylinder() -> None:
+@pytest.mark.parametrize("size", [96, 192])  # 192: the masks pooled to the spreads' resolution
+def test_blocks_pooling_by_size_tells_each_colours_cube_from_its_cylinder(size: int) -> None:
     """With ``twins_by_size`` the entity 2c + k is colour c's block of shape SHAPES[k], found by its
     spread in pixels: on 40 random layouts at most one of the 160 pairs comes out swapped (touching
-    twins), every other block within 0.06 of its position; and the identities are one per block."""
+    twins), every other block within 0.06 of its position; and the identities are one per block. The
+    frames it reads are left as they were."""
     from playseg_core.domains.tabletop.evaluation import evaluation_start
     from playseg_core.domains.tabletop.spec import SHAPES
 
-    size = 96
     feature = Feature(CAMERA, "image", "uint8", (size, size, 3))
     encoder = ObjectMapEncoder(feature, {"pooling": "blocks", "twins_by_size": True})
     assert encoder.identity.shape == (len(BLOCKS), 32)
@@ -147,8 +148,10 @@ def test_blocks_pooling_by_size_tells_each_colours_cube_from_its_cylinder() -> N
     swapped, worst = 0, 0.0
     for seed in range(40):
         scene = evaluation_start(seed)[0].scene()
-        frame = torch.from_numpy(renderer.render(scene))[None]
+        rendered = renderer.render(scene)
+        frame = torch.from_numpy(rendered.copy())[None]
         found = encoder(frame)[0].view(len(BLOCKS), 2).detach().numpy()
+        np.testing.assert_array_equal(frame[0].numpy(), rendered)
         np.testing.assert_array_equal(found, encoder.encode_with_entities(frame)[2][0].detach().numpy())
         for c, colour in enumerate(COLOURS):
             truth = []

@@ -11,8 +11,8 @@ from the rest of the pool (the play split, whose ground truth the segmenters nev
   segment), labelled by the labelling model;
 - ``ps`` and the baselines (``unloc``, ``tridet``, ``changepoint``): what that segmentation method
   extracts from play, kept when its label confidence reaches the method's calibrated threshold;
-- ``ps_balanced``: what ``ps`` keeps, each instruction capped at the count its share of the start split
-  predicts for play (`balance_labels`; the most confident first).
+- ``ps_balanced``: what ``ps`` keeps, each instruction capped at its share of the start split
+  (`balance_labels`; the most confident first).
 
 The ground-truth curve (``--conditions curve``) adds ``gt_<p>pct``: the first p% of the whole pool's
 ground-truth segments (the start split's first, then play's), fewer than the start split when p is below
@@ -34,7 +34,6 @@ from playseg_core.data.episode import Episode, Segment
 GT_MULTIPLES = {"gt_2x": 2, "gt_4x": 4}
 SEGMENTER_CONDITIONS = {
     "ps": "ps",
-    "ps_balanced": "ps",
     "random_relabel": "random",
     "unloc": "unloc",
     "tridet": "tridet",
@@ -137,23 +136,20 @@ def ground_truth_added(condition: str, play: Sequence[Episode], start_segments: 
     return AddedSegments(condition, by_episode)
 
 
-def balance_labels(
-    added: AddedSegments, condition: str, start: Sequence[Episode], target_segments: int
-) -> AddedSegments:
+def balance_labels(added: AddedSegments, condition: str, start: Sequence[Episode]) -> AddedSegments:
     """``added`` with each instruction's segments capped at ceil(its share of the start split's segments x
-    ``target_segments``), keeping the most confident (ties: play order), the rest in play order.
+    ``added.count``), the most confident kept (ties: play order), in play order.
 
     A segmenter's labels can pile onto the instructions it learnt best (the paper's CALVIN result,
-    attributed to label imbalance); the cap keeps the added set's mix of instructions at most the start
-    split's. ``target_segments`` is how many segments the augmentation may add at most (the experiment
-    passes play's size, the 100% set less the start split); an instruction the start split lacks gets
-    none.
+    attributed to label imbalance); no instruction then gets more of what was kept than its share of
+    the annotated segments. Nothing is added for the under-represented ones (there is nothing to add),
+    so the balanced set is smaller; an instruction the start split lacks gets none.
     """
     start_counts = Counter(s.instruction for episode in start for s in episode.segments)
     total = sum(start_counts.values())
     if total == 0:
         raise ValueError("balance_labels needs a start split with annotated segments")
-    caps = {label: math.ceil(count * target_segments / total) for label, count in start_counts.items()}
+    caps = {label: math.ceil(count * added.count / total) for label, count in start_counts.items()}
     ranked = sorted(
         (
             (episode_id, index, segment)

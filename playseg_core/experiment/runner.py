@@ -243,7 +243,7 @@ def _ensure_data(out: Path, domain: str, scale: ExperimentScale, workers: int, l
 
 def segmenter_methods(conditions: Sequence[str]) -> list[str]:
     """The segmentation methods (baselines/registry.py) the conditions need trained on the start split."""
-    methods = [SEGMENTER_CONDITIONS.get(c, c) for c in conditions if not c.startswith("gt_")]
+    methods = [SEGMENTER_CONDITIONS.get(BALANCED.get(c, c), c) for c in conditions if not c.startswith("gt_")]
     return list(dict.fromkeys("random" if m == "oracle_relabel" else m for m in methods))
 
 
@@ -314,8 +314,7 @@ def _ensure_added(
         added = ground_truth_added(condition, data.play, data.start_segments)
     elif condition in BALANCED:
         base = _ensure_added(out, BALANCED[condition], data, scale, log)
-        play_segments = sum(len(episode.segments) for episode in data.play)
-        added = balance_labels(base, condition, data.start, play_segments)
+        added = balance_labels(base, condition, data.start)
         log(f"  {condition}: {added.count} of {base.count} segments kept, each instruction capped")
     elif condition == "oracle_relabel":
         from playseg_core.baselines.labelled_pieces import label_pieces

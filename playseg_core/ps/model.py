@@ -173,9 +173,9 @@ def instruction_words(instruction: str) -> list[str]:
 
 
 def instruction_tokens(instruction: str) -> list[str]:
-    """The words of an instruction, each word with its position (``"2:red"``) and each adjacent pair
-    (``"red cube"``): with order in them, "the red block next to the blue one" and "the blue block next
-    to the red one" differ, where their bags of words are the same."""
+    """The words of an instruction, each word with its position (``"1:a"``) and each adjacent pair
+    (``"a next"``): with order in them, "put a next to b" and "put b next to a" differ, where their bags
+    of words are the same."""
     words = instruction_words(instruction)
     pairs = [f"{a} {b}" for a, b in zip(words, words[1:], strict=False)]
     return words + [f"{i}:{w}" for i, w in enumerate(words)] + pairs
@@ -187,8 +187,8 @@ class TextLabelHead(nn.Module):
 
     Tokens are `instruction_tokens`: the words, the words with their position and adjacent word pairs.
     Instructions sharing words share parameters: with many instructions and few annotated segments each
-    (compositional instruction sets), one example of "push the red cube left" also teaches "red cube"
-    and "left", where a linear head learns each instruction from its own examples only.
+    (compositional instruction sets), one example of "open the small door" also teaches "small door"
+    and "open", where a linear head learns each instruction from its own examples only.
     """
 
     def __init__(self, in_dim: int, instructions: list[str], dim: int = 64) -> None:
@@ -196,8 +196,7 @@ class TextLabelHead(nn.Module):
         token_lists = []
         for text in instructions:
             # an instruction without words is its own word, at position 0 (as checkpoints have it)
-            words = instruction_tokens(text) if instruction_words(text) else [text, f"0:{text}"]
-            token_lists.append(words)
+            token_lists.append(instruction_tokens(text) or [text, f"0:{text}"])
         vocabulary = {token: i for i, token in enumerate(sorted({t for ts in token_lists for t in ts}))}
         tokens = torch.zeros(len(instructions), len(vocabulary))
         for row, token_list in enumerate(token_lists):

@@ -55,7 +55,9 @@ class ObjectMapConfig:
     twins_by_size: bool = False
 
 
-_SPREAD_PIXELS = 96  # the resolution spreads are measured at (at least): below it, twins get swapped
+# the resolution spreads are measured at: larger frames are pooled to about it, smaller ones read as
+# they are (at 64x64 twins get swapped twice as often)
+_SPREAD_PIXELS = 96
 _WINDOW = 0.2  # side of the window read around a block, a share of the frame's (a block's diagonal ~0.12)
 
 SHAPE_SPREAD = {"cube": CUBE_SIDE**2 / 6, "cylinder": CYLINDER_RADIUS**2 / 2}
@@ -105,6 +107,7 @@ class ObjectMapEncoder(ObservationEncoder):
             pool = self.spread_pool
             scale = [(width - cfg.patch) / (width - pool), (height - cfg.patch) / (height - pool)]
             self.register_buffer("patch_to_pixel", torch.tensor(scale), persistent=False)
+            self.register_buffer("pixel_extent", torch.tensor([columns - 1.0, rows - 1.0]), persistent=False)
             # (row, column) offsets of the window read around each block: _WINDOW of the frame's side
             side = min(rows, columns, math.ceil(_WINDOW * max(rows, columns)))
             offsets = torch.arange(side)
@@ -202,16 +205,14 @@ class ObjectMapEncoder(ObservationEncoder):
         side = self.window_side
         at = centres * self.patch_to_pixel  # (N, G, S, 2) in pixel_centres' coordinates
         # the window's top-left pixel, inside the frame
-        corner = (at + 1) / 2 * torch.tensor([width - 1, height - 1]) - side // 2
+        corner = (at + 1) / 2 * self.pixel_extent - side // 2
         column = corner[..., 0].round().clamp(0, width - side).long()
         row = corner[..., 1].round().clamp(0, height - side).long()
         index = (row[..., None] + self.window[:, 0]) * width + column[..., None] + self.window[:, 1]
         batch, colours, shapes, pixels = index.shape  # (N, G, S, window pixels)
-        # pixel-major (N, pixels, G): a view of how `masks` lays them out, where (N, G, pixels) is a copy
-        flat = mass.permute(0, 2, 3, 1).reshape(batch, height * width, colours)
-        inside = flat[
-            torch.arange(batch)[:, None, None, None], index, torch.arange(colours)[None, :, None, None]
-        ]
+        flat = mass.permute(0, 2, 3, 1).reshape(batch, height * width, colours)  # (N, pixels, G)
+        images = torch.arange(batch, device=index.device)[:, None, None, None]
+        inside = flat[images, index, torch.arange(colours, device=index.device)[None, :, None, None]]
         where = self.pixel_centres[index]  # (N, G, S, window pixels, 2)
         distance = (where[..., None, :] - at[:, :, None, None]).square().sum(-1)  # (.., S)
         own = torch.softmax(-distance / 0.002, dim=-1).diagonal(dim1=2, dim2=4)  # (N, G, window, S)

@@ -100,7 +100,8 @@ class TabletopPolicyLearner:
                 return {}  # the generic CNN
             return {
                 CAMERA: object_map_spec(
-                    data[CAMERA], ObjectMapConfig(pooling=pooling, keypoints=keypoints, twins_by_size=True)
+                    data[CAMERA],
+                    ObjectMapConfig(pooling=pooling, keypoints=keypoints, twins_by_size=pooling == "blocks"),
                 )
             }
 
