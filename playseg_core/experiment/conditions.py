@@ -32,12 +32,7 @@ from pathlib import Path
 from playseg_core.data.episode import Episode, Segment
 
 GT_MULTIPLES = {"gt_2x": 2, "gt_4x": 4}
-SEGMENTER_CONDITIONS = {
-    "ps": "ps",
-    "random_relabel": "random",
-    "unloc": "unloc",
-    "tridet": "tridet",
-}
+SEGMENTER_CONDITIONS = {"ps": "ps", "random_relabel": "random", "unloc": "unloc", "tridet": "tridet"}
 """condition -> the segmentation method (baselines/registry.py) whose segments it adds."""
 CONDITIONS = ("gt_start", "gt_2x", "gt_4x", "gt_100", "oracle_relabel", "random_relabel", "ps")
 """The default conditions, in table order; ``ps_balanced``, ``unloc``, ``tridet`` and ``changepoint`` on

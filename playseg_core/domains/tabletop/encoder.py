@@ -44,9 +44,9 @@ class ObjectMapConfig:
     patch: int = 4  # the first conv reads non-overlapping patch x patch pixel squares
     channels: int = 32
     feature_dim: int = 128
-    # "grid": features of an 8x8 grid (what PS read before the blocks); "keypoints": the image coordinates of `keypoints`
-    # learnt detectors (a spatial soft-argmax each); "blocks": where each block is,
-    # found by colour (`ObjectMapEncoder.blobs`), as entities with what the convolutions see there
+    # "grid": features of an 8x8 grid (what PS read before the blocks); "keypoints": the image
+    # coordinates of `keypoints` learnt detectors (a spatial soft-argmax each); "blocks": where each
+    # block is, found by colour (`ObjectMapEncoder.blobs`), as entities with what the convolutions see
     pooling: str = "grid"
     keypoints: int = 16
     blob_iterations: int = 5  # rounds of the two-means split of each colour's pixels
