@@ -258,7 +258,7 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
         "--augment",
         action="store_true",
         help="each training clip under a random symmetry of the domain's world, its instruction turned with "
-        "it (the domain's clip_symmetry); for a domain without symmetries, rotate/mirror the camera frames "
+        "it (the domain's CLIP_SYMMETRIES); for a domain without symmetries, rotate/mirror the camera frames "
         "by a random multiple of 90 degrees (with --actions none; only where instructions and ends do not "
         "depend on orientation: a room seen from above, not 'push the block left'); PS and the labelling model",
     )

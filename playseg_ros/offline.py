@@ -144,7 +144,7 @@ def train(
     from playseg_core.ps.model import save_model
     from playseg_core.ps.training import (
         TrainConfig,
-        clip_symmetry_of,
+        clip_symmetries_of,
         model_config_for,
         segment_bounds,
         train_labeller,
@@ -174,10 +174,10 @@ def train(
     if epochs is not None:  # asked for exactly this many epochs
         cfg = replace(cfg, min_steps=0)
     features, read_actions = _action_features(actions, dataset.features)
-    if augment and read_actions and clip_symmetry_of(dataset.domain) is None:
+    if augment and read_actions and clip_symmetries_of(dataset.domain) is None:
         raise ValueError(
             "--augment: only with --actions none (a mirror would swap left and right turns), or for a "
-            "domain whose symmetries turn the actions too (its clip_symmetry)"
+            "domain whose symmetries turn the actions too (its CLIP_SYMMETRIES)"
         )
     if augment and not get_method(method).augments:
         raise ValueError(f"--augment: only for PS and the labelling model, not {method}")

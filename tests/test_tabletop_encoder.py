@@ -1,6 +1,7 @@
-"""The tabletop's own step encoder (object maps) and the text label head it is paired with: the maps find
-each block where the simulator put it, the domain chooses both by default, checkpoints round-trip, and a
-text head labels instruction combinations it never saw in training (a linear head cannot)."""
+"""The tabletop's own step encoder (object maps) and the label heads: the maps find each block where the
+simulator put it, the domain chooses the scaled blocks and the linear head by default, checkpoints
+round-trip, and a text head (on request) labels instruction combinations it never saw in training (a
+linear head cannot)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import torch
 
 from playseg_core.data.episode import Episode
 from playseg_core.data.features import Feature, FeatureError
+from playseg_core.domains.tabletop import BLOCK_POSITION_SCALE
 from playseg_core.domains.tabletop.encoder import KIND, ObjectMapConfig, ObjectMapEncoder, object_map_spec
 from playseg_core.domains.tabletop.play import PlayConfig
 from playseg_core.domains.tabletop.render import VIEW_BORDER, Renderer
@@ -180,22 +182,25 @@ def test_the_encoder_refuses_a_frame_it_cannot_read() -> None:
         ObjectMapEncoder(Feature(CAMERA, "image", "uint8", (12, 96, 3)), {})
 
 
-def test_the_domain_chooses_the_blocks_and_the_text_head_and_checkpoints_keep_them(tmp_path: Path) -> None:
+def test_the_domain_chooses_the_scaled_blocks_and_the_linear_head_and_checkpoints_keep_them(
+    tmp_path: Path,
+) -> None:
     features = PlayConfig().features
     instructions = ["push the red cube left", "push the blue cube right", "move the arm to the centre"]
     episode = tabletop_shaped_episode(10)
     config = model_config_for(features, DOMAIN, len(instructions), episodes=[episode])
-    blocks = ObjectMapConfig(pooling="blocks", twins_by_size=True)
-    assert config.encoders[0] == object_map_spec(features[CAMERA], blocks) and config.label_head == "text"
-    assert (
-        model_config_for(features, DOMAIN, 3, episodes=[episode], label_head="linear").label_head == "linear"
-    )
+    blocks = ObjectMapConfig(pooling="blocks", twins_by_size=True, position_scale=BLOCK_POSITION_SCALE)
+    assert config.encoders[0] == object_map_spec(features[CAMERA], blocks) and config.label_head == "linear"
+    assert model_config_for(features, DOMAIN, 3, episodes=[episode], label_head="text").label_head == "text"
     torch.manual_seed(0)
     model = PSModel(config, instructions).eval()
-    assert isinstance(model.label_head, TextLabelHead)
     save_model(tmp_path / "m.pt", model)
     loaded, _ = load_model(tmp_path / "m.pt")
-    assert loaded.cfg.label_head == "text"
+    assert loaded.cfg.label_head == "linear"
+    frames = torch.from_numpy(episode.images[CAMERA][:4].copy())
+    scaled = loaded.encoders.encoders[0](frames)
+    unscaled = ObjectMapEncoder(features[CAMERA], {"pooling": "blocks", "twins_by_size": True})(frames)
+    torch.testing.assert_close(scaled, unscaled * BLOCK_POSITION_SCALE)
     hidden = torch.randn(5, config.trunk.hidden_dim)
     torch.testing.assert_close(loaded.label_head(hidden), model.label_head(hidden))
 

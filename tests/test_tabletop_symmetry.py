@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from playseg_core.augment.policy import load_policy_learner
 from playseg_core.data.episode import Episode, Segment, SegmentClip
@@ -20,7 +21,6 @@ from playseg_core.domains.tabletop.spec import BLOCKS, CAMERA, COLOUR_RGB, EFFEC
 from playseg_core.domains.tabletop.symmetry import (
     SYMMETRIES,
     apply_symmetries,
-    random_clip_symmetry,
     random_symmetry,
     symmetry_matrix,
     transform_frames,
@@ -178,8 +178,11 @@ def test_the_policy_trains_with_the_symmetries_and_the_generic_one_refuses_them(
 
 
 def test_a_segmentation_clip_turns_as_one_with_its_instruction() -> None:
-    """PS's training clips (``playseg train --augment``): every row of a clip under the same symmetry, the
-    one `apply_symmetries` gives, with the instruction turned; a clip without some features is fine."""
+    """PS's training clips (``playseg train --augment``, the domain's CLIP_SYMMETRIES): every row of a clip
+    under the same symmetry, the one `apply_symmetries` gives, with the instruction turned; a clip without
+    some features is fine, and the recorded arrays are left as they were."""
+    symmetries = tabletop.CLIP_SYMMETRIES
+    assert symmetries.count == len(SYMMETRIES)
     rng = np.random.default_rng(0)
     clip = {
         CAMERA: rng.integers(0, 255, (9, 96, 96, 3), dtype=np.uint8),
@@ -187,17 +190,13 @@ def test_a_segmentation_clip_turns_as_one_with_its_instruction() -> None:
         ACTION: rng.uniform(-0.2, 0.2, (9, 2)).astype(np.float32),
     }
     kept = {feature: array.copy() for feature, array in clip.items()}
-    draws = np.random.default_rng(5)
     texts = set()
-    for _ in range(40):
-        state = draws.bit_generator.state
-        turned, text = random_clip_symmetry(clip, "push the red cube left", draws)
-        probe = np.random.default_rng()
-        probe.bit_generator.state = state
-        index = int(probe.integers(len(SYMMETRIES)))
+    for number in range(symmetries.count):
+        turned = symmetries.turn_clip(clip, number)
+        text = symmetries.turn_instruction("push the red cube left", number)
         expected, words, actions = apply_symmetries(
             {CAMERA: clip[CAMERA], STATE: clip[STATE]}, ["push the red cube left"] * 9, clip[ACTION],
-            np.full(9, index),
+            np.full(9, number),
         )  # fmt: skip
         np.testing.assert_array_equal(turned[CAMERA], expected[CAMERA])
         np.testing.assert_allclose(turned[STATE], expected[STATE], atol=1e-6)
@@ -207,19 +206,20 @@ def test_a_segmentation_clip_turns_as_one_with_its_instruction() -> None:
     assert texts == {f"push the red cube {d}" for d in ("left", "right", "up", "down")}
     for feature, array in kept.items():
         np.testing.assert_array_equal(clip[feature], array)
-    only_camera, text = random_clip_symmetry({CAMERA: clip[CAMERA]}, "move the arm to the centre", draws)
-    assert set(only_camera) == {CAMERA} and text == "move the arm to the centre"
+    only_camera = symmetries.turn_clip({CAMERA: clip[CAMERA]}, 3)
+    assert set(only_camera) == {CAMERA}
+    assert symmetries.turn_instruction("move the arm to the centre", 3) == "move the arm to the centre"
 
 
 def test_ps_trains_on_turned_clips_with_turned_labels() -> None:
-    """make_batch with the domain's clip_symmetry: a model that reads the commands may augment, and each
+    """make_batch with the domain's CLIP_SYMMETRIES: a model that reads the commands may augment, and each
     segment's label is its turned instruction's class."""
     from playseg_core.domains.tabletop.play import PlayConfig
     from playseg_core.ps.model import PSModel
     from playseg_core.ps.samples import label_index, make_batch
-    from playseg_core.ps.training import clip_symmetry_of, model_config_for
+    from playseg_core.ps.training import clip_symmetries_of, model_config_for
 
-    assert clip_symmetry_of("tabletop") is tabletop.clip_symmetry and clip_symmetry_of(None) is None
+    assert clip_symmetries_of("tabletop") is tabletop.CLIP_SYMMETRIES and clip_symmetries_of(None) is None
     rng = np.random.default_rng(1)
     steps = 30
     episode = Episode(
@@ -240,7 +240,7 @@ def test_ps_trains_on_turned_clips_with_turned_labels() -> None:
     for seed in range(24):
         batch = make_batch(
             items, classes, model.encoders, 20, 2, np.random.default_rng(seed),
-            augment=True, clip_symmetry=tabletop.clip_symmetry,
+            symmetries=tabletop.CLIP_SYMMETRIES,
         )  # fmt: skip
         words = [INSTRUCTIONS[int(label)] for label in batch.labels]
         assert all(
@@ -258,3 +258,54 @@ def test_ps_trains_on_turned_clips_with_turned_labels() -> None:
         assert matches, words[0]
     assert len({w for w in seen if w.startswith("push the red cube")}) == 4
     assert len({w for w in seen if w.startswith("move the arm")}) > 1
+
+
+def test_the_blocks_are_encoded_once_per_episode_and_symmetry() -> None:
+    """The blocks' positions learn nothing: training encodes them once per (episode, symmetry) and reads
+    rows from there (ps/fixed_features.py). The step features of such a batch are those of the batch that
+    carries the turned frames, and the state and commands still come as input rows."""
+    from playseg_core.domains.tabletop.play import PlayConfig
+    from playseg_core.ps.fixed_features import FixedFeatureCache
+    from playseg_core.ps.model import PSModel
+    from playseg_core.ps.samples import label_index, make_batch
+    from playseg_core.ps.training import model_config_for
+
+    rng = np.random.default_rng(2)
+    renderer, sim, frames = Renderer(96), TabletopSim(), []
+    for _ in range(31):  # real blocks to find, in a new layout every step
+        sim.place_randomly(rng)
+        frames.append(renderer.render(sim.scene()))
+    episode = Episode(
+        "e",
+        rng.uniform(-0.2, 0.2, (30, 2)).astype(np.float32),
+        {CAMERA: np.stack(frames)},
+        rng.uniform(0, 0.5, (31, 4)).astype(np.float32),
+        segments=[Segment(2, 12, "push the red cube left"), Segment(14, 28, "move the arm to the top edge")],
+    )
+    config = model_config_for(
+        PlayConfig().features, "tabletop", len(INSTRUCTIONS), max_len=20, episodes=[episode]
+    )
+    model = PSModel(config, list(INSTRUCTIONS)).eval()
+    fixed = FixedFeatureCache(model.encoders)
+    assert fixed.features == [CAMERA]
+    items, classes = [(episode, segment) for segment in episode.segments], label_index(list(INSTRUCTIONS))
+    with torch.no_grad():
+        for seed in range(6):
+            plain, cached = (
+                make_batch(
+                    items, classes, model.encoders, 20, 2, np.random.default_rng(seed),
+                    symmetries=tabletop.CLIP_SYMMETRIES, fixed=cache,
+                )
+                for cache in (None, fixed)
+            )  # fmt: skip
+            assert CAMERA not in cached.inputs and set(cached.encoded) == {CAMERA}
+            assert set(cached.inputs) == set(plain.inputs) - {CAMERA}
+            torch.testing.assert_close(cached.labels, plain.labels)
+            torch.testing.assert_close(cached.window_index, plain.window_index)
+            torch.testing.assert_close(
+                model.encode_steps(cached.inputs, cached.encoded),
+                model.encode_steps(plain.inputs),
+                atol=1e-5,
+                rtol=0,
+            )
+    assert 2 <= len(fixed) <= len(SYMMETRIES)  # one episode, the symmetries drawn so far

@@ -3,14 +3,27 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 from test_models import INSTRUCTIONS, synthetic_episode, tiny_model_config
 
 from playseg_core.domains.babyai.spec import CAMERA
 from playseg_core.ps.encoders import StepEncoders
-from playseg_core.ps.samples import NEGATIVE_KINDS, label_index, make_batch, segment_samples
+from playseg_core.ps.samples import (
+    NEGATIVE_KINDS,
+    camera_symmetries,
+    label_index,
+    make_batch,
+    segment_samples,
+)
 from playseg_core.ps.segmentation import segment_episode
-from playseg_core.ps.training import TrainConfig, epochs_to_train, train_labeller, train_ps
+from playseg_core.ps.training import (
+    TrainConfig,
+    epochs_to_train,
+    train_labeller,
+    train_ps,
+    training_symmetries,
+)
 
 
 def encoders_for(size: int = 64) -> StepEncoders:
@@ -192,8 +205,9 @@ def test_augmentation_rotates_or_mirrors_each_clip_as_a_whole() -> None:
     seen = set()
     for seed in range(12):
         augmented = make_batch(
-            items, label_index(INSTRUCTIONS), encoders, 8, 2, np.random.default_rng(seed), augment=True
-        )
+            items, label_index(INSTRUCTIONS), encoders, 8, 2, np.random.default_rng(seed),
+            symmetries=camera_symmetries(encoders.cameras),
+        )  # fmt: skip
         original, changed = plain.inputs[CAMERA].numpy(), augmented.inputs[CAMERA].numpy()
         for k in range(4):
             for mirror in (False, True):
@@ -202,6 +216,20 @@ def test_augmentation_rotates_or_mirrors_each_clip_as_a_whole() -> None:
                 if np.array_equal(candidate, changed):
                     seen.add((k, mirror))
     assert len(seen) >= 3  # different seeds give different transforms, each a whole-clip dihedral one
+
+
+def test_augment_without_a_domains_symmetries_turns_frames_only_for_models_that_read_no_actions() -> None:
+    """The camera frames' rotations leave the actions as they are (a mirror would swap left and right
+    turns): a model that reads actions gets a clear error instead of wrongly turned clips."""
+    frames_only, with_actions = (
+        StepEncoders(cfg.encoders, cfg.features)
+        for cfg in (tiny_model_config(size=16), tiny_model_config(size=16, num_actions=3))
+    )
+    assert training_symmetries(TrainConfig(augment=False), with_actions) is None
+    symmetries = training_symmetries(TrainConfig(augment=True), frames_only)
+    assert symmetries is not None and symmetries.count == 8
+    with pytest.raises(ValueError, match="read no actions"):
+        training_symmetries(TrainConfig(augment=True), with_actions)
 
 
 def test_dense_window_negatives_supervise_every_position_of_off_start_windows() -> None:

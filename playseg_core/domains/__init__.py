@@ -10,10 +10,10 @@ step encoders (ps/encoders.py) and exposes:
   bounds, used instead of the ones derived from the annotated segments (ps/training.py);
 - optionally ``LABEL_HEAD``: the label head its PS and labelling models use by default ("linear" or
   "text", ps/model.py `LABEL_HEADS`);
-- optionally ``clip_symmetry(recorded, instruction, rng) -> (recorded, instruction)``: a training
-  clip as recorded (`StepEncoders.recorded_clip`, by feature) and its instruction under a symmetry of
-  the world drawn at random, what `playseg train --augment` applies (ps/samples.py); without one,
-  ``--augment`` turns the camera frames only, for models that read no actions;
+- optionally ``CLIP_SYMMETRIES``: the symmetries of its world (ps/samples.py `ClipSymmetries`: how
+  many, and how each turns a training clip as recorded and its instruction), what `playseg train
+  --augment` trains on; without them, ``--augment`` turns the camera frames only, for models that read
+  no actions;
 - ``POLICIES``: policy name -> factory of an `augment.policy.PolicyLearner` (config dict -> learner);
 - optionally ``PRESET_NAMES`` and ``generate_dataset(out, preset, seed, workers, progress, overwrite,
   annotated_share)`` when it can generate play (`playseg generate --domain <name>`).

@@ -64,7 +64,7 @@ class ExperimentScale:
     segmenter_steps: int | None = None  # optimizer steps of each segmentation method (None: its default)
     description: str = ""
     # How PS and the labelling model read the start split (TrainingData): whether they read the previous
-    # action, and whether they train on the domain's symmetries (its clip_symmetry; without one, rotated/
+    # action, and whether they train on the domain's symmetries (its CLIP_SYMMETRIES; without them, rotated/
     # mirrored frames, only where the domain's labels and ends do not depend on orientation).
     segmenter_reads_actions: bool = True
     segmenter_augment: bool = False

@@ -14,7 +14,7 @@ own under ``<domain>.<name>``, registered when its package (playseg_core.domains
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -47,6 +47,9 @@ class StepEncoder(nn.Module):
     """Reads one feature: ``forward`` maps (N, *row_shape) input rows to (N, out_dim)."""
 
     out_dim: int
+    # False when ``forward`` has nothing learnt (its output is a function of the input row alone):
+    # training then encodes each row once (ps/fixed_features.py), not in every batch that reads it
+    learns: bool = True
 
     def input_rows(self, episode: Episode, where: str) -> np.ndarray:
         """The encoder's input for every observation o_0..o_T of ``episode`` (T+1 rows)."""
@@ -288,25 +291,31 @@ class StepEncoders(nn.Module):
             for spec, enc in zip(self.specs, self.encoders, strict=True)
         }
 
-    def recorded_clip(self, episode: Episode, first: int, last: int) -> dict[str, np.ndarray]:
+    def recorded_clip(
+        self, episode: Episode, first: int, last: int, features: Collection[str] | None = None
+    ) -> dict[str, np.ndarray]:
         """What was recorded of the observations o_first..o_last that the encoders read, by feature, and
         of the actions that led to them (a_{first-1}..a_{last-1}; from a_0 when ``first`` is 0): the
-        values a domain's `clip_symmetry` transforms before `clip_inputs`."""
+        values a domain's symmetries turn before `clip_inputs` (ps/samples.py `ClipSymmetries`). Only
+        ``features`` when given."""
         where = f"episode {episode.episode_id!r}"
         return {
             spec.feature: episode.actions[max(first - 1, 0) : last]
             if isinstance(encoder, PreviousActionEncoder)
             else encoder.input_rows(episode, where)[first : last + 1]
             for spec, encoder in zip(self.specs, self.encoders, strict=True)
+            if features is None or spec.feature in features
         }
 
     def clip_inputs(
         self, recorded: Mapping[str, np.ndarray], first: int, where: str
     ) -> dict[str, np.ndarray]:
         """The encoders' input rows of a `recorded_clip` that starts at o_first: `episode_inputs`' rows
-        first..last, from the clip's values."""
+        first..last, from the clip's values (for the features the clip has)."""
         inputs = {}
         for spec, encoder in zip(self.specs, self.encoders, strict=True):
+            if spec.feature not in recorded:
+                continue
             rows = np.asarray(recorded[spec.feature])
             if isinstance(encoder, PreviousActionEncoder):
                 clip = f"{where} {spec.feature} (a clip from step {max(first - 1, 0)})"
@@ -359,10 +368,18 @@ class StepEncoders(nn.Module):
             if isinstance(encoder, PreviousActionEncoder)
         }
 
-    def forward(self, inputs: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """Input rows by feature (N rows each) -> (N, step_dim)."""
+    def forward(
+        self, inputs: Mapping[str, torch.Tensor], encoded: Mapping[str, torch.Tensor] | None = None
+    ) -> torch.Tensor:
+        """Input rows by feature (N rows each) -> (N, step_dim). A feature in ``encoded`` is taken as its
+        encoder's output rows already (an encoder that learns nothing, encoded once: `learns`)."""
+        encoded = encoded or {}
         return torch.cat(
-            [enc(inputs[spec.feature]) for spec, enc in zip(self.specs, self.encoders, strict=True)], dim=-1
+            [
+                encoded[spec.feature] if spec.feature in encoded else enc(inputs[spec.feature])
+                for spec, enc in zip(self.specs, self.encoders, strict=True)
+            ],
+            dim=-1,
         )
 
 

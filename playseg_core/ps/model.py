@@ -255,12 +255,15 @@ class StepModel(nn.Module):
     def reads_actions(self) -> bool:
         return self.encoders.reads_actions
 
-    def encode_steps(self, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
-        """Input rows by feature (N rows each, see `StepEncoders.episode_inputs`) -> (N, step_dim).
+    def encode_steps(
+        self, inputs: dict[str, torch.Tensor], encoded: dict[str, torch.Tensor] | None = None
+    ) -> torch.Tensor:
+        """Input rows by feature (N rows each, see `StepEncoders.episode_inputs`) -> (N, step_dim);
+        ``encoded``: features whose encoder output rows are given (`StepEncoders.forward`).
 
         Encode an episode once and reuse the rows: each depends on its own step only.
         """
-        return self.encoders(inputs)
+        return self.encoders(inputs, encoded)
 
     @torch.no_grad()
     def encode_episode(self, episode: Episode, chunk: int | None = None) -> torch.Tensor:

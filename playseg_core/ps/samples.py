@@ -7,7 +7,8 @@ is causal from the start, so one pass over a positive window also yields the end
 prefix [s, s+m), m < e-s, which did *not* end, supervised as 0. That is exactly the `log(1 - p_seg)`
 term of the segment score the decoder maximises.
 
-Steps are encoded once per batch; windows are gathered from those features by index.
+Steps are encoded once per batch (or once per training, for encoders that learn nothing: fixed_features.py);
+windows are gathered from those features by index.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import torch
 
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.ps.encoders import StepEncoders
+from playseg_core.ps.fixed_features import FixedFeatureCache
 
 NEGATIVE_KINDS = ("end_later", "end_earlier", "widened", "before", "shift_left", "shift_right")
 
@@ -85,6 +87,7 @@ class Batch:
     """
 
     inputs: dict[str, torch.Tensor]  # step-encoder input rows by feature, N rows (see StepEncoders)
+    encoded: dict[str, torch.Tensor]  # or, for encoders that learn nothing, their output rows
     window_index: torch.Tensor  # (S, L_max+1) rows into features (N = a zero row past an episode end)
     starts_episode: torch.Tensor  # (S,) bool: the window starts at step 0
     end_target: torch.Tensor  # (S, L_max+1) 1 where a segment ends at that position
@@ -100,10 +103,36 @@ class Batch:
         return (positions * (self.end_weight > 0)).amax(1) + 1
 
 
-ClipSymmetry = Callable[[dict[str, np.ndarray], str, np.random.Generator], tuple[dict[str, np.ndarray], str]]
-"""A domain's ``clip_symmetry`` (playseg_core/domains): a clip as recorded (`StepEncoders.recorded_clip`:
-observations and the actions that led to them, by feature) and its instruction under a random symmetry
-of the world."""
+@dataclass(frozen=True)
+class ClipSymmetries:
+    """The symmetries `augment` trains on: ``count`` of them, number 0 the identity.
+
+    ``turn_clip(recorded, number)``: a clip as recorded (`StepEncoders.recorded_clip`: observations and
+    the actions that led to them, by feature; any may be absent) under symmetry ``number``, as new arrays.
+    ``turn_instruction(text, number)``: what the instruction says of the turned world. A domain's own
+    are its ``CLIP_SYMMETRIES`` (playseg_core/domains); `camera_symmetries` turns the frames only.
+    """
+
+    count: int
+    turn_clip: Callable[[dict[str, np.ndarray], int], dict[str, np.ndarray]]
+    turn_instruction: Callable[[str, int], str]
+
+
+def camera_symmetries(cameras: Sequence[str]) -> ClipSymmetries:
+    """The 8 rotations of the ``cameras``' frames by multiples of 90 degrees, each also mirrored (number
+    k + 4m: k quarter turns, then a mirror if m), instructions unchanged: for top-down views whose
+    instructions and ends do not depend on orientation. Actions are left as they are, so only for models
+    that read none (a mirror swaps left and right turns)."""
+
+    def turn_clip(recorded: dict[str, np.ndarray], number: int) -> dict[str, np.ndarray]:
+        turned = dict(recorded)
+        for feature in cameras:
+            if feature in recorded:
+                frames = np.rot90(np.asarray(recorded[feature]), k=number % 4, axes=(1, 2))
+                turned[feature] = np.ascontiguousarray(frames[:, :, ::-1] if number >= 4 else frames)
+        return turned
+
+    return ClipSymmetries(8, turn_clip, lambda text, number: text)
 
 
 def label_index(instructions: Sequence[str]) -> dict[str, int]:
@@ -119,9 +148,9 @@ def make_batch(
     rng: np.random.Generator,
     negatives: bool = True,
     dense_prefix_negatives: bool = False,
-    augment: bool = False,
+    symmetries: ClipSymmetries | None = None,
     dense_window_negatives: bool = False,
-    clip_symmetry: ClipSymmetry | None = None,
+    fixed: FixedFeatureCache | None = None,
 ) -> Batch:
     """The windows of the annotated segments `items` (only positives if not `negatives`).
 
@@ -129,38 +158,38 @@ def make_batch(
     segments from many episodes, which trains far faster than whole episodes (many scenes per step).
     With `dense_prefix_negatives`, the true-start window is also supervised as "not ended" at every
     position before the end and at every position up to k_max after it (the end-earlier and end-later
-    negatives for all k at once). With `augment`, each segment's clip goes through `clip_symmetry`, the
-    world's symmetries that also turn the instruction (a transformed instruction the classes lack leaves
-    the clip as it was); without one, its camera frames get one random rotation by a multiple of 90
-    degrees and an optional mirror (the whole clip alike), for top-down views whose instructions do not
-    change under them. The batch carries every step encoder's input rows.
+    negatives for all k at once). With `symmetries` (augmentation), each segment's clip is turned by one
+    of them drawn at random, its instruction with it (a turned instruction the classes lack leaves the
+    clip as it was). The batch carries every step encoder's input rows, or, for the features ``fixed``
+    caches, their encoder output rows.
     """
-    if augment and clip_symmetry is None and encoders.reads_actions:
-        # A mirror swaps left and right turns: the actions would need the env's own remapping.
-        raise ValueError("augment is not supported for models that read actions")
     regions = [(max(0, seg.start - k_max), min(ep.num_steps, seg.end + k_max)) for ep, seg in items]
     zero_row = sum(hi - lo + 1 for lo, hi in regions)
     num_pos = max_len + 1
-    inputs: dict[str, list[torch.Tensor]] = {spec.feature: [] for spec in encoders.specs}
+    cached = fixed.features if fixed is not None else []
+    raw = [spec.feature for spec in encoders.specs if spec.feature not in cached]
+    inputs: dict[str, list[torch.Tensor]] = {feature: [] for feature in raw}
+    encoded: dict[str, list[torch.Tensor]] = {feature: [] for feature in cached}
     rows, starts_episode, targets, weights = [], [], [], []
     label_window, label_position, labels = [], [], []
     offset = 0
-    cameras = encoders.cameras
     for (ep, seg), (lo, hi) in zip(items, regions, strict=True):
-        recorded = encoders.recorded_clip(ep, lo, hi)
-        label = classes[seg.instruction]
-        if augment and clip_symmetry is not None:
-            turned, instruction = clip_symmetry(recorded, seg.instruction, rng)
+        recorded = encoders.recorded_clip(ep, lo, hi, raw)
+        label, number = classes[seg.instruction], 0
+        if symmetries is not None:
+            number = int(rng.integers(symmetries.count))
+            instruction = symmetries.turn_instruction(seg.instruction, number) if number else seg.instruction
             if instruction in classes:
-                recorded, label = turned, classes[instruction]
+                label = classes[instruction]
+                recorded = symmetries.turn_clip(recorded, number) if number else recorded
+            else:
+                number = 0
         clips = encoders.clip_inputs(recorded, lo, f"episode {ep.episode_id!r}")
-        if augment and clip_symmetry is None:
-            rotation, mirror = int(rng.integers(4)), bool(rng.integers(2))
-            for feature in cameras:
-                clip = np.rot90(clips[feature], k=rotation, axes=(1, 2))
-                clips[feature] = clip[:, :, ::-1] if mirror else clip
         for feature, clip in clips.items():
             inputs[feature].append(torch.from_numpy(np.array(clip)))
+        if fixed is not None:
+            for feature, part in fixed.clip_rows(ep, lo, hi, number, symmetries).items():
+                encoded[feature].append(part)
         samples = segment_samples(seg.start, seg.end, ep.num_steps, max_len, k_max, rng)
         windows: dict[int, int] = {}  # start -> row
         for sample in samples:
@@ -196,6 +225,7 @@ def make_batch(
 
     return Batch(
         inputs={feature: torch.cat(parts) for feature, parts in inputs.items()},
+        encoded={feature: torch.cat(parts) for feature, parts in encoded.items()},
         window_index=stack(rows, np.int64),
         starts_episode=torch.tensor(starts_episode, dtype=torch.bool),
         end_target=stack(targets, np.float32),

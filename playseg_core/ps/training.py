@@ -20,9 +20,16 @@ from tqdm import tqdm
 from playseg_core.data.episode import Episode
 from playseg_core.data.features import Features
 from playseg_core.domains import load_domain
-from playseg_core.ps.encoders import choose_encoders, feature_statistics
+from playseg_core.ps.encoders import StepEncoders, choose_encoders, feature_statistics
+from playseg_core.ps.fixed_features import FixedFeatureCache
 from playseg_core.ps.model import LabelModel, ModelConfig, PSModel, TrunkConfig
-from playseg_core.ps.samples import Batch, ClipSymmetry, label_index, make_batch
+from playseg_core.ps.samples import (
+    Batch,
+    ClipSymmetries,
+    camera_symmetries,
+    label_index,
+    make_batch,
+)
 
 
 @dataclass
@@ -38,8 +45,8 @@ class TrainConfig:
     k_max: int = 5  # negatives shift by 1..k_max steps
     dense_prefix_negatives: bool = True
     dense_window_negatives: bool = False  # windows starting off a true start: every position is "no end"
-    augment: bool = False  # each training clip under a random symmetry (`clip_symmetry_of`; see docs)
-    domain: str | None = None  # the data's domain, whose `clip_symmetry` augment applies if it has one
+    augment: bool = False  # each training clip under a random symmetry (`training_symmetries`; see docs)
+    domain: str | None = None  # the data's domain, whose `CLIP_SYMMETRIES` augment applies if it has any
     label_weight: float = 1.0
     frame_label_weight: float = 1.0  # auxiliary label loss on the end observation's encoding
     end_pos_weight: float = 4.0  # weight of the end head's positives in the BCE (ends are rare)
@@ -148,7 +155,7 @@ class BatchStats:
 
 def ps_loss(model: PSModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tensor, BatchStats]:
     """BCE on the end head at the supervised positions + CE on the label head at positive ends."""
-    features = model.encode_steps(batch.inputs)
+    features = model.encode_steps(batch.inputs, batch.encoded)
     num_windows, num_pos = batch.window_index.shape
     end_sum = features.new_zeros(())
     label_hidden = features.new_zeros(len(batch.labels), model.cfg.trunk.hidden_dim)
@@ -204,7 +211,7 @@ def _frame_label_loss(
 def labeller_loss(model: LabelModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tensor, BatchStats]:
     """CE of the labelling model on the positives of the batch (one window per positive), plus the
     auxiliary CE of `frame_label_head` on each end frame's encoder features (as in `ps_loss`)."""
-    features = model.encode_steps(batch.inputs)
+    features = model.encode_steps(batch.inputs, batch.encoded)
     windows = _gather_windows(features, batch.window_index[batch.label_window])
     starts_episode = batch.starts_episode[batch.label_window]
     logits = model.logits_from_windows(windows, batch.label_position, starts_episode)
@@ -245,25 +252,41 @@ def _summarise(epoch: int, stats: list[BatchStats]) -> EpochReport:
     )
 
 
-def clip_symmetry_of(domain: str | None) -> ClipSymmetry | None:
-    """The ``clip_symmetry`` of ``domain`` (playseg_core/domains), or None: `augment` then turns camera
+def clip_symmetries_of(domain: str | None) -> ClipSymmetries | None:
+    """The ``CLIP_SYMMETRIES`` of ``domain`` (playseg_core/domains), or None: `augment` then turns camera
     frames only."""
-    return getattr(load_domain(domain), "clip_symmetry", None) if domain else None
+    return getattr(load_domain(domain), "CLIP_SYMMETRIES", None) if domain else None
+
+
+def training_symmetries(cfg: TrainConfig, encoders: StepEncoders) -> ClipSymmetries | None:
+    """What `augment` trains on: the domain's symmetries, else the camera frames' rotations and mirrors
+    (for models that read no actions: a mirror would swap left and right turns); None without augment."""
+    if not cfg.augment:
+        return None
+    symmetries = clip_symmetries_of(cfg.domain)
+    if symmetries is not None:
+        return symmetries
+    if encoders.reads_actions:
+        raise ValueError(
+            "augment: the camera frames' rotations leave the actions as they are; only for models that "
+            "read no actions, or for a domain whose symmetries turn them too (its CLIP_SYMMETRIES)"
+        )
+    return camera_symmetries(encoders.cameras)
 
 
 def _annotated(episodes: Sequence[Episode]) -> list[Episode]:
     return [ep for ep in episodes if ep.segments]
 
 
-def _run_epoch(loss_fn, model, episodes, classes, cfg, rng, optimizer, epoch, desc) -> EpochReport:
-    """One pass over `episodes` in batches; trains when an optimizer is given, else evaluates."""
+def _run_epoch(loss_fn, model, episodes, classes, cfg, rng, optimizer, epoch, desc, fixed) -> EpochReport:
+    """One pass over `episodes` in batches; trains when an optimizer is given, else evaluates. ``fixed``:
+    the outputs of the encoders that learn nothing, kept between epochs."""
     training = optimizer is not None
     model.train(training)
     items = [(ep, seg) for ep in episodes for seg in ep.segments]
     order = rng.permutation(len(items)) if training else np.arange(len(items))
     size = cfg.segments_per_batch
-    augment = training and cfg.augment
-    symmetry = clip_symmetry_of(cfg.domain) if augment else None
+    symmetries = training_symmetries(cfg, model.encoders) if training else None
     batches = [order[i : i + size] for i in range(0, len(order), size)]
     stats: list[BatchStats] = []
     bar = tqdm(batches, desc=desc, file=sys.stderr, disable=not cfg.progress, leave=False)
@@ -278,8 +301,8 @@ def _run_epoch(loss_fn, model, episodes, classes, cfg, rng, optimizer, epoch, de
             negatives=isinstance(model, PSModel),
             dense_prefix_negatives=cfg.dense_prefix_negatives,
             dense_window_negatives=cfg.dense_window_negatives,
-            augment=augment,
-            clip_symmetry=symmetry,
+            symmetries=symmetries,
+            fixed=fixed,
         )
         if batch.labels.numel() == 0:
             continue
@@ -334,15 +357,17 @@ def _fit(model, loss_fn, train_eps, val_eps, instructions, cfg: TrainConfig, nam
     history: list[dict] = []
     best_key, best_state = None, None
     began = time.perf_counter()
+    fixed = FixedFeatureCache(model.encoders)
+    fixed = fixed if fixed.features else None
     for epoch in range(1, epochs + 1):
         train_report = _run_epoch(
-            loss_fn, model, train_eps, classes, cfg, rng, _Stepper(), epoch, f"{name} {epoch}"
+            loss_fn, model, train_eps, classes, cfg, rng, _Stepper(), epoch, f"{name} {epoch}", fixed
         )
         entry = {"train": asdict(train_report)}
         if val_eps:
             # Fixed negatives for validation: the same rng seed every epoch.
             val_report = _run_epoch(
-                loss_fn, model, val_eps, classes, cfg, np.random.default_rng(12345), None, epoch, "val"
+                loss_fn, model, val_eps, classes, cfg, np.random.default_rng(12345), None, epoch, "val", fixed
             )
             entry["val"] = asdict(val_report)
             key = val_report.loss

@@ -53,6 +53,8 @@ class ObjectMapConfig:
     # blocks: put each colour's blocks in SHAPES order, told apart by their spread in pixels (a cube's
     # is larger than a cylinder's); False, as checkpoints written before it read them, in either order
     twins_by_size: bool = False
+    # blocks: the 16 coordinates are multiplied by this (1: image units, [-1, 1]); entities keep image units
+    position_scale: float = 1.0
 
 
 # the resolution spreads are measured at: larger frames are pooled to about it, smaller ones read as
@@ -97,7 +99,11 @@ class ObjectMapEncoder(ObservationEncoder):
             raise FeatureError(f"{KIND}: blob_iterations must be >= 1, got {cfg.blob_iterations}")
         self.keypoints = cfg.keypoints if cfg.pooling == "keypoints" else 0
         self.blocks = cfg.pooling == "blocks"
+        self.learns = not self.blocks  # the blocks' positions come from colours and sizes alone
         self.patch, self.blob_iterations = cfg.patch, cfg.blob_iterations
+        if not cfg.position_scale > 0:
+            raise FeatureError(f"{KIND}: position_scale must be > 0, got {cfg.position_scale}")
+        self.position_scale = cfg.position_scale
         self.twins_by_size = self.blocks and cfg.twins_by_size
         if self.twins_by_size:
             self.spread_pool = max(1, min(height, width) // _SPREAD_PIXELS)
@@ -241,7 +247,7 @@ class ObjectMapEncoder(ObservationEncoder):
         """(N, H, W, 3) uint8 -> (N, feature_dim), or (N, 2 * keypoints) or (N, 2 * blocks) coordinates
         in [-1, 1]."""
         if self.blocks:  # the positions need no convolution
-            return self.block_positions(self.masks(frames))[0].flatten(1)
+            return self.block_positions(self.masks(frames))[0].flatten(1) * self.position_scale
         if self.keypoints:
             return self.encode_with_entities(frames)[0]
         return self.proj(self.convs(self.masks(frames)))  # the grid: no entities to build
@@ -269,7 +275,7 @@ class ObjectMapEncoder(ObservationEncoder):
         if not self.twins_by_size:
             identity = identity.repeat_interleave(len(SHAPES), dim=0)
         entities = weights @ cells.flatten(2).transpose(1, 2) + identity
-        return positions.flatten(1), entities, positions
+        return positions.flatten(1) * self.position_scale, entities, positions
 
 
 def object_map_spec(feature: Feature, config: ObjectMapConfig | None = None) -> EncoderSpec:

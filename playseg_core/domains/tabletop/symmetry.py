@@ -119,51 +119,61 @@ def apply_symmetries(
     return {**observations, CAMERA: frames, STATE: state}, instructions, actions
 
 
-def random_clip_symmetry(
-    inputs: dict[str, np.ndarray], instruction: str, rng: np.random.Generator
-) -> tuple[dict[str, np.ndarray], str]:
+def turn_clip(inputs: dict[str, np.ndarray], number: int) -> dict[str, np.ndarray]:
     """A training clip of Play Segmentation as recorded (the camera's frames, the states, the velocity
-    commands, by feature; any of them may be absent) and its instruction, all under one of the 8
-    symmetries drawn at random (the identity among them): the domain's ``clip_symmetry``."""
-    index = int(rng.integers(len(SYMMETRIES)))
-    if index == 0:
-        return inputs, instruction
-    empty = np.zeros((0, 4), np.float32)
-    frames, state, actions = _transform_arrays(
-        inputs.get(CAMERA),
-        np.asarray(inputs[STATE]) if STATE in inputs else empty,
-        np.asarray(inputs[ACTION]) if ACTION in inputs else empty[:, :2],
-        *SYMMETRIES[index],
-    )
+    commands, by feature; any of them may be absent) under ``SYMMETRIES[number]``, as new arrays; the
+    domain's ``CLIP_SYMMETRIES`` with `turn_instruction`."""
+    quarter_turns, mirror = SYMMETRIES[number]
+    matrix = symmetry_matrix(quarter_turns, mirror)
     out = dict(inputs)
-    for feature, array in ((CAMERA, frames), (STATE, state), (ACTION, actions)):
-        if feature in inputs:
-            out[feature] = array
-    return out, transform_instruction(instruction, symmetry_matrix(*SYMMETRIES[index]))
+    if CAMERA in inputs:
+        out[CAMERA] = np.ascontiguousarray(
+            transform_frames(np.asarray(inputs[CAMERA]), quarter_turns, mirror)
+        )
+    if STATE in inputs:
+        out[STATE] = _transform_state(np.asarray(inputs[STATE]), matrix)
+    if ACTION in inputs:
+        out[ACTION] = _transform_vectors(np.asarray(inputs[ACTION]), matrix)
+    return out
+
+
+def turn_instruction(text: str, number: int) -> str:
+    """The instruction ``text`` for the table under ``SYMMETRIES[number]`` (`transform_instruction`)."""
+    return transform_instruction(text, symmetry_matrix(*SYMMETRIES[number]))
+
+
+def _transform_state(state: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    state = np.array(state, copy=True)
+    state[:, :2] = transform_points(state[:, :2], matrix)  # spec.STATE_NAMES: x, y, vx, vy
+    state[:, 2:4] = _transform_vectors(state[:, 2:4], matrix)
+    return state
+
+
+def _transform_vectors(vectors: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    return vectors @ matrix.T.astype(vectors.dtype)
 
 
 def _transform_arrays(
-    frames: np.ndarray | None, state: np.ndarray, actions: np.ndarray, quarter_turns: int, mirror: bool
-) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
-    """Frames (N, H, W, C) or None, states (N, 4) and velocity commands (N, 2) of one symmetry, as new
-    arrays."""
+    frames: np.ndarray, state: np.ndarray, actions: np.ndarray, quarter_turns: int, mirror: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frames (N, H, W, C), states (N, 4) and velocity commands (N, 2) of one symmetry, as new arrays."""
     matrix = symmetry_matrix(quarter_turns, mirror)
-    if frames is not None:
-        frames = transform_frames(np.asarray(frames), quarter_turns, mirror)
-    state = np.array(state, copy=True)
-    state[:, :2] = transform_points(state[:, :2], matrix)  # spec.STATE_NAMES: x, y, vx, vy
-    state[:, 2:4] = state[:, 2:4] @ matrix.T.astype(state.dtype)
-    return frames, state, np.asarray(actions) @ matrix.T.astype(np.asarray(actions).dtype)
+    return (
+        transform_frames(np.asarray(frames), quarter_turns, mirror),
+        _transform_state(state, matrix),
+        _transform_vectors(np.asarray(actions), matrix),
+    )
 
 
 __all__ = [
     "SYMMETRIES",
     "apply_symmetries",
-    "random_clip_symmetry",
     "random_symmetry",
     "symmetry_matrix",
     "transform_frames",
     "transform_instruction",
     "transform_points",
     "transformed_task",
+    "turn_clip",
+    "turn_instruction",
 ]

@@ -1,0 +1,84 @@
+"""The outputs of step encoders that learn nothing, encoded once per episode and symmetry for training.
+
+Such an encoder (`StepEncoder.learns` False: a camera read as object positions found by colour, say) gives
+the same row for the same observation at every optimizer step, while training reads each annotated step
+in many batches. Encoding it once per (episode, symmetry) and gathering rows by index removes its cost
+from every step after the first; a learnt encoder is untouched and still runs in every batch.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from playseg_core.data.episode import Episode
+from playseg_core.ps.encoders import ObservationEncoder, StepEncoders
+
+if TYPE_CHECKING:
+    from playseg_core.ps.samples import ClipSymmetries
+
+ENCODE_ROWS = 256  # observation rows per encoder pass when filling the cache
+
+
+class FixedFeatureCache:
+    """Rows of the fixed observation encoders' outputs, by (episode, symmetry index), filled on first use.
+
+    Valid while the encoders are those of one model: nothing they compute changes with training.
+    """
+
+    def __init__(self, encoders: StepEncoders) -> None:
+        self.encoders = encoders
+        self.fixed: dict[str, ObservationEncoder] = {
+            spec.feature: encoder
+            for spec, encoder in zip(encoders.specs, encoders.encoders, strict=True)
+            if isinstance(encoder, ObservationEncoder) and not encoder.learns
+        }
+        self._rows: dict[tuple[str, int], dict[str, torch.Tensor]] = {}
+
+    @property
+    def features(self) -> list[str]:
+        """The features whose rows come from the cache."""
+        return list(self.fixed)
+
+    def __len__(self) -> int:
+        """Episode-symmetry pairs encoded so far."""
+        return len(self._rows)
+
+    def clip_rows(
+        self,
+        episode: Episode,
+        first: int,
+        last: int,
+        symmetry: int = 0,
+        symmetries: ClipSymmetries | None = None,
+    ) -> dict[str, torch.Tensor]:
+        """Each fixed feature's encoder output rows for o_first..o_last of ``episode`` turned by
+        ``symmetries``' symmetry number ``symmetry`` (0: as recorded)."""
+        key = (episode.episode_id, symmetry)
+        if key not in self._rows:
+            self._rows[key] = self._encode(episode, symmetry, symmetries)
+        return {feature: rows[first : last + 1] for feature, rows in self._rows[key].items()}
+
+    @torch.no_grad()
+    def _encode(
+        self, episode: Episode, symmetry: int, symmetries: ClipSymmetries | None
+    ) -> dict[str, torch.Tensor]:
+        recorded = self.encoders.recorded_clip(episode, 0, episode.num_steps, self.features)
+        if symmetry:
+            if symmetries is None:
+                raise ValueError(f"symmetry {symmetry} asked of the cache without the symmetries")
+            recorded = symmetries.turn_clip(recorded, symmetry)
+        encoded = {}
+        for feature, encoder in self.fixed.items():
+            rows = recorded[feature]
+            parts = [
+                encoder(torch.from_numpy(np.array(rows[at : at + ENCODE_ROWS])))
+                for at in range(0, len(rows), ENCODE_ROWS)
+            ]
+            encoded[feature] = torch.cat(parts)
+        return encoded
+
+
+__all__ = ["ENCODE_ROWS", "FixedFeatureCache"]
