@@ -171,6 +171,10 @@ def test_blocks_pooling_by_size_tells_each_colours_cube_from_its_cylinder(size: 
 def test_bad_pooling_settings_are_named() -> None:
     with pytest.raises(FeatureError, match="pooling must be 'grid', 'keypoints' or 'blocks'.*'mean'"):
         ObjectMapEncoder(Feature(CAMERA, "image", "uint8", (96, 96, 3)), {"pooling": "mean"})
+    with pytest.raises(FeatureError, match="position_scale must be > 0, and other than 1 only with pooling"):
+        ObjectMapEncoder(
+            Feature(CAMERA, "image", "uint8", (96, 96, 3)), {"pooling": "grid", "position_scale": 2.0}
+        )
     with pytest.raises(FeatureError, match="blob_iterations must be >= 1, got 0"):
         ObjectMapEncoder(
             Feature(CAMERA, "image", "uint8", (96, 96, 3)), {"pooling": "blocks", "blob_iterations": 0}

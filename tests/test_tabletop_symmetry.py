@@ -309,3 +309,11 @@ def test_the_blocks_are_encoded_once_per_episode_and_symmetry() -> None:
                 rtol=0,
             )
     assert 2 <= len(fixed) <= len(SYMMETRIES)  # one episode, the symmetries drawn so far
+    # Another episode under the same id (lists given to training need not come from one dataset) gets
+    # its own rows, not the first one's.
+    namesake = Episode(
+        "e", episode.actions, {CAMERA: np.ascontiguousarray(episode.images[CAMERA][::-1])}, episode.state
+    )
+    with torch.no_grad():
+        expected = model.encoders.encoders[0](torch.from_numpy(namesake.images[CAMERA][:4].copy()))
+    torch.testing.assert_close(fixed.clip_rows(namesake, 0, 3)[CAMERA], expected, atol=1e-5, rtol=0)

@@ -35,7 +35,8 @@ class FixedFeatureCache:
             for spec, encoder in zip(encoders.specs, encoders.encoders, strict=True)
             if isinstance(encoder, ObservationEncoder) and not encoder.learns
         }
-        self._rows: dict[tuple[str, int], dict[str, torch.Tensor]] = {}
+        # keyed by the episode object (held here, so its id stays its own): two episodes may share an id
+        self._rows: dict[tuple[int, int], tuple[Episode, dict[str, torch.Tensor]]] = {}
 
     @property
     def features(self) -> list[str]:
@@ -56,29 +57,26 @@ class FixedFeatureCache:
     ) -> dict[str, torch.Tensor]:
         """Each fixed feature's encoder output rows for o_first..o_last of ``episode`` turned by
         ``symmetries``' symmetry number ``symmetry`` (0: as recorded)."""
-        key = (episode.episode_id, symmetry)
+        key = (id(episode), symmetry)
         if key not in self._rows:
-            self._rows[key] = self._encode(episode, symmetry, symmetries)
-        return {feature: rows[first : last + 1] for feature, rows in self._rows[key].items()}
+            self._rows[key] = (episode, self._encode(episode, symmetry, symmetries))
+        return {feature: rows[first : last + 1] for feature, rows in self._rows[key][1].items()}
 
     @torch.no_grad()
     def _encode(
         self, episode: Episode, symmetry: int, symmetries: ClipSymmetries | None
     ) -> dict[str, torch.Tensor]:
-        recorded = self.encoders.recorded_clip(episode, 0, episode.num_steps, self.features)
-        if symmetry:
-            if symmetries is None:
-                raise ValueError(f"symmetry {symmetry} asked of the cache without the symmetries")
-            recorded = symmetries.turn_clip(recorded, symmetry)
-        encoded = {}
-        for feature, encoder in self.fixed.items():
-            rows = recorded[feature]
-            parts = [
-                encoder(torch.from_numpy(np.array(rows[at : at + ENCODE_ROWS])))
-                for at in range(0, len(rows), ENCODE_ROWS)
-            ]
-            encoded[feature] = torch.cat(parts)
-        return encoded
+        if symmetry and symmetries is None:
+            raise ValueError(f"symmetry {symmetry} asked of the cache without the symmetries")
+        parts: dict[str, list[torch.Tensor]] = {feature: [] for feature in self.fixed}
+        for first in range(0, episode.num_steps + 1, ENCODE_ROWS):  # a chunk in memory at a time
+            last = min(first + ENCODE_ROWS, episode.num_steps + 1) - 1
+            recorded = self.encoders.recorded_clip(episode, first, last, self.features)
+            if symmetry:
+                recorded = symmetries.turn_clip(recorded, symmetry)
+            for feature, encoder in self.fixed.items():
+                parts[feature].append(encoder(torch.from_numpy(np.array(recorded[feature]))))
+        return {feature: torch.cat(chunks) for feature, chunks in parts.items()}
 
 
 __all__ = ["ENCODE_ROWS", "FixedFeatureCache"]

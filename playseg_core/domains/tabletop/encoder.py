@@ -101,8 +101,11 @@ class ObjectMapEncoder(ObservationEncoder):
         self.blocks = cfg.pooling == "blocks"
         self.learns = not self.blocks  # the blocks' positions come from colours and sizes alone
         self.patch, self.blob_iterations = cfg.patch, cfg.blob_iterations
-        if not cfg.position_scale > 0:
-            raise FeatureError(f"{KIND}: position_scale must be > 0, got {cfg.position_scale}")
+        if not cfg.position_scale > 0 or (cfg.position_scale != 1.0 and cfg.pooling != "blocks"):
+            raise FeatureError(
+                f"{KIND}: position_scale must be > 0, and other than 1 only with pooling 'blocks', got "
+                f"{cfg.position_scale} with {cfg.pooling!r}"
+            )
         self.position_scale = cfg.position_scale
         self.twins_by_size = self.blocks and cfg.twins_by_size
         if self.twins_by_size:
