@@ -106,16 +106,14 @@ def apply_symmetries(
     """The samples, sample i under ``SYMMETRIES[chosen[i]]``; new arrays, the inputs left as they are."""
     frames, state = observations[CAMERA].copy(), observations[STATE].copy()
     actions, instructions = np.array(actions, copy=True), list(instructions)
-    for index, symmetry in enumerate(SYMMETRIES):
+    for index in range(1, len(SYMMETRIES)):  # 0 is the identity
         rows = np.flatnonzero(chosen == index)
-        if index == 0 or len(rows) == 0:
+        if len(rows) == 0:
             continue
-        frames[rows], state[rows], actions[rows] = _transform_arrays(
-            frames[rows], state[rows], actions[rows], *symmetry
-        )
-        matrix = symmetry_matrix(*symmetry)
+        turned = turn_clip({CAMERA: frames[rows], STATE: state[rows], ACTION: actions[rows]}, index)
+        frames[rows], state[rows], actions[rows] = turned[CAMERA], turned[STATE], turned[ACTION]
         for row in rows:
-            instructions[row] = transform_instruction(instructions[row], matrix)
+            instructions[row] = turn_instruction(instructions[row], index)
     return {**observations, CAMERA: frames, STATE: state}, instructions, actions
 
 
@@ -151,18 +149,6 @@ def _transform_state(state: np.ndarray, matrix: np.ndarray) -> np.ndarray:
 
 def _transform_vectors(vectors: np.ndarray, matrix: np.ndarray) -> np.ndarray:
     return vectors @ matrix.T.astype(vectors.dtype)
-
-
-def _transform_arrays(
-    frames: np.ndarray, state: np.ndarray, actions: np.ndarray, quarter_turns: int, mirror: bool
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Frames (N, H, W, C), states (N, 4) and velocity commands (N, 2) of one symmetry, as new arrays."""
-    matrix = symmetry_matrix(quarter_turns, mirror)
-    return (
-        transform_frames(np.asarray(frames), quarter_turns, mirror),
-        _transform_state(state, matrix),
-        _transform_vectors(np.asarray(actions), matrix),
-    )
 
 
 __all__ = [
