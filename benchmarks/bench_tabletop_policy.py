@@ -100,6 +100,7 @@ def main() -> None:
                     "by_family": evaluation.family_success,
                     "val_loss": report.val_loss,
                     "baseline_val_loss": report.baseline_val_loss,
+                    "val_moved_entity_accuracy": report.val_moved_entity_accuracy,
                     "train_seconds": round(trained, 1),
                     "eval_seconds": round(evaluation.seconds, 1),
                 }
@@ -110,7 +111,12 @@ def main() -> None:
             print(
                 f"{share:>5.0%} ({len(chosen):>4} segments): success {evaluation.success_rate:.3f} +- {se:.3f} "
                 f"[{families}]; val loss {report.val_loss:.3f} (mean-action {report.baseline_val_loss:.3f}); "
-                f"train {trained:.0f} s, eval {evaluation.seconds:.0f} s",
+                + (
+                    f"moved entity found {report.val_moved_entity_accuracy:.2f}; "
+                    if report.val_moved_entity_accuracy is not None
+                    else ""
+                )
+                + f"train {trained:.0f} s, eval {evaluation.seconds:.0f} s",
                 flush=True,
             )
     if args.json:

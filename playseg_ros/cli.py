@@ -186,13 +186,14 @@ def _cmd_train(args: argparse.Namespace) -> int:
         args.encoders_from,
         args.label_head,
         args.augment,
+        args.label_accuracy,
     )
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     from playseg_ros.offline import calibrate
 
-    return calibrate(args.model, args.data, args.out)
+    return calibrate(args.model, args.data, args.out, args.label_accuracy)
 
 
 def _cmd_segment(args: argparse.Namespace) -> int:
@@ -215,6 +216,12 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from playseg_ros.offline import evaluate
 
     return evaluate(args.pred, args.truth, args.json, args.plot, args.plot_episodes)
+
+
+LABEL_ACCURACY_HELP = (
+    "label accuracy on the val split's annotated segments that the confidence threshold for keeping a "
+    "segment is chosen for (default 0.95; the paper chose 0.90 for CALVIN)"
+)
 
 
 def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
@@ -282,6 +289,7 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
         help="unloc and tridet: read the step encoders of this PS or labeller checkpoint, frozen (the paper "
         "gives its baselines pretrained features); default: their own, trained with them",
     )
+    train.add_argument("--label-accuracy", type=float, help=LABEL_ACCURACY_HELP)
     train.set_defaults(func=_cmd_train)
     calibrate = sub.add_parser(
         "calibrate", help="re-choose a PS model's end bias and label threshold on a dataset's val split"
@@ -289,6 +297,7 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     calibrate.add_argument("--model", required=True, help="PS checkpoint (rewritten unless --out is given)")
     calibrate.add_argument("--data", required=True, help="dataset whose annotated val split is used")
     calibrate.add_argument("--out", help="write the calibrated checkpoint here instead")
+    calibrate.add_argument("--label-accuracy", type=float, help=LABEL_ACCURACY_HELP)
     calibrate.set_defaults(func=_cmd_calibrate)
     segment = sub.add_parser("segment", help="cut play into labelled segments with a trained PS model")
     segment.add_argument("--model", required=True, help="checkpoint from `playseg train` (of --method)")

@@ -93,9 +93,12 @@ def _print_calibration(calibrated: dict[str, dict]) -> None:
     )
 
 
-def calibrate(model_path: str, data: str, out: str | None) -> int:
-    """Re-calibrate a PS checkpoint's end bias and label threshold on a dataset's annotated val split."""
+def calibrate(model_path: str, data: str, out: str | None, label_accuracy: float | None = None) -> int:
+    """Re-calibrate a PS checkpoint's end bias and label threshold (for ``label_accuracy`` on held-out
+    segments; None: ps/calibration.py's LABEL_ACCURACY_TARGET) on a dataset's annotated val split."""
     from playseg_core.ps.calibration import calibrate_ps_model
+
+    label_accuracy = checked_label_accuracy(label_accuracy)
     from playseg_core.ps.model import load_model, save_model
 
     model, extra = load_model(model_path, kinds=("ps",))
@@ -105,7 +108,7 @@ def calibrate(model_path: str, data: str, out: str | None) -> int:
     val_eps = list(dataset.episodes("val"))
     if not any(episode.segments for episode in val_eps):
         raise ValueError(f"{data}: the val split has no annotated segments to calibrate on")
-    calibrated = calibrate_ps_model(model, val_eps, 0.95)
+    calibrated = calibrate_ps_model(model, val_eps, label_accuracy)
     save_model(out or model_path, model, {**extra, **calibrated, "calibrated_on": str(Path(data).resolve())})
     print(f"{out or model_path}: calibrated on {len(val_eps)} val episodes of {data}")
     _print_calibration(calibrated)
@@ -128,6 +131,7 @@ def train(
     encoders_from: str | None = None,
     label_head: str | None = None,
     augment: bool = False,
+    label_accuracy: float | None = None,
 ) -> int:
     """Train the PS model (and optionally the stand-alone labeller) on a dataset's train/val splits,
     or another segmentation method (``method``, playseg_core/baselines/registry.py).
@@ -152,6 +156,7 @@ def train(
     )
 
     get_method(method)  # an unknown method fails before anything is read
+    label_accuracy = checked_label_accuracy(label_accuracy)
     if labeller and method != "ps":
         raise ValueError(f"--labeller: only with --method ps (method {method} writes what it needs to --out)")
     if label_head and method != "ps":
@@ -183,7 +188,10 @@ def train(
         raise ValueError(f"--augment: only for PS and the labelling model, not {method}")
     cfg = replace(cfg, augment=augment, domain=dataset.domain)
     if method != "ps":
-        given = {"seed": seed, "epochs": epochs, "lr": lr, "batch_size": batch_segments}
+        given = {
+            "seed": seed, "epochs": epochs, "lr": lr, "batch_size": batch_segments,
+            "label_accuracy": label_accuracy,
+        }  # fmt: skip
         training = (dataset, train_eps, val_eps, features, read_actions, bounds, encoders, encoders_from)
         return _train_method(method, data, out, training, given, augment)
     model_cfg = model_config_for(
@@ -205,7 +213,7 @@ def train(
     )
     print(f"model reads {read}{unread}; {model_cfg.label_head} label head; {chosen.describe()}", flush=True)
     result = train_ps(train_eps, val_eps, dataset.instructions, cfg, model_cfg)
-    calibrated = calibrate_ps_model(result.model, val_eps, 0.95) if val_eps else {}
+    calibrated = calibrate_ps_model(result.model, val_eps, label_accuracy) if val_eps else {}
     extra = {
         "train": asdict(cfg),
         "history": result.history,
@@ -279,6 +287,17 @@ def _input_episodes(
             yield from dataset.episodes(split)
 
     return episodes(), DataInfo.of_dataset(dataset), "dataset"
+
+
+def checked_label_accuracy(label_accuracy: float | None) -> float:
+    """``--label-accuracy`` (None: ps/calibration.py's LABEL_ACCURACY_TARGET); ValueError unless in (0, 1]."""
+    from playseg_core.ps.calibration import LABEL_ACCURACY_TARGET
+
+    if label_accuracy is None:
+        return LABEL_ACCURACY_TARGET
+    if not 0.0 < label_accuracy <= 1.0:
+        raise ValueError(f"--label-accuracy must be in (0, 1], got {label_accuracy}")
+    return label_accuracy
 
 
 def check_output_file(path: str | Path, overwrite: bool, option: str = "--out") -> Path:

@@ -257,8 +257,11 @@ def test_random_windows_tile_with_annotated_lengths_and_labelled_well(tmp_path: 
 
 def test_ps_trains_and_segments_through_the_registry(tmp_path: Path) -> None:
     """One epoch: the plumbing (the CLI's PS path is offline.py's own, tested elsewhere)."""
-    trained = get_method("ps").train(synthetic_data(train=6, val=2), TrainOptions(epochs=1))
+    trained = get_method("ps").train(
+        synthetic_data(train=6, val=2), TrainOptions(epochs=1, label_accuracy=0.5)
+    )
     path = trained.save(tmp_path / "ps.pt", {"note": 1})
+    assert torch.load(path, weights_only=True)["meta"]["calibration"]["target_accuracy"] == 0.5
     segmenter = load_segmenter("ps", path, SegmentOptions(min_len=2))
     episode = synthetic_episode(200)
     segments = segmenter.segment(episode)

@@ -55,6 +55,15 @@ def test_train_calibrate_segment_evaluate(tiny_data: Path, tmp_path: Path, capsy
     again = torch.load(recalibrated, weights_only=True)
     assert again["meta"]["end_bias"] == raw["meta"]["end_bias"]  # same model, same val split
     assert again["meta"]["calibrated_on"] == str(tiny_data.resolve())
+    assert raw["meta"]["calibration"]["target_accuracy"] == 0.95  # LABEL_ACCURACY_TARGET
+    lower = tmp_path / "ps-0.5.pt"
+    argv = ["calibrate", "--model", str(model), "--data", str(tiny_data), "--out", str(lower)]
+    assert cli_main([*argv, "--label-accuracy", "0.5"]) == 0
+    calibration = torch.load(lower, weights_only=True)["meta"]["calibration"]
+    assert calibration["target_accuracy"] == 0.5
+    assert calibration["threshold"] <= raw["meta"]["calibration"]["threshold"]  # never keeps fewer
+    assert cli_main([*argv, "--label-accuracy", "1.5"]) == 1
+    assert "--label-accuracy must be in (0, 1], got 1.5" in capsys.readouterr().err
 
     pred = tmp_path / "pred"
     assert cli_main(segment_argv(model, tiny_data, pred)) == 0

@@ -87,6 +87,15 @@ class BCTrainConfig:
     instruction_attention: int = 0
     state_exclude: str = ""  # comma-separated names of state dimensions the policy does not read
     augment: bool = False  # training samples through the domain's symmetries (its `sample_symmetry`)
+    # weight of a cross-entropy teaching the instruction's first attention query the entity that moves
+    # most over the sample's segment (0: none): what an instruction names is usually what it moves, and
+    # the action loss alone grounds the words slowly. Needs entities whose positions are found, not
+    # learnt (a learnt position moves with the training); with `augment`, symmetries that keep each
+    # entity's index (the target is read from the unturned clip).
+    moved_entity_loss: float = 0.0
+    # a segment whose most-moved entity moves less than this (image units: the frame spans [-1, 1])
+    # moved nothing and teaches the query nothing
+    moved_entity_threshold: float = 0.15
     log_every: int = 100
     num_threads: int = 1
 
@@ -132,14 +141,22 @@ class InstructionAttention(nn.Module):
         self.query = nn.Linear(instruction_dim, queries * entity_dim)
         self.out_dim = queries * (2 + entity_dim)
 
+    def attend(
+        self, entities: torch.Tensor, positions: torch.Tensor, instruction: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(N, E, C) entities at (N, E, 2) positions, (N, D) instruction -> (the output (N, queries *
+        (2 + C)), each query's scores over the entities before the softmax (N, queries, E))."""
+        batch, _, width = entities.shape
+        queries = self.query(instruction).view(batch, self.queries, width)
+        scores = queries @ entities.transpose(1, 2) / width**0.5
+        weights = torch.softmax(scores, dim=-1)  # (N, Q, E)
+        return torch.cat([weights @ positions, weights @ entities], dim=-1).flatten(1), scores
+
     def forward(
         self, entities: torch.Tensor, positions: torch.Tensor, instruction: torch.Tensor
     ) -> torch.Tensor:
         """(N, E, C) entities at (N, E, 2) positions, (N, D) instruction -> (N, queries * (2 + C))."""
-        batch, _, width = entities.shape
-        queries = self.query(instruction).view(batch, self.queries, width)
-        weights = torch.softmax(queries @ entities.transpose(1, 2) / width**0.5, dim=-1)  # (N, Q, E)
-        return torch.cat([weights @ positions, weights @ entities], dim=-1).flatten(1)
+        return self.attend(entities, positions, instruction)[0]
 
 
 class BCPolicy(nn.Module):
@@ -227,9 +244,21 @@ class BCPolicy(nn.Module):
     ) -> torch.Tensor:
         """Observation rows by feature (N each) and instruction ids -> (N, out) logits or standardised
         actions."""
+        return self.forward_with_attention(inputs, known, words, offsets)[0]
+
+    def forward_with_attention(
+        self,
+        inputs: Mapping[str, torch.Tensor],
+        known: torch.Tensor,
+        words: torch.Tensor,
+        offsets: torch.Tensor,
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """`forward`'s output and, by attended camera (its encoder's index as text), the instruction
+        queries' scores over the camera's entities (N, queries, E)."""
         instruction = self.known(known) + self.words(words, offsets)
         if self.state_keep is not None:
             inputs = {**inputs, STATE: inputs[STATE] * self.state_keep.view(self.features.state.shape)}
+        scores: dict[str, torch.Tensor] = {}
         if self.attention:
             parts = []
             for index, (spec, encoder) in enumerate(
@@ -237,7 +266,10 @@ class BCPolicy(nn.Module):
             ):
                 if str(index) in self.attention:
                     pooled, entities, positions = encoder.encode_with_entities(inputs[spec.feature])
-                    parts += [pooled, self.attention[str(index)](entities, positions, instruction)]
+                    attended, scores[str(index)] = self.attention[str(index)].attend(
+                        entities, positions, instruction
+                    )
+                    parts += [pooled, attended]
                 else:
                     parts.append(encoder(inputs[spec.feature]))
             observed = torch.cat(parts, dim=-1)
@@ -247,7 +279,28 @@ class BCPolicy(nn.Module):
         if self.film is not None:
             scale, shift = self.film(instruction).chunk(2, dim=-1)
             hidden = hidden * (1.0 + scale) + shift
-        return self.head[2:](hidden)
+        return self.head[2:](hidden), scores
+
+    @torch.no_grad()
+    def moved_entities(self, clips: Sequence[SegmentClip], threshold: float) -> dict[str, np.ndarray]:
+        """By attended camera, for each clip the index of the entity that moves most between its first
+        and last frame, -1 where none moves ``threshold`` image units or more."""
+        moved: dict[str, np.ndarray] = {}
+        for index in self.attention:
+            encoder = self.encoders.encoders[int(index)]
+            feature = self.encoders.specs[int(index)].feature
+            targets = np.full(len(clips), -1, np.int64)
+            for start in range(0, len(clips), 256):
+                chunk = clips[start : start + 256]
+                ends = np.stack([clip.images[feature][[0, -1]] for clip in chunk])  # (n, 2, *frame)
+                positions = encoder.encode_with_entities(torch.from_numpy(ends.reshape(-1, *ends.shape[2:])))[
+                    2
+                ]
+                shift = positions.view(len(chunk), 2, *positions.shape[1:]).diff(dim=1)[:, 0].norm(dim=-1)
+                distance, entity = shift.max(dim=-1)
+                targets[start : start + len(chunk)] = torch.where(distance >= threshold, entity, -1).numpy()
+            moved[index] = targets
+        return moved
 
     def observation_inputs(
         self, observations: Mapping[str, np.ndarray], rows: int
@@ -388,6 +441,16 @@ class BCPolicyLearner:
             raise ValueError(
                 f"policy {POLICY_NAME}: instruction_attention must be >= 0, got {settings.instruction_attention}"
             )
+        if settings.moved_entity_loss < 0 or settings.moved_entity_threshold <= 0:
+            raise ValueError(
+                f"policy {POLICY_NAME}: moved_entity_loss must be >= 0 and moved_entity_threshold > 0, got "
+                f"{settings.moved_entity_loss} and {settings.moved_entity_threshold}"
+            )
+        if settings.moved_entity_loss and not settings.instruction_attention:
+            raise ValueError(
+                f"policy {POLICY_NAME}: moved_entity_loss teaches the instruction's attention, which "
+                "instruction_attention=0 turns off"
+            )
         state_mask(features, settings.state_exclude)  # ValueError naming an unknown dimension
         if settings.augment and sample_symmetry is None:
             raise ValueError(
@@ -451,37 +514,58 @@ class BCPolicyLearner:
         model: BCPolicy,
         batch: tuple[dict[str, np.ndarray], list[str], np.ndarray],
         drop: np.ndarray | None,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """(mean loss, per-sample correct flags or losses) of one batch."""
+        moved: Mapping[str, np.ndarray] | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(mean action loss, per-sample correct flags or nothing, the moved-entity loss (0 without
+        ``moved``: by attended camera, each sample's `BCPolicy.moved_entities` target), per-sample flags
+        of the first query's best-scored entity being the moved one (samples that have one)) of one
+        batch."""
         observations, instructions, actions = batch
         known, words, offsets = model.instruction_ids(instructions)
         if drop is not None:
             known = known.masked_fill(torch.from_numpy(drop), 0)
         inputs = {name: torch.from_numpy(array) for name, array in observations.items()}
-        out = model(inputs, known, words, offsets)
+        out, scores = model.forward_with_attention(inputs, known, words, offsets)
+        moved_loss, moved_hits = out.new_zeros(()), out.new_zeros(0)
+        for index, targets in (moved or {}).items():
+            target = torch.from_numpy(targets)
+            has = target >= 0
+            if has.any():
+                first = scores[index][:, 0][has]
+                moved_loss = moved_loss + F.cross_entropy(first, target[has])
+                moved_hits = torch.cat([moved_hits, (first.argmax(-1) == target[has]).float()])
         if model.discrete:
             target = torch.from_numpy(actions)
-            return F.cross_entropy(out, target), (out.argmax(-1) == target).float()
-        if model.bins:
+            loss, hits = F.cross_entropy(out, target), (out.argmax(-1) == target).float()
+        elif model.bins:
             target = model.action_bin(torch.from_numpy(actions))
             logits = out.reshape(len(out), -1, model.bins)
             loss = F.cross_entropy(logits.transpose(1, 2), target)
-            return loss, (logits.argmax(-1) == target).float().mean(-1)
-        target = (torch.from_numpy(actions) - model.action_mean) / model.action_std
-        return F.mse_loss(out, target), out.new_zeros(0)
+            hits = (logits.argmax(-1) == target).float().mean(-1)
+        else:
+            target = (torch.from_numpy(actions) - model.action_mean) / model.action_std
+            loss, hits = F.mse_loss(out, target), out.new_zeros(0)
+        return loss, hits, moved_loss, moved_hits
 
-    def _validate(self, model: BCPolicy, steps: _Steps, train: _Steps) -> dict[str, float]:
-        """Validation loss (and accuracy), and the loss of the mean-action (marginal) predictor."""
+    def _validate(
+        self, model: BCPolicy, steps: _Steps, train: _Steps, moved: Mapping[str, np.ndarray] | None
+    ) -> dict[str, float]:
+        """Validation loss (and accuracy), the loss of the mean-action (marginal) predictor, and with
+        ``moved`` (per clip) how often the first query scores the moved entity best."""
         model.eval()
-        total, correct = 0.0, 0.0
+        total, correct, found, targeted = 0.0, 0.0, 0.0, 0
         with torch.no_grad():
             for start in range(0, len(steps), 1024):
                 which = np.arange(start, min(start + 1024, len(steps)))
-                loss, hits = self._loss(model, steps.batch(which), None)
+                per_sample = {k: v[steps.pairs[which, 0]] for k, v in (moved or {}).items()}
+                loss, hits, _, moved_hits = self._loss(model, steps.batch(which), None, per_sample)
                 total += float(loss) * len(which)
                 correct += float(hits.sum())
+                found, targeted = found + float(moved_hits.sum()), targeted + len(moved_hits)
         model.train()
         result = {"val_loss": total / len(steps)}
+        if targeted:
+            result["val_moved_entity_accuracy"] = found / targeted
         if model.bins:  # per dimension: the marginal bin frequencies of the training actions
             result["val_accuracy"] = correct / len(steps)
             bins = [model.action_bin(torch.from_numpy(s.actions)).numpy() for s in (train, steps)]
@@ -520,6 +604,7 @@ class BCPolicyLearner:
             rng = np.random.default_rng(s.seed)
             model = self.build(train_clips)
             train_steps = _Steps(train_clips, names, discrete)
+            moved = self._moved_entities(model, train_clips)
             optimiser = torch.optim.AdamW(model.parameters(), lr=s.lr, weight_decay=s.weight_decay)
             model.train()
             losses: list[tuple[int, float]] = []
@@ -530,7 +615,9 @@ class BCPolicyLearner:
                 batch = train_steps.batch(which)
                 if s.augment and self.sample_symmetry is not None:
                     batch = self.sample_symmetry(*batch, rng)
-                loss, _ = self._loss(model, batch, drop)
+                per_sample = {k: v[train_steps.pairs[which, 0]] for k, v in (moved or {}).items()}
+                loss, _, moved_loss, _ = self._loss(model, batch, drop, per_sample)
+                loss = loss + s.moved_entity_loss * moved_loss
                 optimiser.zero_grad(set_to_none=True)
                 loss.backward()
                 nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -542,7 +629,14 @@ class BCPolicyLearner:
                         print(f"policy {POLICY_NAME} step {step}/{s.steps}: loss {running / count:.4f}")
                     running, count = 0.0, 0
             validation = (
-                self._validate(model, _Steps(val_clips, names, discrete), train_steps) if val_clips else {}
+                self._validate(
+                    model,
+                    _Steps(val_clips, names, discrete),
+                    train_steps,
+                    self._moved_entities(model, val_clips),
+                )
+                if val_clips
+                else {}
             )
         model.eval()
         report = PolicyTrainReport(
@@ -555,6 +649,12 @@ class BCPolicyLearner:
             **validation,
         )
         return model, report
+
+    def _moved_entities(self, model: BCPolicy, clips: Sequence[SegmentClip]) -> dict[str, np.ndarray] | None:
+        """`BCPolicy.moved_entities` of ``clips`` when the moved-entity loss is on, else None."""
+        if not self.settings.moved_entity_loss or not clips:
+            return None
+        return model.moved_entities(clips, self.settings.moved_entity_threshold)
 
     def evaluate(self, policy: BCPolicy, num_episodes: int, seed: int) -> None:
         """No simulator: nothing to evaluate in."""

@@ -37,6 +37,9 @@ class PolicyTrainReport:
     val_loss: float | None = None
     val_accuracy: float | None = None
     baseline_val_loss: float | None = None
+    # how often the instruction's first attention query scores best the entity that moves most over a
+    # held-out segment (of those where one moves; the `bc` policy's moved-entity loss), None without it
+    val_moved_entity_accuracy: float | None = None
 
 
 @dataclass

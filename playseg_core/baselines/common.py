@@ -25,6 +25,7 @@ from torch import nn
 
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.data.features import Features
+from playseg_core.ps.calibration import LABEL_ACCURACY_TARGET
 from playseg_core.ps.encoders import EncoderSpec, StepEncoders, as_tensors
 from playseg_core.ps.metrics import LabelCounts, label_accuracy
 
@@ -75,6 +76,8 @@ class TrainOptions:
     max_seconds: float | None = None
     num_threads: int | None = None  # torch threads while training (None: as set)
     log_every: int = 0  # print a loss line every so many steps (0: never)
+    # the held-out label accuracy a calibrated confidence threshold is chosen for (methods that calibrate)
+    label_accuracy: float = LABEL_ACCURACY_TARGET
 
     def steps_for(self, num_segments: int, batch_size: int, default_steps: int) -> int:
         if self.steps is not None:

@@ -61,7 +61,7 @@ def train_play_segmentation(data: TrainingData, options: TrainOptions) -> Traine
     train_eps, cfg, model_cfg = ps_training_setup(data, options)
     began = time.perf_counter()
     result = train_ps(train_eps, data.val, data.instructions, cfg, model_cfg)
-    calibrated = calibrate_ps_model(result.model, data.val, 0.95) if data.val else {}
+    calibrated = calibrate_ps_model(result.model, data.val, options.label_accuracy) if data.val else {}
     meta = {"train": asdict(cfg), "history": result.history, "seconds": result.seconds, "calibration": {}}
     meta |= calibrated
     seconds = time.perf_counter() - began

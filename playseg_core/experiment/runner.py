@@ -44,6 +44,7 @@ from playseg_core.experiment.conditions import (
     pool_percent,
     pool_share_segments,
 )
+from playseg_core.ps.calibration import LABEL_ACCURACY_TARGET
 
 EVAL_SEED = 1_000_000
 """First seed of the fixed evaluation episodes (disjoint from play generation), the same for every run."""
@@ -68,6 +69,8 @@ class ExperimentScale:
     # mirrored frames, only where the domain's labels and ends do not depend on orientation).
     segmenter_reads_actions: bool = True
     segmenter_augment: bool = False
+    # the held-out label accuracy PS's confidence threshold is calibrated for (ps/calibration.py)
+    segmenter_label_accuracy: float = LABEL_ACCURACY_TARGET
 
 
 @dataclass(frozen=True)
@@ -267,7 +270,12 @@ def train_segmenter(out: str, method: str, scale: ExperimentScale, threads: int)
         read_actions=scale.segmenter_reads_actions,
         augment=scale.segmenter_augment,
     )
-    options = TrainOptions(seed=0, steps=scale.segmenter_steps, num_threads=threads)
+    options = TrainOptions(
+        seed=0,
+        steps=scale.segmenter_steps,
+        num_threads=threads,
+        label_accuracy=scale.segmenter_label_accuracy,
+    )
     with torch_threads(threads):
         trained = get_method(method).train(training, options)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -97,6 +97,11 @@ def calibrate_end_bias(
     )
 
 
+LABEL_ACCURACY_TARGET = 0.95
+"""The label accuracy on held-out annotated segments that the confidence threshold is chosen for unless
+told otherwise (`calibrate_ps_model`; ``--label-accuracy``). The paper chose 90 % for CALVIN."""
+
+
 def calibrate_threshold(
     confidences: Sequence[float] | np.ndarray, correct: Sequence[bool] | np.ndarray, target_accuracy: float
 ) -> float:
@@ -162,7 +167,7 @@ def calibrate_on_annotated(
 
 
 def calibrate_ps_model(
-    model: PSModel, val_episodes: Sequence[Episode], target_accuracy: float = 0.95
+    model: PSModel, val_episodes: Sequence[Episode], target_accuracy: float = LABEL_ACCURACY_TARGET
 ) -> dict[str, dict]:
     """Set ``model.end_bias`` from `val_episodes` and calibrate the label threshold on them.
 
