@@ -101,6 +101,7 @@ def main() -> None:
                     "val_loss": report.val_loss,
                     "baseline_val_loss": report.baseline_val_loss,
                     "val_moved_entity_accuracy": report.val_moved_entity_accuracy,
+                    "val_related_entity_accuracy": report.val_related_entity_accuracy,
                     "train_seconds": round(trained, 1),
                     "eval_seconds": round(evaluation.seconds, 1),
                 }
@@ -114,6 +115,11 @@ def main() -> None:
                 + (
                     f"moved entity found {report.val_moved_entity_accuracy:.2f}; "
                     if report.val_moved_entity_accuracy is not None
+                    else ""
+                )
+                + (
+                    f"related entity found {report.val_related_entity_accuracy:.2f}; "
+                    if report.val_related_entity_accuracy is not None
                     else ""
                 )
                 + f"train {trained:.0f} s, eval {evaluation.seconds:.0f} s",

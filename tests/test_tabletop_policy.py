@@ -198,63 +198,106 @@ def test_the_domain_declares_its_experiment() -> None:
     assert spec.paper == {}  # CALVIN's figures count tasks in a row, not a success rate
 
 
-def pushed_block_clips(num: int, seed: int, size: int = 64) -> list[SegmentClip]:
-    """Random layouts in which the named block is carried 8 cm to a free place (as a push leaves it: no
-    block on another) over the segment; one clip in four moves nothing and names only the arm. Random
-    commands, still states."""
+def pushed_block_clips(num: int, seed: int, size: int = 96) -> list[SegmentClip]:
+    """Random layouts in which the named block is carried next to another block over the segment (clips
+    1 and 2 of every 4: 7 cm between their centres, a gap the task oracle calls next to; no other block
+    within 8 cm) or 8 cm to a free place (clip 3), as a push leaves them: no block on another. Clip 0 of
+    every 4 moves nothing and names only the arm. Random commands, still states."""
     rng = np.random.default_rng(seed)
     renderer, clips = Renderer(size), []
     for i in range(num):
         sim, _ = evaluation_start(seed * 1000 + i)
         start = sim.scene()
-        moved = start.blocks.copy()
-        block = int(rng.integers(len(BLOCKS)))
+        moved, block, other = start.blocks.copy(), 0, 0
         while i % 4:
-            block, angle = int(rng.integers(len(BLOCKS))), rng.uniform(0, 2 * np.pi)
+            block, other = rng.choice(len(BLOCKS), size=2, replace=False)
             moved = start.blocks.copy()
-            moved[block] = start.blocks[block] + 0.08 * np.array([np.cos(angle), np.sin(angle)])
-            others = np.delete(moved, block, axis=0)
+            if i % 4 in (1, 2):  # next to the other block, on the side it came from
+                away = start.blocks[block] - start.blocks[other]
+                moved[block] = start.blocks[other] + 0.07 * away / np.hypot(*away)
+            else:
+                angle = rng.uniform(0, 2 * np.pi)
+                moved[block] = start.blocks[block] + 0.08 * np.array([np.cos(angle), np.sin(angle)])
+            gaps = np.hypot(*(moved - moved[block]).T)
+            gaps[[block, other] if i % 4 in (1, 2) else [block]] = np.inf
             inside = bool(np.all((moved[block] > 0.05) & (moved[block] < TABLE_SIZE - 0.05)))
-            if inside and np.hypot(*(others - moved[block]).T).min() > 0.07:
+            travelled = np.hypot(*(moved[block] - start.blocks[block]))
+            if inside and gaps.min() > 0.08 and travelled > 0.06:
                 break
         frames = []
         for share in np.linspace(0.0, 1.0, 4):
             sim.place(start.blocks + share * (moved - start.blocks), start.effector)
             frames.append(renderer.render(sim.scene()))
-        text = f"push the {BLOCKS[block]} away" if i % 4 else "move the arm to the centre"
+        texts = [
+            "move the arm to the centre",
+            f"push the {BLOCKS[block]} next to the {BLOCKS[other]}",
+            f"push the {BLOCKS[block]} next to the {BLOCKS[other]}",
+            f"push the {BLOCKS[block]} away",
+        ]
         state = np.tile(sim.state_vector(), (4, 1))
         actions = rng.uniform(-MAX_SPEED, MAX_SPEED, (3, 2)).astype(np.float32)
         clips.append(
             SegmentClip(
-                f"ep{i}", Segment(0, 3, text), actions, {CAMERA: np.stack(frames)}, state, "annotation"
+                f"ep{i}",
+                Segment(0, 3, texts[i % 4]),
+                actions,
+                {CAMERA: np.stack(frames)},
+                state,
+                "annotation",
             )
         )
     return clips
 
 
+def named_entities(instruction: str) -> list[int]:
+    """The entities (2c + k: colour c's shape k) of the blocks ``instruction`` names, in its order."""
+    words = instruction.split()
+    return [
+        len(SHAPES) * COLOURS.index(colour) + SHAPES.index(shape)
+        for colour, shape in zip(words, words[1:], strict=False)
+        if colour in COLOURS and shape in SHAPES
+    ]
+
+
 def test_the_moved_entity_loss_teaches_the_instruction_which_block_it_names() -> None:
     """The block a segment moves is the target of the instruction's first query (the entity 2c + k of
-    colour c's shape k; none where nothing moves), and training on it finds the named block in held-out
-    layouts far above chance (1 in 8)."""
-    settings = {"steps": 300, "batch_size": 32, "image_size": 64, "augment": False, "seed": 1}
+    colour c's shape k; none where nothing moves), the block it is carried next to the second's, and
+    training on them finds both in held-out layouts far above chance (1 in 8)."""
+    settings = {
+        "steps": 400, "batch_size": 32, "image_size": 96, "augment": False, "seed": 1,
+        "related_entity_loss": 1.0,
+    }  # fmt: skip
     clips = pushed_block_clips(160, seed=3)
     learner = load_policy_learner("tabletop.bc", settings)
     model = learner.bc.build(clips)
     targets = model.moved_entities(clips, threshold=0.15)["0"]
-    for clip, target in zip(clips, targets, strict=True):
-        named = clip.segment.instruction.removeprefix("push the ").removesuffix(" away")
-        expected = -1
-        if named in BLOCKS:
-            colour, shape = named.split()
-            expected = len(SHAPES) * COLOURS.index(colour) + SHAPES.index(shape)
-        assert target == expected, clip.segment.instruction
+    wrong = []
+    for clip, (moved, related) in zip(clips, targets, strict=True):
+        named = named_entities(clip.segment.instruction)
+        if moved != (named[0] if named else -1):
+            wrong.append(clip.segment.instruction)
+        elif (len(named) == 2 or not named) and related != (named[1] if named else -1):
+            wrong.append(clip.segment.instruction)  # carried next to a block, or nothing moved
+    # the encoder may swap a colour's two blocks when another block touches them (1 of these 160)
+    assert len(wrong) <= 2, wrong
     _, report = learner.train(clips)
-    assert report.val_moved_entity_accuracy is not None and report.val_moved_entity_accuracy >= 0.6, report
-    off = load_policy_learner("tabletop.bc", {**settings, "steps": 2, "moved_entity_loss": 0})
+    assert report.val_moved_entity_accuracy is not None and report.val_moved_entity_accuracy >= 0.5, report
+    assert report.val_related_entity_accuracy is not None and report.val_related_entity_accuracy >= 0.4, (
+        report
+    )
+    off = load_policy_learner(
+        "tabletop.bc", {**settings, "steps": 2, "moved_entity_loss": 0, "related_entity_loss": 0}
+    )
     assert off.train(clips[:8])[1].val_moved_entity_accuracy is None
-    with pytest.raises(ValueError, match="moved_entity_loss must be >= 0 and moved_entity_threshold > 0"):
+    with pytest.raises(ValueError, match="related_entity_loss must be >= 0 and moved_entity_threshold > 0"):
         load_policy_learner("tabletop.bc", {"moved_entity_threshold": 0})
-    # without attention the domain's default loss is off; asked for, it is a one-line error
-    assert load_policy_learner("tabletop.bc", {"instruction_attention": 0}).bc.settings.moved_entity_loss == 0
+    # without attention the domain's default losses are off; asked for, a one-line error
+    without = load_policy_learner("tabletop.bc", {"instruction_attention": 0}).bc.settings
+    assert without.moved_entity_loss == 0 and without.related_entity_loss == 0
     with pytest.raises(ValueError, match="moved_entity_loss teaches the instruction's attention"):
         load_policy_learner("tabletop.bc", {"instruction_attention": 0, "moved_entity_loss": 1})
+    with pytest.raises(ValueError, match="related_entity_loss teaches the instruction's second query"):
+        load_policy_learner("tabletop.bc", {"instruction_attention": 1, "related_entity_loss": 1})
+    assert (
+        load_policy_learner("tabletop.bc", {"instruction_attention": 1}).bc.settings.related_entity_loss == 0
+    )

@@ -96,6 +96,9 @@ class BCTrainConfig:
     # a segment whose most-moved entity moves less than this (image units: the frame spans [-1, 1])
     # moved nothing and teaches the query nothing
     moved_entity_threshold: float = 0.15
+    # weight of the same for the second query (0: none): the entity the moved one ends nearest to, when
+    # it came at least `moved_entity_threshold` nearer to it (what "put X next to / on Y" names second)
+    related_entity_loss: float = 0.0
     log_every: int = 100
     num_threads: int = 1
 
@@ -283,22 +286,28 @@ class BCPolicy(nn.Module):
 
     @torch.no_grad()
     def moved_entities(self, clips: Sequence[SegmentClip], threshold: float) -> dict[str, np.ndarray]:
-        """By attended camera, for each clip the index of the entity that moves most between its first
-        and last frame, -1 where none moves ``threshold`` image units or more."""
+        """By attended camera, for each clip (rows) the index of the entity that moves most between its
+        first and last frame (column 0; -1 where none moves ``threshold`` image units or more) and of the
+        entity that one ends nearest to (column 1; -1 unless it came ``threshold`` or more nearer)."""
         moved: dict[str, np.ndarray] = {}
         for index in self.attention:
             encoder = self.encoders.encoders[int(index)]
             feature = self.encoders.specs[int(index)].feature
-            targets = np.full(len(clips), -1, np.int64)
+            targets = np.full((len(clips), 2), -1, np.int64)
             for start in range(0, len(clips), 256):
                 chunk = clips[start : start + 256]
                 ends = np.stack([clip.images[feature][[0, -1]] for clip in chunk])  # (n, 2, *frame)
-                positions = encoder.encode_with_entities(torch.from_numpy(ends.reshape(-1, *ends.shape[2:])))[
-                    2
-                ]
-                shift = positions.view(len(chunk), 2, *positions.shape[1:]).diff(dim=1)[:, 0].norm(dim=-1)
-                distance, entity = shift.max(dim=-1)
-                targets[start : start + len(chunk)] = torch.where(distance >= threshold, entity, -1).numpy()
+                found = encoder.encode_with_entities(torch.from_numpy(ends.reshape(-1, *ends.shape[2:])))
+                positions = found[2].view(len(chunk), 2, *found[2].shape[1:])  # (n, first/last, E, 2)
+                shift, entity = (positions[:, 1] - positions[:, 0]).norm(dim=-1).max(dim=-1)
+                rows = torch.arange(len(chunk))
+                gaps = (positions - positions[rows, :, entity][:, :, None]).norm(dim=-1)  # (n, 2, E)
+                gaps[rows, :, entity] = float("inf")
+                gap, nearest = gaps[:, 1].min(dim=-1)
+                came = gaps[rows, 0, nearest] - gap >= threshold
+                moves = shift >= threshold
+                targets[start : start + len(chunk), 0] = torch.where(moves, entity, -1).numpy()
+                targets[start : start + len(chunk), 1] = torch.where(moves & came, nearest, -1).numpy()
             moved[index] = targets
         return moved
 
@@ -441,15 +450,24 @@ class BCPolicyLearner:
             raise ValueError(
                 f"policy {POLICY_NAME}: instruction_attention must be >= 0, got {settings.instruction_attention}"
             )
-        if settings.moved_entity_loss < 0 or settings.moved_entity_threshold <= 0:
+        if (
+            min(settings.moved_entity_loss, settings.related_entity_loss) < 0
+            or settings.moved_entity_threshold <= 0
+        ):
             raise ValueError(
-                f"policy {POLICY_NAME}: moved_entity_loss must be >= 0 and moved_entity_threshold > 0, got "
-                f"{settings.moved_entity_loss} and {settings.moved_entity_threshold}"
+                f"policy {POLICY_NAME}: moved_entity_loss and related_entity_loss must be >= 0 and "
+                f"moved_entity_threshold > 0, got {settings.moved_entity_loss}, "
+                f"{settings.related_entity_loss} and {settings.moved_entity_threshold}"
             )
         if settings.moved_entity_loss and not settings.instruction_attention:
             raise ValueError(
                 f"policy {POLICY_NAME}: moved_entity_loss teaches the instruction's attention, which "
                 "instruction_attention=0 turns off"
+            )
+        if settings.related_entity_loss and settings.instruction_attention < 2:
+            raise ValueError(
+                f"policy {POLICY_NAME}: related_entity_loss teaches the instruction's second query; "
+                f"instruction_attention is {settings.instruction_attention}"
             )
         state_mask(features, settings.state_exclude)  # ValueError naming an unknown dimension
         if settings.augment and sample_symmetry is None:
@@ -515,25 +533,28 @@ class BCPolicyLearner:
         batch: tuple[dict[str, np.ndarray], list[str], np.ndarray],
         drop: np.ndarray | None,
         moved: Mapping[str, np.ndarray] | None = None,
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(mean action loss, per-sample correct flags or nothing, the moved-entity loss (0 without
-        ``moved``: by attended camera, each sample's `BCPolicy.moved_entities` target), per-sample flags
-        of the first query's best-scored entity being the moved one (samples that have one)) of one
-        batch."""
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[torch.Tensor]]:
+        """(mean action loss, per-sample correct flags or nothing, the moved- and related-entity losses
+        weighted and summed (0 without ``moved``: by attended camera, each sample's
+        `BCPolicy.moved_entities` targets), per query the flags of its best-scored entity being its
+        target (samples that have one)) of one batch."""
         observations, instructions, actions = batch
         known, words, offsets = model.instruction_ids(instructions)
         if drop is not None:
             known = known.masked_fill(torch.from_numpy(drop), 0)
         inputs = {name: torch.from_numpy(array) for name, array in observations.items()}
         out, scores = model.forward_with_attention(inputs, known, words, offsets)
-        moved_loss, moved_hits = out.new_zeros(()), out.new_zeros(0)
+        weights = (self.settings.moved_entity_loss, self.settings.related_entity_loss)
+        moved_loss, moved_hits = out.new_zeros(()), [out.new_zeros(0), out.new_zeros(0)]
         for index, targets in (moved or {}).items():
-            target = torch.from_numpy(targets)
-            has = target >= 0
-            if has.any():
-                first = scores[index][:, 0][has]
-                moved_loss = moved_loss + F.cross_entropy(first, target[has])
-                moved_hits = torch.cat([moved_hits, (first.argmax(-1) == target[has]).float()])
+            for query, weight in enumerate(weights[: scores[index].shape[1]]):
+                target = torch.from_numpy(targets[:, query])
+                has = target >= 0
+                if has.any():
+                    chosen = scores[index][:, query][has]
+                    moved_loss = moved_loss + weight * F.cross_entropy(chosen, target[has])
+                    hits = (chosen.argmax(-1) == target[has]).float()
+                    moved_hits[query] = torch.cat([moved_hits[query], hits])
         if model.discrete:
             target = torch.from_numpy(actions)
             loss, hits = F.cross_entropy(out, target), (out.argmax(-1) == target).float()
@@ -553,7 +574,7 @@ class BCPolicyLearner:
         """Validation loss (and accuracy), the loss of the mean-action (marginal) predictor, and with
         ``moved`` (per clip) how often the first query scores the moved entity best."""
         model.eval()
-        total, correct, found, targeted = 0.0, 0.0, 0.0, 0
+        total, correct, found, targeted = 0.0, 0.0, np.zeros(2), np.zeros(2)
         with torch.no_grad():
             for start in range(0, len(steps), 1024):
                 which = np.arange(start, min(start + 1024, len(steps)))
@@ -561,11 +582,14 @@ class BCPolicyLearner:
                 loss, hits, _, moved_hits = self._loss(model, steps.batch(which), None, per_sample)
                 total += float(loss) * len(which)
                 correct += float(hits.sum())
-                found, targeted = found + float(moved_hits.sum()), targeted + len(moved_hits)
+                found += [float(hits.sum()) for hits in moved_hits]
+                targeted += [len(hits) for hits in moved_hits]
         model.train()
         result = {"val_loss": total / len(steps)}
-        if targeted:
-            result["val_moved_entity_accuracy"] = found / targeted
+        if targeted[0]:
+            result["val_moved_entity_accuracy"] = float(found[0] / targeted[0])
+        if targeted[1] and self.settings.related_entity_loss:
+            result["val_related_entity_accuracy"] = float(found[1] / targeted[1])
         if model.bins:  # per dimension: the marginal bin frequencies of the training actions
             result["val_accuracy"] = correct / len(steps)
             bins = [model.action_bin(torch.from_numpy(s.actions)).numpy() for s in (train, steps)]
@@ -617,7 +641,7 @@ class BCPolicyLearner:
                     batch = self.sample_symmetry(*batch, rng)
                 per_sample = {k: v[train_steps.pairs[which, 0]] for k, v in (moved or {}).items()}
                 loss, _, moved_loss, _ = self._loss(model, batch, drop, per_sample)
-                loss = loss + s.moved_entity_loss * moved_loss
+                loss = loss + moved_loss
                 optimiser.zero_grad(set_to_none=True)
                 loss.backward()
                 nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -651,8 +675,8 @@ class BCPolicyLearner:
         return model, report
 
     def _moved_entities(self, model: BCPolicy, clips: Sequence[SegmentClip]) -> dict[str, np.ndarray] | None:
-        """`BCPolicy.moved_entities` of ``clips`` when the moved-entity loss is on, else None."""
-        if not self.settings.moved_entity_loss or not clips:
+        """`BCPolicy.moved_entities` of ``clips`` when a moved- or related-entity loss is on, else None."""
+        if not (self.settings.moved_entity_loss or self.settings.related_entity_loss) or not clips:
             return None
         return model.moved_entities(clips, self.settings.moved_entity_threshold)
 

@@ -40,6 +40,8 @@ class PolicyTrainReport:
     # how often the instruction's first attention query scores best the entity that moves most over a
     # held-out segment (of those where one moves; the `bc` policy's moved-entity loss), None without it
     val_moved_entity_accuracy: float | None = None
+    # the same for the second query and the entity the moved one ends nearest to (related-entity loss)
+    val_related_entity_accuracy: float | None = None
 
 
 @dataclass

@@ -47,6 +47,7 @@ POLICY_DEFAULTS: dict[str, Any] = {
     "hash_buckets": 4096,
     "state_exclude": ",".join(name for name in STATE_NAMES if "velocity" in name),
     "moved_entity_loss": 1.0,
+    "related_entity_loss": 1.0,
     "augment": True,
 }
 """What ``tabletop.bc`` sets unless told otherwise (docs/tabletop.md "The policy and its evaluation"): the blocks as entities
@@ -55,7 +56,7 @@ with their order (which block is pushed next to which: a bag of words has the tw
 buckets for the ~300 tokens), not the measured velocity, which lets behaviour cloning repeat the
 last command, the block a segment pushes as what its instruction's first query should find (the
 moved-entity loss: the block moved most is the named one in 95-98 % of the block tasks' annotated
-segments), and the table's 8 symmetries (`augment`)."""
+segments) and the block it ends next to as the second's, and the table's 8 symmetries (`augment`)."""
 
 
 @dataclass
@@ -79,8 +80,16 @@ class TabletopPolicyLearner:
 
         if config.get("camera_encoder") == "keypoints":  # keypoints are no entities to attend over
             config = {"instruction_attention": 0, **config}
-        if str(config.get("instruction_attention", "")).strip() == "0":  # no query to teach
-            config = {"moved_entity_loss": 0.0, **config}
+        try:  # the defaults teach only the queries there are
+            queries = int(config.get("instruction_attention", POLICY_DEFAULTS["instruction_attention"]))
+        except ValueError:
+            queries = 2  # a bad value: `BCPolicyLearner.from_config` names it
+        if queries < 2:
+            config = {
+                "related_entity_loss": 0.0,
+                **({"moved_entity_loss": 0.0} if queries < 1 else {}),
+                **config,
+            }
         config = {**POLICY_DEFAULTS, **config}
         image_size = int(config.pop("image_size", DEFAULT_IMAGE_SIZE))
         camera = str(config.pop("camera_encoder"))
