@@ -97,9 +97,9 @@ def calibrate(model_path: str, data: str, out: str | None, label_accuracy: float
     """Re-calibrate a PS checkpoint's end bias and label threshold (for ``label_accuracy`` on held-out
     segments; None: ps/calibration.py's LABEL_ACCURACY_TARGET) on a dataset's annotated val split."""
     from playseg_core.ps.calibration import calibrate_ps_model
+    from playseg_core.ps.model import load_model, save_model
 
     label_accuracy = checked_label_accuracy(label_accuracy)
-    from playseg_core.ps.model import load_model, save_model
 
     model, extra = load_model(model_path, kinds=("ps",))
     dataset = _open_dataset(data)
@@ -156,9 +156,13 @@ def train(
     )
 
     get_method(method)  # an unknown method fails before anything is read
-    label_accuracy = checked_label_accuracy(label_accuracy)
     if labeller and method != "ps":
         raise ValueError(f"--labeller: only with --method ps (method {method} writes what it needs to --out)")
+    if label_accuracy is not None and method != "ps":
+        raise ValueError(
+            f"--label-accuracy: only with --method ps (method {method} keeps no calibrated threshold)"
+        )
+    label_accuracy = checked_label_accuracy(label_accuracy)
     if label_head and method != "ps":
         raise ValueError(f"--label-head: only with --method ps, not {method}")
     if encoders_from and method not in ("unloc", "tridet"):
@@ -190,7 +194,6 @@ def train(
     if method != "ps":
         given = {
             "seed": seed, "epochs": epochs, "lr": lr, "batch_size": batch_segments,
-            "label_accuracy": label_accuracy,
         }  # fmt: skip
         training = (dataset, train_eps, val_eps, features, read_actions, bounds, encoders, encoders_from)
         return _train_method(method, data, out, training, given, augment)

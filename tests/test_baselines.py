@@ -262,6 +262,8 @@ def test_ps_trains_and_segments_through_the_registry(tmp_path: Path) -> None:
     )
     path = trained.save(tmp_path / "ps.pt", {"note": 1})
     assert torch.load(path, weights_only=True)["meta"]["calibration"]["target_accuracy"] == 0.5
+    with pytest.raises(ValueError, match="label accuracy target must be in \\(0, 1\\], got 0"):
+        TrainOptions(label_accuracy=0)
     segmenter = load_segmenter("ps", path, SegmentOptions(min_len=2))
     episode = synthetic_episode(200)
     segments = segmenter.segment(episode)

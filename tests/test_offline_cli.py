@@ -64,6 +64,9 @@ def test_train_calibrate_segment_evaluate(tiny_data: Path, tmp_path: Path, capsy
     assert calibration["threshold"] <= raw["meta"]["calibration"]["threshold"]  # never keeps fewer
     assert cli_main([*argv, "--label-accuracy", "1.5"]) == 1
     assert "--label-accuracy must be in (0, 1], got 1.5" in capsys.readouterr().err
+    random = ["train", "--data", str(tiny_data), "--out", str(tmp_path / "r.pt"), "--method", "random"]
+    assert cli_main([*random, "--label-accuracy", "0.9"]) == 1
+    assert "--label-accuracy: only with --method ps" in capsys.readouterr().err
 
     pred = tmp_path / "pred"
     assert cli_main(segment_argv(model, tiny_data, pred)) == 0

@@ -296,6 +296,10 @@ def test_the_moved_entity_loss_teaches_the_instruction_which_block_it_names() ->
     assert without.moved_entity_loss == 0 and without.related_entity_loss == 0
     with pytest.raises(ValueError, match="moved_entity_loss teaches the instruction's attention"):
         load_policy_learner("tabletop.bc", {"instruction_attention": 0, "moved_entity_loss": 1})
+    grid = load_policy_learner("tabletop.bc", {"camera_encoder": "object_maps"}).bc.settings
+    assert grid.moved_entity_loss == 0 and grid.related_entity_loss == 0  # cells never move
+    with pytest.raises(ValueError, match="instruction_attention must be of type int, got 'two'"):
+        load_policy_learner("tabletop.bc", {"instruction_attention": "two"})
     with pytest.raises(ValueError, match="related_entity_loss teaches the instruction's second query"):
         load_policy_learner("tabletop.bc", {"instruction_attention": 1, "related_entity_loss": 1})
     assert (

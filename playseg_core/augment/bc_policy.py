@@ -288,7 +288,16 @@ class BCPolicy(nn.Module):
     def moved_entities(self, clips: Sequence[SegmentClip], threshold: float) -> dict[str, np.ndarray]:
         """By attended camera, for each clip (rows) the index of the entity that moves most between its
         first and last frame (column 0; -1 where none moves ``threshold`` image units or more) and of the
-        entity that one ends nearest to (column 1; -1 unless it came ``threshold`` or more nearer)."""
+        entity that one ends nearest to (column 1; -1 unless it came ``threshold`` or more nearer).
+        Read in eval mode (an encoder's dropout or batch statistics must not move the targets)."""
+        was_training = self.training
+        self.eval()
+        try:
+            return self._moved_entities(clips, threshold)
+        finally:
+            self.train(was_training)
+
+    def _moved_entities(self, clips: Sequence[SegmentClip], threshold: float) -> dict[str, np.ndarray]:
         moved: dict[str, np.ndarray] = {}
         for index in self.attention:
             encoder = self.encoders.encoders[int(index)]
@@ -391,7 +400,12 @@ def _setting(name: str, kind: type, value: Any) -> Any:
         if value.lower() not in ("true", "false", "1", "0"):
             raise ValueError(f"policy {POLICY_NAME}: {name} must be true or false, got {value!r}")
         return value.lower() in ("true", "1")
-    return kind(value)
+    try:
+        return kind(value)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"policy {POLICY_NAME}: {name} must be of type {kind.__name__}, got {value!r}"
+        ) from None
 
 
 @dataclass
@@ -550,7 +564,7 @@ class BCPolicyLearner:
             for query, weight in enumerate(weights[: scores[index].shape[1]]):
                 target = torch.from_numpy(targets[:, query])
                 has = target >= 0
-                if has.any():
+                if weight and has.any():
                     chosen = scores[index][:, query][has]
                     moved_loss = moved_loss + weight * F.cross_entropy(chosen, target[has])
                     hits = (chosen.argmax(-1) == target[has]).float()
@@ -572,7 +586,8 @@ class BCPolicyLearner:
         self, model: BCPolicy, steps: _Steps, train: _Steps, moved: Mapping[str, np.ndarray] | None
     ) -> dict[str, float]:
         """Validation loss (and accuracy), the loss of the mean-action (marginal) predictor, and with
-        ``moved`` (per clip) how often the first query scores the moved entity best."""
+        ``moved`` (per clip) how often each taught query scores its target best (over held-out samples,
+        i.e. steps, whose segment has one)."""
         model.eval()
         total, correct, found, targeted = 0.0, 0.0, np.zeros(2), np.zeros(2)
         with torch.no_grad():
@@ -588,7 +603,7 @@ class BCPolicyLearner:
         result = {"val_loss": total / len(steps)}
         if targeted[0]:
             result["val_moved_entity_accuracy"] = float(found[0] / targeted[0])
-        if targeted[1] and self.settings.related_entity_loss:
+        if targeted[1]:
             result["val_related_entity_accuracy"] = float(found[1] / targeted[1])
         if model.bins:  # per dimension: the marginal bin frequencies of the training actions
             result["val_accuracy"] = correct / len(steps)
@@ -641,9 +656,8 @@ class BCPolicyLearner:
                     batch = self.sample_symmetry(*batch, rng)
                 per_sample = {k: v[train_steps.pairs[which, 0]] for k, v in (moved or {}).items()}
                 loss, _, moved_loss, _ = self._loss(model, batch, drop, per_sample)
-                loss = loss + moved_loss
                 optimiser.zero_grad(set_to_none=True)
-                loss.backward()
+                (loss + moved_loss).backward()  # the log below: the action loss, as `val_loss`
                 nn.utils.clip_grad_norm_(model.parameters(), 1.0)
                 optimiser.step()
                 running, count = running + loss.item(), count + 1

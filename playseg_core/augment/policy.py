@@ -37,8 +37,9 @@ class PolicyTrainReport:
     val_loss: float | None = None
     val_accuracy: float | None = None
     baseline_val_loss: float | None = None
-    # how often the instruction's first attention query scores best the entity that moves most over a
-    # held-out segment (of those where one moves; the `bc` policy's moved-entity loss), None without it
+    # how often the instruction's first attention query scores best the entity that moves most over its
+    # segment, over held-out samples (steps) whose segment moves one (the `bc` policy's moved-entity
+    # loss), None without it
     val_moved_entity_accuracy: float | None = None
     # the same for the second query and the entity the moved one ends nearest to (related-entity loss)
     val_related_entity_accuracy: float | None = None

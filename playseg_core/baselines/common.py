@@ -79,6 +79,10 @@ class TrainOptions:
     # the held-out label accuracy a calibrated confidence threshold is chosen for (methods that calibrate)
     label_accuracy: float = LABEL_ACCURACY_TARGET
 
+    def __post_init__(self) -> None:
+        if not 0.0 < self.label_accuracy <= 1.0:
+            raise ValueError(f"label accuracy target must be in (0, 1], got {self.label_accuracy}")
+
     def steps_for(self, num_segments: int, batch_size: int, default_steps: int) -> int:
         if self.steps is not None:
             return max(1, self.steps)

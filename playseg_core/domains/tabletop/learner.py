@@ -82,7 +82,7 @@ class TabletopPolicyLearner:
             config = {"instruction_attention": 0, **config}
         try:  # the defaults teach only the queries there are
             queries = int(config.get("instruction_attention", POLICY_DEFAULTS["instruction_attention"]))
-        except ValueError:
+        except (TypeError, ValueError):
             queries = 2  # a bad value: `BCPolicyLearner.from_config` names it
         if queries < 2:
             config = {
@@ -90,6 +90,9 @@ class TabletopPolicyLearner:
                 **({"moved_entity_loss": 0.0} if queries < 1 else {}),
                 **config,
             }
+        if config.get("camera_encoder", POLICY_DEFAULTS["camera_encoder"]) != "blocks":
+            # a grid's cells never move: the losses would have no target to teach
+            config = {"moved_entity_loss": 0.0, "related_entity_loss": 0.0, **config}
         config = {**POLICY_DEFAULTS, **config}
         image_size = int(config.pop("image_size", DEFAULT_IMAGE_SIZE))
         camera = str(config.pop("camera_encoder"))
