@@ -192,9 +192,7 @@ def train(
         raise ValueError(f"--augment: only for PS and the labelling model, not {method}")
     cfg = replace(cfg, augment=augment, domain=dataset.domain)
     if method != "ps":
-        given = {
-            "seed": seed, "epochs": epochs, "lr": lr, "batch_size": batch_segments,
-        }  # fmt: skip
+        given = {"seed": seed, "epochs": epochs, "lr": lr, "batch_size": batch_segments}
         training = (dataset, train_eps, val_eps, features, read_actions, bounds, encoders, encoders_from)
         return _train_method(method, data, out, training, given, augment)
     model_cfg = model_config_for(
@@ -294,13 +292,11 @@ def _input_episodes(
 
 def checked_label_accuracy(label_accuracy: float | None) -> float:
     """``--label-accuracy`` (None: ps/calibration.py's LABEL_ACCURACY_TARGET); ValueError unless in (0, 1]."""
-    from playseg_core.ps.calibration import LABEL_ACCURACY_TARGET
+    from playseg_core.ps.calibration import LABEL_ACCURACY_TARGET, check_target_accuracy
 
     if label_accuracy is None:
         return LABEL_ACCURACY_TARGET
-    if not 0.0 < label_accuracy <= 1.0:
-        raise ValueError(f"--label-accuracy must be in (0, 1], got {label_accuracy}")
-    return label_accuracy
+    return check_target_accuracy(label_accuracy, "--label-accuracy")
 
 
 def check_output_file(path: str | Path, overwrite: bool, option: str = "--out") -> Path:

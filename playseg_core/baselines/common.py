@@ -25,7 +25,7 @@ from torch import nn
 
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.data.features import Features
-from playseg_core.ps.calibration import LABEL_ACCURACY_TARGET
+from playseg_core.ps.calibration import LABEL_ACCURACY_TARGET, check_target_accuracy
 from playseg_core.ps.encoders import EncoderSpec, StepEncoders, as_tensors
 from playseg_core.ps.metrics import LabelCounts, label_accuracy
 
@@ -80,8 +80,7 @@ class TrainOptions:
     label_accuracy: float = LABEL_ACCURACY_TARGET
 
     def __post_init__(self) -> None:
-        if not 0.0 < self.label_accuracy <= 1.0:
-            raise ValueError(f"label accuracy target must be in (0, 1], got {self.label_accuracy}")
+        check_target_accuracy(self.label_accuracy, "label accuracy target")
 
     def steps_for(self, num_segments: int, batch_size: int, default_steps: int) -> int:
         if self.steps is not None:

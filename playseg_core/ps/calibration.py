@@ -102,6 +102,14 @@ LABEL_ACCURACY_TARGET = 0.95
 told otherwise (`calibrate_ps_model`; ``--label-accuracy``). The paper chose 90 % for CALVIN."""
 
 
+def check_target_accuracy(target: float, what: str = "target_accuracy") -> float:
+    """``target`` when it is a label accuracy a threshold can be chosen for, in (0, 1]; else ValueError
+    naming ``what`` (the option or field it came from)."""
+    if not 0.0 < target <= 1.0:
+        raise ValueError(f"{what} must be in (0, 1], got {target}")
+    return target
+
+
 def calibrate_threshold(
     confidences: Sequence[float] | np.ndarray, correct: Sequence[bool] | np.ndarray, target_accuracy: float
 ) -> float:
@@ -115,8 +123,7 @@ def calibrate_threshold(
     hits = np.asarray(correct, dtype=bool)
     if conf.shape != hits.shape or conf.ndim != 1:
         raise ValueError(f"confidences {conf.shape} and correct {hits.shape} must be equal-length 1-D")
-    if not 0.0 < target_accuracy <= 1.0:
-        raise ValueError(f"target_accuracy must be in (0, 1], got {target_accuracy}")
+    check_target_accuracy(target_accuracy)
     if conf.size == 0:
         return math.inf
     order = np.argsort(-conf, kind="stable")
