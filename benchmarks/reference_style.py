@@ -75,6 +75,8 @@ def reference_style_segment(model: PSModel, episode: Episode, min_len: int = 1) 
     each time; then the DP over (number of segments, end) of `reference_style_decode`.
     """
     model.eval()
+    if model.lookahead:
+        raise ValueError("the reference reads no step past an end: use a model with end_lookahead 0")
     num_steps = episode.num_steps
     if num_steps == 0:
         return []
@@ -89,7 +91,7 @@ def reference_style_segment(model: PSModel, episode: Episode, min_len: int = 1) 
     for start in range(num_steps):
         for end in range(start + 1, min(start + max_len, num_steps) + 1):
             hidden = model.trunk(encode(start, end)[None], starts[start])
-            end_logit[(start, end)] = float(model.end_logit(hidden[0, -1]))
+            end_logit[(start, end)] = float(model.raw_end_logits(hidden)[0, -1] + model.end_bias)
 
     def score_segment(start: int, end: int) -> float:
         # log s(i, j): not ending at every t in (i, j), then ending at j; summed in order like cumsum.

@@ -187,6 +187,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         args.label_head,
         args.augment,
         args.label_accuracy,
+        args.end_lookahead,
     )
 
 
@@ -290,6 +291,13 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
         "gives its baselines pretrained features); default: their own, trained with them",
     )
     train.add_argument("--label-accuracy", type=float, help=LABEL_ACCURACY_HELP)
+    train.add_argument(
+        "--end-lookahead",
+        type=int,
+        help="PS: steps past a candidate end its end head also reads (0 = the paper's model; 1 reads the "
+        "first command after the end, where a demonstrator's intent changes; live segmenting then decides "
+        "each end that many steps later); default: the domain's choice, else 0",
+    )
     train.set_defaults(func=_cmd_train)
     calibrate = sub.add_parser(
         "calibrate", help="re-choose a PS model's end bias and label threshold on a dataset's val split"

@@ -132,6 +132,7 @@ def train(
     label_head: str | None = None,
     augment: bool = False,
     label_accuracy: float | None = None,
+    end_lookahead: int | None = None,
 ) -> int:
     """Train the PS model (and optionally the stand-alone labeller) on a dataset's train/val splits,
     or another segmentation method (``method``, playseg_core/baselines/registry.py).
@@ -139,13 +140,13 @@ def train(
     ``bounds`` (min_len, max_len, k_max; None = derived, see `segment_bounds`) and ``encoders``
     (``FEATURE=KIND`` overrides of the step encoders) and ``label_head`` (None: the domain's, else
     linear) and ``augment`` (training clips under the domain's symmetries, or rotated/mirrored frames)
-    come from the command line.
+    and ``end_lookahead`` (None: the domain's, else 0) come from the command line.
 
     The outputs are checked before training starts (a model is never trained only to be lost).
     """
     from playseg_core.baselines.registry import get_method
     from playseg_core.ps.calibration import calibrate_ps_model
-    from playseg_core.ps.model import save_model
+    from playseg_core.ps.model import MAX_END_LOOKAHEAD, save_model
     from playseg_core.ps.training import (
         TrainConfig,
         clip_symmetries_of,
@@ -165,6 +166,10 @@ def train(
     label_accuracy = checked_label_accuracy(label_accuracy)
     if label_head and method != "ps":
         raise ValueError(f"--label-head: only with --method ps, not {method}")
+    if end_lookahead is not None and method != "ps":
+        raise ValueError(f"--end-lookahead: only with --method ps, not {method}")
+    if end_lookahead is not None and not 0 <= end_lookahead <= MAX_END_LOOKAHEAD:
+        raise ValueError(f"--end-lookahead: must be in 0..{MAX_END_LOOKAHEAD}, got {end_lookahead}")
     if encoders_from and method not in ("unloc", "tridet"):
         raise ValueError(f"--encoders-from: only with --method unloc or tridet, not {method}")
     dataset = _open_dataset(data)
@@ -205,6 +210,7 @@ def train(
         overrides=_encoder_overrides(encoders or []),
         min_len=chosen.min_len,
         label_head=label_head,
+        end_lookahead=end_lookahead,
     )
     read = ", ".join(f"{spec.feature} ({spec.kind})" for spec in model_cfg.encoders)
     unread = (
@@ -212,7 +218,15 @@ def train(
         if any(s.feature == ACTION for s in model_cfg.encoders)
         else f"; not the action ({features.action.describe()})"
     )
-    print(f"model reads {read}{unread}; {model_cfg.label_head} label head; {chosen.describe()}", flush=True)
+    ahead = (
+        f"; the end head reads {model_cfg.end_lookahead} step(s) past an end"
+        if model_cfg.end_lookahead
+        else ""
+    )
+    print(
+        f"model reads {read}{unread}; {model_cfg.label_head} label head{ahead}; {chosen.describe()}",
+        flush=True,
+    )
     result = train_ps(train_eps, val_eps, dataset.instructions, cfg, model_cfg)
     calibrated = calibrate_ps_model(result.model, val_eps, label_accuracy) if val_eps else {}
     extra = {

@@ -28,10 +28,10 @@ FEATURES = Features.of(
 
 
 def tiny_model_config(
-    max_len: int = 6, num_actions: int = 0, num_layers: int = 2, size: int = 64
+    max_len: int = 6, num_actions: int = 0, num_layers: int = 2, size: int = 64, end_lookahead: int = 0
 ) -> ModelConfig:
     """A small grid-tile model for ``size``-pixel frames; with ``num_actions`` it also reads the previous
-    action (4-d embedding)."""
+    action (4-d embedding); its end head reads ``end_lookahead`` steps past an end."""
     features = FEATURES.with_camera(Feature(CAMERA, "image", "uint8", (size, size, 3)))
     encoders = [
         grid_tile_spec(features[CAMERA], GridTileConfig(tile_channels=8, object_dim=8, feature_dim=16))
@@ -40,12 +40,12 @@ def tiny_model_config(
         features = features.with_action(Feature(ACTION, "action", "float32", (1,), num_values=num_actions))
         encoders.append(EncoderSpec("discrete_action", ACTION, {"dim": 4}))
     trunk = TrunkConfig(hidden_dim=16, num_layers=num_layers, kernel_size=3, max_len=max_len)
-    return ModelConfig(encoders, features, NUM_CLASSES, trunk)
+    return ModelConfig(encoders, features, NUM_CLASSES, trunk, end_lookahead=end_lookahead)
 
 
-def tiny_ps_model(max_len: int = 6, seed: int = 0, num_actions: int = 0) -> PSModel:
+def tiny_ps_model(max_len: int = 6, seed: int = 0, num_actions: int = 0, end_lookahead: int = 0) -> PSModel:
     torch.manual_seed(seed)
-    return PSModel(tiny_model_config(max_len, num_actions), INSTRUCTIONS).eval()
+    return PSModel(tiny_model_config(max_len, num_actions, end_lookahead=end_lookahead), INSTRUCTIONS).eval()
 
 
 def encode_frames(model: PSModel, frames: np.ndarray) -> torch.Tensor:
@@ -57,14 +57,21 @@ PALETTE = np.array([[230, 40, 40], [40, 230, 40], [40, 40, 230], [230, 230, 40]]
 
 
 def synthetic_episode(
-    seed: int, num_segments: int = 6, max_seg_len: int = 5, size: int = 64, ends_in_actions: bool = False
+    seed: int,
+    num_segments: int = 6,
+    max_seg_len: int = 5,
+    size: int = 64,
+    ends_in_actions: bool = False,
+    starts_in_actions: bool = False,
 ) -> Episode:
     """Play-like frames of 8x8 tiles: the top-left tile in the colour of the current instruction's
     class, a marker tile at every segment end, and a flickering tile so that frames differ.
 
     With `ends_in_actions`, only the actions show where segments end: one class for the whole episode,
-    no marker, every segment's last action 2 and the others 0 or 1.
+    no marker, every segment's last action 2 and the others 0 or 1. With `starts_in_actions`, the same
+    but every segment's *first* action is 2: an end shows only in the action after it.
     """
+    ends_in_actions = ends_in_actions or starts_in_actions
     rng = np.random.default_rng(seed)
     lengths = rng.integers(1, max_seg_len + 1, size=num_segments)
     classes = rng.integers(0, NUM_CLASSES, size=num_segments)
@@ -85,7 +92,7 @@ def synthetic_episode(
     if ends_in_actions:
         frames[0, :8, :8] = PALETTE[classes[0]]
         actions = rng.integers(0, 2, size=(num_steps, 1)).astype(np.float32)
-        actions[[seg.end - 1 for seg in segments]] = 2
+        actions[[seg.start if starts_in_actions else seg.end - 1 for seg in segments]] = 2
     return Episode(f"synthetic-{seed}", actions, {CAMERA: frames}, segments=segments)
 
 
@@ -97,15 +104,20 @@ def random_features(num_frames: int, dim: int = 16, seed: int = 1) -> torch.Tens
     return torch.randn(num_frames, dim, generator=torch.Generator().manual_seed(seed))
 
 
-@pytest.mark.parametrize(("num_steps", "num_actions"), [(3, 0), (6, 0), (14, 0), (14, 3)])
-def test_end_column_equals_diagonal_of_end_logits(num_steps: int, num_actions: int) -> None:
-    model = tiny_ps_model(max_len=6, num_actions=num_actions)
+@pytest.mark.parametrize(
+    ("num_steps", "num_actions", "lookahead"),
+    [(3, 0, 0), (6, 0, 0), (14, 0, 0), (14, 3, 0), (3, 0, 2), (14, 3, 2)],
+)
+def test_end_column_equals_diagonal_of_end_logits(num_steps: int, num_actions: int, lookahead: int) -> None:
+    model = tiny_ps_model(max_len=6, num_actions=num_actions, end_lookahead=lookahead)
     features = random_features(num_steps + 1, dim=model.encoders.step_dim)
+    # past the last observation the lookahead reads zero rows, as the matrix's padding
+    padded = torch.cat([features, features.new_zeros(lookahead, features.shape[1])])
     with torch.no_grad():
         matrix = model.end_logits(features)
         assert matrix.shape == (num_steps, 6)
         for t in range(1, num_steps + 1):
-            window = features[max(0, t - model.max_len) : t + 1]
+            window = padded[max(0, t - model.max_len) : t + 1 + lookahead]
             column = model.end_column(window, starts_episode=t <= model.max_len)
             for k in range(model.max_len):
                 if t - k - 1 >= 0:
@@ -126,6 +138,30 @@ def test_output_k_ignores_frames_after_position_k() -> None:
         other = model.end_logits(changed)
     torch.testing.assert_close(other[start, : k + 1], base[start, : k + 1])
     assert not torch.allclose(other[start, k + 1 :], base[start, k + 1 :])
+
+
+def test_an_end_head_with_lookahead_reads_exactly_that_many_frames_past_the_end() -> None:
+    model = tiny_ps_model(max_len=6, end_lookahead=2)
+    features = random_features(15)
+    with torch.no_grad():
+        base = model.end_logits(features)
+        start, k = 2, 2  # segment [2, 5): the end head reads o_2 .. o_7
+        changed = features.clone()
+        changed[start + k + 4 :] = torch.randn_like(changed[start + k + 4 :])
+        torch.testing.assert_close(model.end_logits(changed)[start, : k + 1], base[start, : k + 1])
+        changed[start + k + 3] = torch.randn(16)  # o_7
+        assert not torch.allclose(model.end_logits(changed)[start, k], base[start, k])
+        # the label still reads the segment alone
+        torch.testing.assert_close(model.label_logits(changed, 2, 5), model.label_logits(features, 2, 5))
+
+
+def test_end_lookahead_is_checked_and_old_checkpoints_read_none() -> None:
+    with pytest.raises(ValueError, match="end_lookahead must be in 0..8, got 9"):
+        tiny_model_config(end_lookahead=9)
+    raw = tiny_model_config(end_lookahead=1).to_json()
+    assert ModelConfig.from_json(raw, FEATURES).end_lookahead == 1
+    del raw["end_lookahead"]
+    assert ModelConfig.from_json(raw, FEATURES).end_lookahead == 0
 
 
 def test_frames_before_the_start_change_nothing() -> None:
@@ -208,10 +244,11 @@ def test_episode_inputs_follow_the_features_the_model_reads() -> None:
 
 
 def test_checkpoint_of_an_action_model_round_trips(tmp_path) -> None:
-    model = tiny_ps_model(seed=2, num_actions=3)
+    model = tiny_ps_model(seed=2, num_actions=3, end_lookahead=1)
     save_model(tmp_path / "ps.pt", model)
     loaded, _ = load_model(tmp_path / "ps.pt")
     assert loaded.reads_actions and loaded.cfg.features.action.num_values == 3
+    assert loaded.lookahead == 1
     assert [spec.kind for spec in loaded.cfg.encoders] == ["babyai.grid_tiles", "discrete_action"]
     frames, actions = synthetic_episode(1).images[CAMERA][:6], [3, 0, 1, 2, 0, 1]
     with torch.no_grad():

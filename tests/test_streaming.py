@@ -12,15 +12,24 @@ from playseg_core.ps.streaming import StreamingSegmenter
 from playseg_core.ps.training import model_config_for
 
 
-def babyai_model(read_actions: bool) -> PSModel:
-    cfg = model_config_for(PlayConfig().features, DOMAIN, len(INSTRUCTIONS), read_actions=read_actions)
+def babyai_model(read_actions: bool, end_lookahead: int = 0) -> PSModel:
+    cfg = model_config_for(
+        PlayConfig().features,
+        DOMAIN,
+        len(INSTRUCTIONS),
+        read_actions=read_actions,
+        end_lookahead=end_lookahead,
+    )
     return PSModel(cfg, list(INSTRUCTIONS))
 
 
-@pytest.mark.parametrize(("seed", "read_actions"), [(0, False), (1, False), (2, True)])
-def test_stream_equals_offline(seed, read_actions):
+@pytest.mark.parametrize(
+    ("seed", "read_actions", "end_lookahead"),
+    [(0, False, 0), (1, False, 0), (2, True, 0), (3, True, 1), (4, False, 3)],
+)
+def test_stream_equals_offline(seed, read_actions, end_lookahead):
     torch.manual_seed(seed)  # untrained weights cut arbitrarily: many boundaries to compare
-    model = babyai_model(read_actions)
+    model = babyai_model(read_actions, end_lookahead)
     episode = generate_episode(PlayConfig(), 40 + seed)
     stream = StreamingSegmenter(model)
     live = []

@@ -7,6 +7,7 @@ import pytest
 import torch
 from test_models import INSTRUCTIONS, synthetic_episode, tiny_model_config
 
+from playseg_core.data.episode import Episode
 from playseg_core.domains.babyai.spec import CAMERA
 from playseg_core.ps.encoders import StepEncoders
 from playseg_core.ps.samples import (
@@ -108,18 +109,28 @@ def test_batch_windows_never_cross_episodes() -> None:
         assert torch.all(row[1 : length + 1] == 1) and row[0] == 0
 
 
-def _small_data(ends_in_actions: bool = False) -> tuple[list, list]:
-    train = [
-        synthetic_episode(s, num_segments=5, size=16, ends_in_actions=ends_in_actions) for s in range(16)
-    ]
-    val = [
-        synthetic_episode(100 + s, num_segments=5, size=16, ends_in_actions=ends_in_actions) for s in range(4)
-    ]
-    return train, val
+def _small_data(ends_in_actions: bool = False, starts_in_actions: bool = False) -> tuple[list, list]:
+    def episode(seed: int) -> Episode:
+        return synthetic_episode(
+            seed,
+            num_segments=5,
+            size=16,
+            ends_in_actions=ends_in_actions,
+            starts_in_actions=starts_in_actions,
+        )
+
+    return [episode(s) for s in range(16)], [episode(100 + s) for s in range(4)]
 
 
-def _train_small_ps(dense: bool, epochs: int, num_actions: int = 0, ends_in_actions: bool = False):
-    train, val = _small_data(ends_in_actions)
+def _train_small_ps(
+    dense: bool,
+    epochs: int,
+    num_actions: int = 0,
+    ends_in_actions: bool = False,
+    starts_in_actions: bool = False,
+    end_lookahead: int = 0,
+):
+    train, val = _small_data(ends_in_actions, starts_in_actions)
     cfg = TrainConfig(
         min_steps=0,
         epochs=epochs,
@@ -131,7 +142,9 @@ def _train_small_ps(dense: bool, epochs: int, num_actions: int = 0, ends_in_acti
         log_epochs=False,
         num_threads=1,
     )
-    model_cfg = tiny_model_config(max_len=8, num_actions=num_actions, num_layers=1, size=16)
+    model_cfg = tiny_model_config(
+        max_len=8, num_actions=num_actions, num_layers=1, size=16, end_lookahead=end_lookahead
+    )
     return train_ps(train, val, INSTRUCTIONS, cfg, model_cfg), val
 
 
@@ -169,6 +182,18 @@ def test_a_model_that_reads_actions_learns_ends_only_the_actions_show() -> None:
     blind_precision, blind_recall, _ = _boundary_hits(frames_only.model, val)
     assert precision >= 0.8 and recall >= 0.8
     assert blind_precision + blind_recall < precision + recall - 0.3
+
+
+def test_an_end_head_with_lookahead_learns_ends_only_the_next_action_shows() -> None:
+    # Each segment's first action is the only sign of a boundary: a segment's end shows one step later.
+    ahead, val = _train_small_ps(
+        dense=True, epochs=30, num_actions=3, starts_in_actions=True, end_lookahead=1
+    )
+    causal, _ = _train_small_ps(dense=True, epochs=30, num_actions=3, starts_in_actions=True)
+    precision, recall, _ = _boundary_hits(ahead.model, val)
+    causal_precision, causal_recall, _ = _boundary_hits(causal.model, val)
+    assert precision >= 0.8 and recall >= 0.8
+    assert causal_precision + causal_recall < precision + recall - 0.3
 
 
 def test_short_ps_training_without_dense_prefixes_still_learns() -> None:

@@ -10,6 +10,8 @@ step encoders (ps/encoders.py) and exposes:
   bounds, used instead of the ones derived from the annotated segments (ps/training.py);
 - optionally ``LABEL_HEAD``: the label head its PS and labelling models use by default ("linear" or
   "text", ps/model.py `LABEL_HEADS`);
+- optionally ``END_LOOKAHEAD``: how many steps past a candidate end its PS end head reads by default
+  (ps/model.py `ModelConfig.end_lookahead`; 0, the paper's model, otherwise);
 - optionally ``CLIP_SYMMETRIES``: the symmetries of its world (ps/samples.py `ClipSymmetries`: how
   many, and how each turns a training clip as recorded and its instruction), what `playseg train
   --augment` trains on; without them, ``--augment`` turns the camera frames only, for models that read

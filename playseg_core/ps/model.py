@@ -50,6 +50,10 @@ class ModelConfig:
     min_len: L_min, the shortest segment (in actions) segmenting cuts by default; L_max is the trunk's.
     label_head: how the label heads score an instruction (`LABEL_HEADS`): "linear" (one weight row per
         instruction) or "text" (from the instruction's words, shared between instructions).
+    end_lookahead: steps past a candidate end the PS end head also reads (0: the paper's model, the end
+        judged from o_i .. o_j alone). With 1 it reads o_{j+1} and the action a_j that led to it, the
+        first command after the end: where a demonstrator's intent changes, the command does.
+        Segmenting a stream then decides each end one step later.
     """
 
     encoders: list[EncoderSpec]
@@ -58,10 +62,13 @@ class ModelConfig:
     trunk: TrunkConfig = field(default_factory=TrunkConfig)
     min_len: int = 1
     label_head: str = "linear"
+    end_lookahead: int = 0
 
     def __post_init__(self) -> None:
         if self.label_head not in LABEL_HEADS:
             raise ValueError(f"unknown label head {self.label_head!r} (known: {', '.join(LABEL_HEADS)})")
+        if not 0 <= self.end_lookahead <= MAX_END_LOOKAHEAD:
+            raise ValueError(f"end_lookahead must be in 0..{MAX_END_LOOKAHEAD}, got {self.end_lookahead}")
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -70,6 +77,7 @@ class ModelConfig:
             "num_classes": self.num_classes,
             "min_len": self.min_len,
             "label_head": self.label_head,
+            "end_lookahead": self.end_lookahead,
         }
 
     @staticmethod
@@ -81,6 +89,7 @@ class ModelConfig:
             trunk=TrunkConfig(**raw["trunk"]),
             min_len=int(raw.get("min_len", 1)),
             label_head=str(raw.get("label_head", "linear")),  # checkpoints before text heads: linear
+            end_lookahead=int(raw.get("end_lookahead", 0)),  # checkpoints before it: the paper's 0
         )
 
     @property
@@ -91,6 +100,10 @@ class ModelConfig:
     def check_features(self, data: Features, what: str) -> None:
         """FeatureError naming the first feature this model reads that ``data`` lacks or declares otherwise."""
         self.features.check_compatible(data, self.feature_names, what)
+
+
+MAX_END_LOOKAHEAD = 8
+"""The most steps past an end the end head may read (a stream's ends are decided that much later)."""
 
 
 class CausalConvBlock(nn.Module):
@@ -121,11 +134,12 @@ class StartCausalTrunk(nn.Module):
     segment, which the negatives teach the model to look for.
     """
 
-    def __init__(self, step_dim: int, cfg: TrunkConfig) -> None:
+    def __init__(self, step_dim: int, cfg: TrunkConfig, lookahead: int = 0) -> None:
         super().__init__()
         self.in_proj = nn.Linear(3 * step_dim, cfg.hidden_dim)
         self.in_norm = nn.LayerNorm(cfg.hidden_dim)
-        self.offset = nn.Embedding(cfg.max_len + 1, cfg.hidden_dim)
+        # Positions 0 .. max_len hold a segment; ``lookahead`` more, the steps its end head reads past it.
+        self.offset = nn.Embedding(cfg.max_len + 1 + lookahead, cfg.hidden_dim)
         nn.init.normal_(self.offset.weight, std=0.02)
         self.episode_start = nn.Parameter(torch.zeros(cfg.hidden_dim))
         self.blocks = nn.ModuleList(
@@ -138,7 +152,7 @@ class StartCausalTrunk(nn.Module):
         self.norm = nn.LayerNorm(cfg.hidden_dim)
 
     def forward(self, windows: torch.Tensor, starts_episode: torch.Tensor | None = None) -> torch.Tensor:
-        """(B, P, d) features of o_i .. o_{i+P-1}, P <= max_len + 1 -> (B, P, hidden).
+        """(B, P, d) features of o_i .. o_{i+P-1}, P <= max_len + 1 + lookahead -> (B, P, hidden).
 
         starts_episode: (B,) bool, True where i = 0.
         """
@@ -245,11 +259,17 @@ class StepModel(nn.Module):
         self.cfg = cfg
         self.instructions = _class_names(instructions, cfg.num_classes)
         self.encoders = StepEncoders(cfg.encoders, cfg.features)
-        self.trunk = StartCausalTrunk(self.encoders.step_dim, cfg.trunk)
+        self.trunk = StartCausalTrunk(self.encoders.step_dim, cfg.trunk, self.lookahead)
 
     @property
     def max_len(self) -> int:
         return self.cfg.trunk.max_len
+
+    @property
+    def lookahead(self) -> int:
+        """Steps past a segment's end that scoring the end reads (`ModelConfig.end_lookahead`; 0 for the
+        labelling model, which labels given segments)."""
+        return 0
 
     @property
     def reads_actions(self) -> bool:
@@ -284,11 +304,12 @@ class StepModel(nn.Module):
 
 
 class PSModel(StepModel):
-    """Play Segmentation: p_seg(segment [i, j) ends at j | o_i..o_j) and p(label | o_i..o_j)."""
+    """Play Segmentation: p_seg(segment [i, j) ends at j | o_i..o_{j+lookahead}) and p(label | o_i..o_j)."""
 
     def __init__(self, cfg: ModelConfig, instructions: list[str] | None = None) -> None:
         super().__init__(cfg, instructions)
-        self.end_head = nn.Linear(cfg.trunk.hidden_dim, 1)
+        # The end head reads the hidden state at the end and at each of the `lookahead` steps after it.
+        self.end_head = nn.Linear(cfg.trunk.hidden_dim * (1 + self.lookahead), 1)
         self.label_head = make_label_head(cfg.label_head, cfg.trunk.hidden_dim, self.instructions)
         # Training only: the label from the end observation's encoding alone, an auxiliary loss that trains
         # the observation encoders directly (through the trunk's mixing they learn slowly at first).
@@ -300,27 +321,37 @@ class PSModel(StepModel):
         # segments with this checkpoint (offline, streaming, nodes) cuts the same way.
         self.register_buffer("end_bias", torch.zeros(()))
 
-    def end_logit(self, hidden: torch.Tensor) -> torch.Tensor:
-        """(..., hidden) -> (...): logit that the segment ends at that position, end bias included."""
-        return self.end_head(hidden).squeeze(-1) + self.end_bias
+    @property
+    def lookahead(self) -> int:
+        return self.cfg.end_lookahead
+
+    def raw_end_logits(self, hidden: torch.Tensor) -> torch.Tensor:
+        """(B, P, hidden) trunk states of windows -> (B, P - lookahead): [b, p] = logit that the window's
+        segment ends at position p, from positions p .. p + lookahead; without the end bias (training)."""
+        num_pos = hidden.shape[1] - self.lookahead
+        if self.lookahead:
+            hidden = torch.cat([hidden[:, k : k + num_pos] for k in range(self.lookahead + 1)], dim=-1)
+        return self.end_head(hidden).squeeze(-1)
 
     def end_logits(self, features: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
-        """(T+1, d) -> (T, L_max): [i, k] = logit that the segment [i, i+k+1) ends at i+k+1.
+        """(T+1, d) -> (T, L_max): [i, k] = logit that the segment [i, i+k+1) ends at i+k+1, end bias
+        included.
 
         The windows go through the trunk ``chunk`` starts at a time (default: `SCORE_ROWS` rows), so
         memory is bounded by the chunk, not the episode (an episode of 100,000 steps needs only its
         (T, L_max) logits). Entries with i+k+1 > T are computed on zero padding and must be ignored
-        (decoding.py does).
+        (decoding.py does); an end's lookahead past o_T reads the same zero padding as in training.
         """
         chunk = chunk or max(1, SCORE_ROWS // (self.max_len + 1))
+        width = self.max_len + 1 + self.lookahead
         num_steps = features.shape[0] - 1
         parts = []
         for lo in range(0, num_steps, chunk):
             hi = min(num_steps, lo + chunk)
-            # Rows lo .. hi + L_max: every window starting in [lo, hi) lies inside (zero-padded at the end).
-            windows = episode_windows(features[lo : hi + self.max_len + 1], self.max_len + 1)[: hi - lo]
+            # Rows lo .. hi + width - 1: every window starting in [lo, hi) lies inside (zero-padded at the end).
+            windows = episode_windows(features[lo : hi + width], width)[: hi - lo]
             hidden = self.trunk(windows, torch.arange(lo, hi) == 0)
-            parts.append(self.end_logit(hidden[:, 1:]))  # position 0 (an empty segment) is dropped
+            parts.append(self.raw_end_logits(hidden)[:, 1:] + self.end_bias)  # position 0: empty segment
         return torch.cat(parts) if parts else features.new_zeros(0, self.max_len)
 
     def segment_label_logits(
@@ -342,24 +373,27 @@ class PSModel(StepModel):
         return torch.cat(rows) if rows else features.new_zeros(0, self.cfg.num_classes)
 
     def end_column(self, features_window: torch.Tensor, starts_episode: bool) -> torch.Tensor:
-        """Features of o_{t-n+1} .. o_t (n <= L_max+1 rows) -> (L_max,) for the online decoder.
+        """Features of o_{t-n+1} .. o_t (n <= L_max+1+lookahead rows) -> (L_max,) for the online decoder.
 
-        [k] = logit that the segment [t-k-1, t) ends at t (the diagonal end_logits[t-k-1, k]); starts
-        before the window (k >= n-1) get -inf: such a segment cannot be scored from this window.
-        starts_episode: the window's first row is o_0.
+        [k] = logit that the segment [e-k-1, e) ends at e = t - lookahead (the diagonal
+        end_logits[e-k-1, k]); starts before the window (k >= n-lookahead-1) get -inf: such a segment
+        cannot be scored from this window. starts_episode: the window's first row is o_0. Past an
+        episode's last observation, pass zero rows as the lookahead (as `end_logits` pads).
         """
-        n = features_window.shape[0]
+        n = features_window.shape[0] - self.lookahead  # rows o_{t-n+1} .. o_e
         column = torch.full((self.max_len,), float("-inf"), dtype=features_window.dtype)
         if n < 2:
             return column
-        # Window for start t-k-1 holds the last k+2 rows; right-pad with zeros (causal: no effect).
+        # Window for start e-k-1 holds the last k+2+lookahead rows; right-pad with zeros (causal: no effect).
         lengths = torch.arange(2, n + 1)
-        windows = torch.zeros(n - 1, n, features_window.shape[1], dtype=features_window.dtype)
+        windows = torch.zeros(
+            n - 1, n + self.lookahead, features_window.shape[1], dtype=features_window.dtype
+        )
         for row, length in enumerate(lengths.tolist()):
-            windows[row, :length] = features_window[n - length :]
+            windows[row, : length + self.lookahead] = features_window[n - length :]
         starts_episode = (lengths == n) & starts_episode
         hidden = self.trunk(windows, starts_episode)
-        logits = self.end_logit(hidden[torch.arange(n - 1), lengths - 1])
+        logits = self.raw_end_logits(hidden)[torch.arange(n - 1), lengths - 1] + self.end_bias
         column[: n - 1] = logits
         return column
 

@@ -88,7 +88,7 @@ class Batch:
 
     inputs: dict[str, torch.Tensor]  # step-encoder input rows by feature, N rows (see StepEncoders)
     encoded: dict[str, torch.Tensor]  # or, for encoders that learn nothing, their output rows
-    window_index: torch.Tensor  # (S, L_max+1) rows into features (N = a zero row past an episode end)
+    window_index: torch.Tensor  # (S, L_max+1+lookahead) rows into features (N: a zero row past the end)
     starts_episode: torch.Tensor  # (S,) bool: the window starts at step 0
     end_target: torch.Tensor  # (S, L_max+1) 1 where a segment ends at that position
     end_weight: torch.Tensor  # (S, L_max+1) 1 where the end head is supervised
@@ -151,6 +151,7 @@ def make_batch(
     symmetries: ClipSymmetries | None = None,
     dense_window_negatives: bool = False,
     fixed: FixedFeatureCache | None = None,
+    lookahead: int = 0,
 ) -> Batch:
     """The windows of the annotated segments `items` (only positives if not `negatives`).
 
@@ -161,9 +162,12 @@ def make_batch(
     negatives for all k at once). With `symmetries` (augmentation), each segment's clip is turned by one
     of them drawn at random, its instruction with it (a turned instruction the classes lack leaves the
     clip as it was). The batch carries every step encoder's input rows, or, for the features ``fixed``
-    caches, their encoder output rows.
+    caches, their encoder output rows. ``lookahead``: each window also holds that many steps past its
+    last supervised position (the PS end head reads them: `ModelConfig.end_lookahead`).
     """
-    regions = [(max(0, seg.start - k_max), min(ep.num_steps, seg.end + k_max)) for ep, seg in items]
+    regions = [
+        (max(0, seg.start - k_max), min(ep.num_steps, seg.end + k_max + lookahead)) for ep, seg in items
+    ]
     zero_row = sum(hi - lo + 1 for lo, hi in regions)
     num_pos = max_len + 1
     cached = fixed.features if fixed is not None else []
@@ -197,7 +201,7 @@ def make_batch(
                 continue
             if sample.start not in windows:
                 windows[sample.start] = len(rows)
-                steps = sample.start + np.arange(num_pos)
+                steps = sample.start + np.arange(num_pos + lookahead)
                 rows.append(np.where(steps <= hi, offset + steps - lo, zero_row))
                 starts_episode.append(sample.start == 0)
                 targets.append(np.zeros(num_pos, np.float32))
@@ -220,13 +224,13 @@ def make_batch(
                     weights[row][1 : min(max_len, hi - start) + 1] = 1.0
         offset += hi - lo + 1
 
-    def stack(arrays: list[np.ndarray], dtype: type) -> torch.Tensor:
-        return torch.from_numpy(np.array(arrays, dtype=dtype).reshape(-1, num_pos))
+    def stack(arrays: list[np.ndarray], dtype: type, width: int = num_pos) -> torch.Tensor:
+        return torch.from_numpy(np.array(arrays, dtype=dtype).reshape(-1, width))
 
     return Batch(
         inputs={feature: torch.cat(parts) for feature, parts in inputs.items()},
         encoded={feature: torch.cat(parts) for feature, parts in encoded.items()},
-        window_index=stack(rows, np.int64),
+        window_index=stack(rows, np.int64, num_pos + lookahead),
         starts_episode=torch.tensor(starts_episode, dtype=torch.bool),
         end_target=stack(targets, np.float32),
         end_weight=stack(weights, np.float32),

@@ -1,9 +1,11 @@
 """Play Segmentation of a stream: one episode fed step by step, segments emitted as soon as decided.
 
-Each observation is encoded once; at step t the PS model scores every segment that could end at t (one column
-of the end-logit matrix, from the last L_max+1 step features) and the online decoder commits boundaries
-once every surviving best path passes through them. The output equals `segment_episode` on the whole
-episode (same model, same decoder recursion and tie rule).
+Each observation is encoded once; at step t the PS model scores every segment that could end at
+e = t - lookahead (one column of the end-logit matrix, from the last L_max+1+lookahead step features;
+a model whose end head reads past the end decides each end that many steps later, and at the episode's
+end reads zero rows there, as offline) and the online decoder commits boundaries once every surviving
+best path passes through them. The output equals `segment_episode` on the whole episode (same model,
+same decoder recursion and tie rule).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ class StreamingSegmenter:
         model.eval()
         self.model = model
         self.decoder = OnlineDecoder(max_len=model.max_len, min_len=min_len)
-        self._features: list[torch.Tensor] = []  # only the last L_max+1 are needed; older are dropped
+        self._features: list[torch.Tensor] = []  # the last L_max+1+lookahead are needed; older dropped
         self._offset = 0  # step index of self._features[0]
         # The action encoders' inputs for the next observation, from the action pushed with the last one.
         self._next_action_inputs: dict[str, np.ndarray] | None = model.encoders.previous_action_inputs(
@@ -61,19 +63,29 @@ class StreamingSegmenter:
             )
         feature = self.model.encode_steps(as_tensors(inputs))[0]
         self._features.append(feature)
-        if self.num_observations < 2:
+        if self.num_observations < 2 + self.model.lookahead:
             return []
-        window = torch.stack(self._features[-(self.model.max_len + 1) :])
-        starts_episode = self.num_observations == len(window)
-        column = self.model.end_column(window, starts_episode).double().numpy()
-        return self._label(self.decoder.push(column))
+        return self._label(self.decoder.push(self._end_column(self._features)))
+
+    def _end_column(self, features: list[torch.Tensor]) -> np.ndarray:
+        """The column of ends ``lookahead`` rows before the last of ``features`` (the kept rows, with zero
+        rows appended past the episode's end)."""
+        window = torch.stack(features[-(self.model.max_len + 1 + self.model.lookahead) :])
+        starts_episode = self._offset == 0 and len(features) == len(window)
+        return self.model.end_column(window, starts_episode).double().numpy()
 
     @torch.no_grad()
     def finish(self) -> list[Segment]:
         """The episode ended with the last pushed frame: decide the remaining segments."""
         if self.num_observations < 2:
             return []
-        return self._label(self.decoder.finish())
+        # Ends the lookahead has kept waiting: score them reading zero rows past the last observation.
+        decided, zero = [], torch.zeros_like(self._features[0])
+        for end in range(max(1, self.num_observations - self.model.lookahead), self.num_observations):
+            rows_to_lookahead = end + self.model.lookahead + 1 - self._offset
+            padding = [zero] * (rows_to_lookahead - len(self._features))
+            decided += self.decoder.push(self._end_column(self._features + padding))
+        return self._label(decided + self.decoder.finish())
 
     def _label(self, decided: Sequence[tuple[int, int]]) -> list[Segment]:
         scores = (

@@ -113,10 +113,12 @@ def model_config_for(
     overrides: dict[str, str] | None = None,
     min_len: int = 1,
     label_head: str | None = None,
+    end_lookahead: int | None = None,
 ) -> ModelConfig:
     """The default model for data with ``features`` (step encoders by `choose_encoders`; the state and a
     continuous action standardised with ``episodes``' statistics, computed only when read; the label
-    head ``label_head``, else the domain's ``LABEL_HEAD``, else "linear")."""
+    head ``label_head``, else the domain's ``LABEL_HEAD``, else "linear"; the end head's lookahead
+    ``end_lookahead``, else the domain's ``END_LOOKAHEAD``, else 0, the paper's)."""
     needs = [f.name for f in (features.state, features.action) if f is not None and not f.is_discrete]
     episodes = list(episodes)
     statistics = feature_statistics(episodes, needs) if episodes and needs else {}
@@ -126,8 +128,16 @@ def model_config_for(
     read = Features.of([*observed, features.action], features.fps)
     if label_head is None:
         label_head = getattr(load_domain(domain), "LABEL_HEAD", "linear") if domain else "linear"
+    if end_lookahead is None:
+        end_lookahead = int(getattr(load_domain(domain), "END_LOOKAHEAD", 0)) if domain else 0
     return ModelConfig(
-        encoders, read, num_classes, TrunkConfig(max_len=max_len), min_len=min_len, label_head=label_head
+        encoders,
+        read,
+        num_classes,
+        TrunkConfig(max_len=max_len),
+        min_len=min_len,
+        label_head=label_head,
+        end_lookahead=end_lookahead,
     )
 
 
@@ -156,16 +166,17 @@ class BatchStats:
 def ps_loss(model: PSModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tensor, BatchStats]:
     """BCE on the end head at the supervised positions + CE on the label head at positive ends."""
     features = model.encode_steps(batch.inputs, batch.encoded)
-    num_windows, num_pos = batch.window_index.shape
+    num_windows, num_pos = batch.end_target.shape
     end_sum = features.new_zeros(())
     label_hidden = features.new_zeros(len(batch.labels), model.cfg.trunk.hidden_dim)
     end_correct = 0
     needed = torch.minimum(batch.needed_len, torch.tensor(num_pos))
     for members, length in _length_groups(needed):
         length = min(length, num_pos)
-        windows = _gather_windows(features, batch.window_index[members, :length])
+        # The end head also reads `lookahead` positions past each supervised one.
+        windows = _gather_windows(features, batch.window_index[members, : length + model.lookahead])
         hidden = model.trunk(windows, batch.starts_episode[members])
-        logits = model.end_head(hidden).squeeze(-1)  # the raw head: end_bias is for segmenting only
+        logits = model.raw_end_logits(hidden)  # without end_bias: that is for segmenting only
         target, weight = batch.end_target[members, :length], batch.end_weight[members, :length]
         bce = F.binary_cross_entropy_with_logits(
             logits, target, reduction="none", pos_weight=logits.new_tensor(cfg.end_pos_weight)
@@ -303,6 +314,7 @@ def _run_epoch(loss_fn, model, episodes, classes, cfg, rng, optimizer, epoch, de
             dense_window_negatives=cfg.dense_window_negatives,
             symmetries=symmetries,
             fixed=fixed,
+            lookahead=model.lookahead,
         )
         if batch.labels.numel() == 0:
             continue
