@@ -77,6 +77,25 @@ def test_train_calibrate_segment_evaluate(tiny_data: Path, tmp_path: Path, capsy
     assert 0.0 <= metrics["boundary_precision_tol0"] <= 1.0 and metrics["episodes"] == len(segmented)
 
 
+def test_end_lookahead_reaches_the_checkpoint_and_segmenting(tiny_data: Path, tmp_path: Path, capsys) -> None:
+    model = tmp_path / "ps.pt"
+    train = ["train", "--data", str(tiny_data), "--out", str(model), "--epochs", "1"]
+    assert cli_main([*train, "--end-lookahead", "2"]) == 0
+    assert "the end head reads 2 step(s) past an end" in capsys.readouterr().out
+    assert torch.load(model, weights_only=True)["config"]["end_lookahead"] == 2
+    loaded, _ = load_model(model)
+    assert loaded.lookahead == 2 and loaded.end_head.in_features == 3 * loaded.cfg.trunk.hidden_dim
+    pred = tmp_path / "pred"
+    assert cli_main(segment_argv(model, tiny_data, pred)) == 0
+    segmented = PlayDataset.open(pred)
+    for index, record in enumerate(segmented.records):  # every episode cut up to its last step
+        assert segmented.segments(index, truth=True)[-1].end == record.num_steps
+    assert cli_main([*train, "--overwrite", "--end-lookahead", "9"]) == 1
+    assert "--end-lookahead: must be in 0..8, got 9" in capsys.readouterr().err
+    assert cli_main([*train, "--overwrite", "--method", "random", "--end-lookahead", "1"]) == 1
+    assert "--end-lookahead: only with --method ps" in capsys.readouterr().err
+
+
 def test_calibrate_refuses_a_dataset_without_annotated_val(tmp_path: Path, capsys) -> None:
     assert cli_main(["calibrate", "--model", str(tmp_path / "none.pt"), "--data", str(tmp_path)]) == 1
     assert "none.pt: no such file" in capsys.readouterr().err

@@ -13,7 +13,7 @@ from playseg_core.data.dataset import DatasetWriter, PlayDataset
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.data.features import ACTION, STATE, Feature, Features
 from playseg_core.ps.encoders import feature_statistics
-from playseg_core.ps.model import PSModel, load_model
+from playseg_core.ps.model import ModelConfig, PSModel, load_model
 from playseg_core.ps.segmentation import segment_episode
 from playseg_core.ps.streaming import StreamingSegmenter
 from playseg_core.ps.training import TrainConfig, model_config_for, segment_bounds, train_ps
@@ -70,17 +70,23 @@ def _boundaries(model, episodes: list[Episode]) -> tuple[float, float]:
     return hits / predicted, hits / true
 
 
-def _train(features: Features, train: list[Episode], val: list[Episode], **config) -> object:
-    bounds = segment_bounds(train)
-    model_cfg = model_config_for(
+def _model_config(features: Features, episodes: list[Episode], **config) -> ModelConfig:
+    """The default generic model for ``features``, with the bounds and statistics of ``episodes``."""
+    bounds = segment_bounds(episodes)
+    return model_config_for(
         features,
         None,
         len(INSTRUCTIONS),
         max_len=bounds.max_len,
-        episodes=train,
+        episodes=episodes,
         min_len=bounds.min_len,
         **config,
     )
+
+
+def _train(features: Features, train: list[Episode], val: list[Episode], **config) -> object:
+    bounds = segment_bounds(train)
+    model_cfg = _model_config(features, train, **config)
     cfg = TrainConfig(
         min_steps=0, epochs=12, segments_per_batch=8, k_max=bounds.k_max, progress=False, log_epochs=False
     )
@@ -147,16 +153,14 @@ def test_a_robot_dataset_goes_through_train_segment_evaluate(tmp_path: Path, cap
     assert cli_main(["evaluate", "--pred", str(out), "--truth", str(data), "--plot-episodes", "0"]) == 0
 
 
-def test_the_stream_equals_offline_segmentation_on_robot_data() -> None:
-    """Two cameras, a state and continuous actions, pushed one step at a time as a live segmenter does."""
+@pytest.mark.parametrize("end_lookahead", [0, 2])
+def test_the_stream_equals_offline_segmentation_on_robot_data(end_lookahead: int) -> None:
+    """Two cameras, a state and continuous actions, pushed one step at a time as a live segmenter does;
+    with an end head reading 2 steps past each end, each end is decided 2 steps later, same result."""
     features = robot_features({FRONT: (12, 16), WRIST: (8, 8)}, state=True)
     episodes = [robot_episode(s, features, "action") for s in range(3)]
     torch.manual_seed(1)  # untrained: many arbitrary cuts to compare
-    bounds = segment_bounds(episodes)
-    config = model_config_for(
-        features, None, len(INSTRUCTIONS), max_len=bounds.max_len, episodes=episodes, min_len=bounds.min_len
-    )
-    model = PSModel(config, list(INSTRUCTIONS))
+    model = PSModel(_model_config(features, episodes, end_lookahead=end_lookahead), list(INSTRUCTIONS))
     episode = episodes[0]
     stream, live = StreamingSegmenter(model), []
     for t in range(episode.num_steps + 1):
