@@ -91,6 +91,13 @@ def _print_calibration(calibrated: dict[str, dict]) -> None:
         f"label threshold {labels['threshold']:.3f} for {labels['target_accuracy']:.2f} accuracy "
         f"keeps {labels['coverage']:.1%} of {labels['num_segments']} val segments"
     )
+    own = calibrated.get("own_cuts")
+    if own:  # what the threshold keeps of the model's own cuts, as it will on play
+        print(
+            f"on its own cuts of the val episodes it keeps {own['kept']} of {own['segments']} segments, "
+            f"{own['step_accuracy_kept']:.1%} of their steps labelled as the truth "
+            f"({own['step_accuracy_all']:.1%} of all cut steps)"
+        )
 
 
 def calibrate(model_path: str, data: str, out: str | None, label_accuracy: float | None = None) -> int:

@@ -40,7 +40,9 @@ def test_train_calibrate_segment_evaluate(tiny_data: Path, tmp_path: Path, capsy
     # BabyAI's camera by the domain's grid-tile encoder; its declared discrete actions, by --actions auto
     assert f"model reads {CAMERA} (babyai.grid_tiles), action (discrete_action)" in printed
     assert "end bias" in printed and "label threshold" in printed
+    assert "on its own cuts of the val episodes it keeps" in printed
     raw = torch.load(model, weights_only=True)
+    assert raw["meta"]["own_cuts"]["segments"] >= raw["meta"]["own_cuts"]["kept"] >= 0
     assert raw["features"]["features"][ACTION]["num_values"] == 7
     assert [spec["kind"] for spec in raw["config"]["encoders"]] == ["babyai.grid_tiles", "discrete_action"]
     # the bias the checkpoint records is the one its model segments with

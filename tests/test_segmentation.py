@@ -10,13 +10,15 @@ import torch
 from reference_style import reference_style_segment
 from test_models import INSTRUCTIONS, synthetic_episode, tiny_ps_model
 
-from playseg_core.data.episode import Episode
+from playseg_core.data.episode import Episode, Segment
 from playseg_core.domains.babyai.spec import CAMERA
 from playseg_core.ps.calibration import (
     calibrate_end_bias,
     calibrate_on_annotated,
     calibrate_ps_model,
     calibrate_threshold,
+    check_own_cuts,
+    steps_labelled_right,
 )
 from playseg_core.ps.decoding import OnlineDecoder
 from playseg_core.ps.labelling import keep_confident, label_segments
@@ -151,6 +153,32 @@ def test_calibrate_ps_model_sets_the_end_bias_and_records_both_calibrations() ->
     record = calibrate_ps_model(model, episodes, target_accuracy=0.5)
     assert model.end_bias.item() == record["end_bias"]["bias"]
     assert record["calibration"]["num_segments"] == 12 and record["calibration"]["target_accuracy"] == 0.5
+    assert record["own_cuts"]["threshold"] == record["calibration"]["threshold"]
+
+
+def test_steps_labelled_right_count_only_steps_the_truth_labels_the_same() -> None:
+    truth = [Segment(0, 3, "a"), Segment(5, 8, "b")]  # steps 3-4 and 8-9: no instruction
+    cut = [Segment(0, 4, "a"), Segment(4, 8, "b"), Segment(8, 10, "b"), Segment(0, 2, "b")]
+    assert steps_labelled_right(cut, truth, num_steps=10) == [3, 3, 0, 0]
+
+
+def test_own_cuts_check_scores_what_the_threshold_keeps_of_the_model_s_segmentation() -> None:
+    model = tiny_ps_model(max_len=5, seed=4)
+    episodes = [synthetic_episode(s, num_segments=4, max_seg_len=4) for s in range(3)]
+    everything = check_own_cuts(model, episodes, threshold=0.0)
+    cuts = [segment_episode(model, episode) for episode in episodes]
+    assert everything.segments == everything.kept == sum(len(cut) for cut in cuts)
+    right = sum(
+        sum(steps_labelled_right(c, e.segments, e.num_steps)) for c, e in zip(cuts, episodes, strict=True)
+    )
+    steps = sum(e.num_steps for e in episodes)  # the cuts tile every episode
+    assert everything.kept_steps == steps
+    assert everything.step_accuracy_all == everything.step_accuracy_kept == pytest.approx(right / steps)
+    confidences = sorted(s.confidence for cut in cuts for s in cut)
+    some = check_own_cuts(model, episodes, threshold=confidences[len(confidences) // 2])
+    assert 0 < some.kept < some.segments and some.step_accuracy_all == everything.step_accuracy_all
+    nothing = check_own_cuts(model, episodes, threshold=math.inf)
+    assert nothing.kept == 0 and math.isnan(nothing.step_accuracy_kept)
 
 
 def test_scoring_in_chunks_equals_scoring_at_once() -> None:

@@ -6,7 +6,11 @@ Both are chosen on the annotated validation split, never on the play being segme
   the decoder reads as a hazard; the bias takes that back by as much as held-out play says.
 - `calibrate_on_annotated` / `calibrate_threshold`: the lowest label confidence whose kept segments
   reach a target label accuracy (e.g. 0.95), used to filter extracted segments (labelling.py).
-`calibrate_ps_model` does both and returns what a checkpoint records about them.
+- `check_own_cuts`: what that threshold keeps of the model's *own* segmentation of the held-out
+  episodes, and how many of the kept steps carry the true instruction. The threshold is chosen on true
+  cuts, as the paper does; play gets the model's cuts, whose pieces (half a task, two tasks) the true
+  cuts never show, so this is the figure that says what the filter will keep on play.
+`calibrate_ps_model` does all three and returns what a checkpoint records about them.
 """
 
 from __future__ import annotations
@@ -18,11 +22,12 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from playseg_core.data.episode import Episode
+from playseg_core.data.episode import Episode, Segment
 from playseg_core.ps.decoding import decode_segments
 from playseg_core.ps.labelling import label_segments
 from playseg_core.ps.metrics import BoundaryCounts, match_boundaries
 from playseg_core.ps.model import LabelModel, PSModel
+from playseg_core.ps.segmentation import segment_episode
 
 END_BIAS_CANDIDATES: tuple[float, ...] = tuple(float(b) for b in np.arange(-3.0, 1.01, 0.25))
 """End biases `calibrate_end_bias` tries by default."""
@@ -173,15 +178,67 @@ def calibrate_on_annotated(
     )
 
 
+@dataclass(frozen=True)
+class OwnCutsCheck:
+    """A label threshold applied to a model's own segmentation of annotated episodes.
+
+    kept / segments: segments at or above the threshold, of all cut. step_accuracy_kept: share of the
+    kept segments' steps whose true instruction (the annotated segment covering the step; none = wrong)
+    is the segment's label (nan when none is kept); step_accuracy_all: the same without the threshold.
+    """
+
+    threshold: float
+    kept: int
+    segments: int
+    kept_steps: int
+    step_accuracy_kept: float
+    step_accuracy_all: float
+
+
+def steps_labelled_right(segments: Sequence[Segment], truth: Sequence[Segment], num_steps: int) -> list[int]:
+    """For each of ``segments``, how many of its steps the annotated ``truth`` labels as it does."""
+    true_label: list[str | None] = [None] * num_steps
+    for segment in truth:
+        true_label[segment.start : segment.end] = [segment.instruction] * segment.length
+    return [sum(label == s.instruction for label in true_label[s.start : s.end]) for s in segments]
+
+
+@torch.no_grad()
+def check_own_cuts(model: PSModel, episodes: Iterable[Episode], threshold: float) -> OwnCutsCheck:
+    """Segment the annotated ``episodes`` with ``model`` (its end bias as set) and score what
+    ``threshold`` keeps (`OwnCutsCheck`)."""
+    right, steps, kept_right, kept_steps, kept, total = 0, 0, 0, 0, 0, 0
+    for episode in episodes:
+        if not episode.segments:
+            continue
+        cut = segment_episode(model, episode.with_segments([]))
+        for segment, hits in zip(
+            cut, steps_labelled_right(cut, episode.segments, episode.num_steps), strict=True
+        ):
+            total, right, steps = total + 1, right + hits, steps + segment.length
+            if segment.confidence >= threshold:
+                kept, kept_right, kept_steps = kept + 1, kept_right + hits, kept_steps + segment.length
+    return OwnCutsCheck(
+        threshold=threshold,
+        kept=kept,
+        segments=total,
+        kept_steps=kept_steps,
+        step_accuracy_kept=kept_right / kept_steps if kept_steps else float("nan"),
+        step_accuracy_all=right / steps if steps else float("nan"),
+    )
+
+
 def calibrate_ps_model(
     model: PSModel, val_episodes: Sequence[Episode], target_accuracy: float = LABEL_ACCURACY_TARGET
 ) -> dict[str, dict]:
-    """Set ``model.end_bias`` from `val_episodes` and calibrate the label threshold on them.
+    """Set ``model.end_bias`` from `val_episodes`, calibrate the label threshold on them and check it on
+    the model's own cuts of them.
 
-    Returns the checkpoint's record: ``{"end_bias": ..., "calibration": ...}`` (the label threshold
-    under "calibration", where segmenting commands look for it).
+    Returns the checkpoint's record: ``{"end_bias": ..., "calibration": ..., "own_cuts": ...}`` (the
+    label threshold under "calibration", where segmenting commands look for it).
     """
     end_bias = calibrate_end_bias(model, val_episodes)
     model.end_bias.fill_(end_bias.bias)
     labels = calibrate_on_annotated(model, val_episodes, target_accuracy)
-    return {"end_bias": asdict(end_bias), "calibration": asdict(labels)}
+    own_cuts = check_own_cuts(model, val_episodes, labels.threshold)
+    return {"end_bias": asdict(end_bias), "calibration": asdict(labels), "own_cuts": asdict(own_cuts)}
