@@ -93,10 +93,12 @@ def _print_calibration(calibrated: dict[str, dict]) -> None:
     )
     own = calibrated.get("own_cuts")
     if own:  # what the threshold keeps of the model's own cuts, as it will on play
+        right = (
+            f", {own['step_accuracy_kept']:.1%} of their steps labelled as the truth" if own["kept"] else ""
+        )
         print(
-            f"on its own cuts of the val episodes it keeps {own['kept']} of {own['segments']} segments, "
-            f"{own['step_accuracy_kept']:.1%} of their steps labelled as the truth "
-            f"({own['step_accuracy_all']:.1%} of all cut steps)"
+            f"on its own cuts of the val episodes it keeps {own['kept']} of {own['segments']} segments"
+            f"{right} ({own['step_accuracy_all']:.1%} of all cut steps)"
         )
 
 

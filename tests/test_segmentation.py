@@ -179,6 +179,11 @@ def test_own_cuts_check_scores_what_the_threshold_keeps_of_the_model_s_segmentat
     assert 0 < some.kept < some.segments and some.step_accuracy_all == everything.step_accuracy_all
     nothing = check_own_cuts(model, episodes, threshold=math.inf)
     assert nothing.kept == 0 and math.isnan(nothing.step_accuracy_kept)
+    model.end_bias.fill_(4.0)  # cuts wherever it may
+    short = check_own_cuts(model, episodes, threshold=0.0).segments
+    model.cfg.min_len = 3  # cut as play is cut: with the model's L_min
+    longer = check_own_cuts(model, episodes, threshold=0.0).segments
+    assert longer == sum(len(segment_episode(model, e, min_len=3)) for e in episodes) < short
 
 
 def test_scoring_in_chunks_equals_scoring_at_once() -> None:

@@ -10,6 +10,7 @@ from test_models import INSTRUCTIONS, synthetic_episode, tiny_model_config
 from playseg_core.data.episode import Episode
 from playseg_core.domains.babyai.spec import CAMERA
 from playseg_core.ps.encoders import StepEncoders
+from playseg_core.ps.model import PSModel
 from playseg_core.ps.samples import (
     NEGATIVE_KINDS,
     camera_symmetries,
@@ -255,6 +256,34 @@ def test_augment_without_a_domains_symmetries_turns_frames_only_for_models_that_
     assert symmetries is not None and symmetries.count == 8
     with pytest.raises(ValueError, match="read no actions"):
         training_symmetries(TrainConfig(augment=True), with_actions)
+
+
+@pytest.mark.parametrize(("lookahead", "dense_windows"), [(0, False), (2, False), (2, True)])
+def test_training_windows_read_the_rows_segmenting_reads(lookahead: int, dense_windows: bool) -> None:
+    """At every supervised position the end logit of a training window equals the offline end-logit
+    matrix's: the same rows past the end (not zero rows where the episode goes on)."""
+    torch.manual_seed(0)
+    model = PSModel(tiny_model_config(max_len=6, size=16, end_lookahead=lookahead), INSTRUCTIONS).eval()
+    episode = synthetic_episode(5, num_segments=5, max_seg_len=4, size=16)
+    checked = 0
+    with torch.no_grad():
+        offline = model.end_logits(model.encode_episode(episode)) - model.end_bias
+        for index, segment in enumerate(episode.segments):
+            batch = make_batch(
+                [(episode, segment)], label_index(INSTRUCTIONS), model.encoders, 6, 2,
+                np.random.default_rng(index), dense_prefix_negatives=True,
+                dense_window_negatives=dense_windows, lookahead=lookahead,
+            )  # fmt: skip
+            features = model.encode_steps(batch.inputs)
+            rows = torch.cat([features, features.new_zeros(1, features.shape[1])])[batch.window_index]
+            logits = model.raw_end_logits(model.trunk(rows, batch.starts_episode))
+            first_step = max(0, segment.start - 2)  # a batch's rows start k_max before its segment
+            for row, supervised in enumerate(batch.end_weight > 0):
+                start = first_step + int(batch.window_index[row, 0])
+                for position in torch.nonzero(supervised).flatten().tolist():
+                    torch.testing.assert_close(logits[row, position], offline[start, position - 1])
+                    checked += 1
+    assert checked > 30
 
 
 def test_dense_window_negatives_supervise_every_position_of_off_start_windows() -> None:

@@ -211,7 +211,7 @@ def check_own_cuts(model: PSModel, episodes: Iterable[Episode], threshold: float
     for episode in episodes:
         if not episode.segments:
             continue
-        cut = segment_episode(model, episode.with_segments([]))
+        cut = segment_episode(model, episode.with_segments([]), min_len=model.cfg.min_len)  # as play
         for segment, hits in zip(
             cut, steps_labelled_right(cut, episode.segments, episode.num_steps), strict=True
         ):

@@ -51,8 +51,9 @@ class ModelConfig:
     label_head: how the label heads score an instruction (`LABEL_HEADS`): "linear" (one weight row per
         instruction) or "text" (from the instruction's words, shared between instructions).
     end_lookahead: steps past a candidate end the PS end head also reads (0: the paper's model, the end
-        judged from o_i .. o_j alone). With 1 it reads o_{j+1} and the action a_j that led to it, the
-        first command after the end: where a demonstrator's intent changes, the command does.
+        judged from o_i .. o_j alone). With 1 it reads o_{j+1} and (a model that reads actions) the
+        action a_j that led to it, the first command after the end: where a demonstrator's intent
+        changes, the command does.
         Segmenting a stream then decides each end one step later.
     """
 

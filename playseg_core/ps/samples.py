@@ -219,9 +219,10 @@ def make_batch(
             weights[row][1 : last + 1] = 1.0  # targets stay 0 except at the true end
         if negatives and dense_window_negatives:
             true_starts = {s.start for s in ep.segments}
+            last_end = min(ep.num_steps, seg.end + k_max)  # the region without the lookahead's rows
             for start, row in windows.items():
                 if start not in true_starts:  # no true segment starts here: no position is an end
-                    weights[row][1 : min(max_len, hi - start) + 1] = 1.0
+                    weights[row][1 : min(max_len, last_end - start) + 1] = 1.0
         offset += hi - lo + 1
 
     def stack(arrays: list[np.ndarray], dtype: type, width: int = num_pos) -> torch.Tensor:

@@ -10,7 +10,7 @@ import copy
 import sys
 import time
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import torch
@@ -418,6 +418,7 @@ def train_labeller(
 ) -> TrainResult:
     """Train the stand-alone labelling model on the annotated segments (positives only)."""
     torch.manual_seed(cfg.seed)
+    model_cfg = replace(model_cfg, end_lookahead=0)  # it labels given segments: no end head to look ahead
     model = LabelModel(model_cfg, list(instructions))
     return _fit(
         model,
