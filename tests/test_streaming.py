@@ -3,6 +3,7 @@
 import pytest
 import torch
 
+from playseg_core.data.episode import Episode
 from playseg_core.data.features import STATE
 from playseg_core.domains.babyai.play import PlayConfig, generate_episode
 from playseg_core.domains.babyai.spec import CAMERA, DOMAIN, INSTRUCTIONS
@@ -62,3 +63,29 @@ def test_stream_of_an_action_model_rejects_a_missing_or_invalid_action():
         StreamingSegmenter(model).push({CAMERA: frames[0]}, [9.0])
     with pytest.raises(ValueError, match=f"step 0: the model reads feature '{CAMERA}', the step lacks it"):
         StreamingSegmenter(model).push({STATE: episode.state[0]}, [1.0])
+
+
+@pytest.mark.parametrize("end_lookahead", [0, 2])
+def test_an_episode_shorter_than_l_min_is_one_segment_live_as_offline(end_lookahead):
+    torch.manual_seed(0)
+    model = babyai_model(read_actions=True, end_lookahead=end_lookahead)
+    model.cfg.min_len = 4
+    episode = generate_episode(PlayConfig(), 3)
+    for num_steps in (1, 3, 4, 6):
+        stream, live = StreamingSegmenter(model, min_len=4), []
+        for t in range(num_steps + 1):
+            observation = {CAMERA: episode.images[CAMERA][t], STATE: episode.state[t]}
+            live += stream.push(observation, episode.actions[t] if t < num_steps else None)
+        live += stream.finish()  # an episode shorter than L_min used to fail here
+        with pytest.raises(RuntimeError, match="finish called twice"):
+            stream.finish()
+        short = Episode(
+            "short", episode.actions[:num_steps], {CAMERA: episode.images[CAMERA][: num_steps + 1]},
+            state=episode.state[: num_steps + 1],
+        )  # fmt: skip
+        offline = segment_episode(model, short, min_len=4)
+        assert [(s.start, s.end, s.instruction) for s in live] == [
+            (s.start, s.end, s.instruction) for s in offline
+        ]
+        assert [s.log_prob for s in live] == pytest.approx([s.log_prob for s in offline], abs=1e-4)
+        assert [s.confidence for s in live] == pytest.approx([s.confidence for s in offline], abs=1e-5)

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from playseg_core.data.episode import Segment
-from playseg_core.ps.decoding import OnlineDecoder
+from playseg_core.ps.decoding import OnlineDecoder, decode_segments
 from playseg_core.ps.encoders import as_tensors
 from playseg_core.ps.model import PSModel
 from playseg_core.ps.segmentation import labelled_segment
@@ -77,8 +77,13 @@ class StreamingSegmenter:
     @torch.no_grad()
     def finish(self) -> list[Segment]:
         """The episode ended with the last pushed frame: decide the remaining segments."""
+        if self.decoder.finished:
+            raise RuntimeError("StreamingSegmenter.finish called twice: one segmenter per episode")
         if self.num_observations < 2:
             return []
+        num_steps = self.num_observations - 1
+        if num_steps < self.decoder.min_len:
+            return [self._whole_episode(num_steps)]
         # Ends the lookahead has kept waiting: score them reading zero rows past the last observation.
         decided, zero = [], torch.zeros_like(self._features[0])
         for end in range(max(1, self.num_observations - self.model.lookahead), self.num_observations):
@@ -86,6 +91,16 @@ class StreamingSegmenter:
             padding = [zero] * (rows_to_lookahead - len(self._features))
             decided += self.decoder.push(self._end_column(self._features + padding))
         return self._label(decided + self.decoder.finish())
+
+    def _whole_episode(self, num_steps: int) -> Segment:
+        """An episode shorter than L_min is one segment, as `segment_episode` cuts it (nothing was
+        committed, so every row from o_0 is kept)."""
+        features = torch.stack(self._features)
+        end_logits = self.model.end_logits(features).double().numpy()[:, :num_steps]
+        log_score = decode_segments(end_logits, min_len=num_steps, max_len=num_steps).log_score
+        self.decoder.finished = True
+        label_logits = self.model.label_logits(features, 0, num_steps)
+        return labelled_segment(self.model, 0, num_steps, label_logits, log_score)
 
     def _label(self, decided: Sequence[tuple[int, int]]) -> list[Segment]:
         scores = (
