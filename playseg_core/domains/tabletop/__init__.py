@@ -6,7 +6,8 @@ The data is robot-shaped (a camera, a state vector, a continuous 2-D velocity ac
 encoders read the state and the action; the camera gets this package's object-map encoder (encoder.py)
 as the 8 blocks' positions, found by colour and size, and the label heads score each instruction with
 its own weights (``LABEL_HEAD``). PS trains on the table's symmetries with ``--augment``
-(``CLIP_SYMMETRIES``); its end head reads two steps past an end (``END_LOOKAHEAD``). No segment-length bounds: the ones derived from the annotated segments apply.
+(``CLIP_SYMMETRIES``); its end head reads two steps past an end (``END_LOOKAHEAD``). No segment-length
+bounds: the ones derived from the annotated segments apply.
 Its policy ``tabletop.bc`` is the generic ``bc`` policy evaluated in the simulator (learner.py,
 evaluation.py), with a choice of camera encoder and the table's 8 symmetries to train on (symmetry.py).
 Importing it registers the encoder and imports neither pymunk nor OpenCV; the modules that run the
