@@ -343,8 +343,8 @@ class PSModel(StepModel):
         (T, L_max) logits). Entries with i+k+1 > T are computed on zero padding and must be ignored
         (decoding.py does); an end's lookahead past o_T reads the same zero padding as in training.
         """
-        chunk = chunk or max(1, SCORE_ROWS // (self.max_len + 1))
         width = self.max_len + 1 + self.lookahead
+        chunk = chunk or max(1, SCORE_ROWS // width)
         num_steps = features.shape[0] - 1
         parts = []
         for lo in range(0, num_steps, chunk):
