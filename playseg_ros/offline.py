@@ -100,6 +100,13 @@ def _print_calibration(calibrated: dict[str, dict]) -> None:
             f"on its own cuts of the val episodes it keeps {own['kept']} of {own['segments']} segments"
             f"{right} ({own['step_accuracy_all']:.1%} of all cut steps)"
         )
+    own_threshold = calibrated.get("own_cuts_calibration")
+    if own_threshold:  # the threshold chosen on those cuts instead, on label x cut probability
+        print(
+            f"own-cut threshold {own_threshold['threshold']:.3f} (label x cut probability) for "
+            f"{own_threshold['target_accuracy']:.2f} of them labelled right keeps "
+            f"{own_threshold['coverage']:.1%} of them ({own_threshold['accuracy_all']:.1%} right in all)"
+        )
 
 
 def calibrate(model_path: str, data: str, out: str | None, label_accuracy: float | None = None) -> int:

@@ -212,3 +212,44 @@ def test_the_balanced_condition_caps_what_ps_kept(experiment: Path, tmp_path: Pa
     cap = -(-start_labels.count(most) * kept // len(start_labels))  # ceil(share of the start split x kept)
     assert balanced.count == cap < kept
     assert AddedSegments.load(tmp_path / "added" / "ps_balanced.json").count == balanced.count
+
+
+def test_ps_conditions_filter_the_cuts_found_once(experiment: Path, tmp_path: Path) -> None:
+    """``ps`` keeps cached cuts by the true-cut label threshold, ``ps_own_cuts`` by the own-cut one on
+    the label's probability times the cut's; play is segmented once for both (out/found)."""
+    import dataclasses
+
+    from playseg_core.data.episode import Segment
+    from playseg_core.experiment.runner import ExperimentSpec, _ensure_added, ensure_segmenter
+    from playseg_core.ps.segmentation import segment_episode
+
+    (tmp_path / "data").symlink_to(experiment / "data")
+    data = ExperimentData.open(tmp_path / "data")
+    tiny = ExperimentSpec.of_domain("babyai").scale("tiny")
+    lines: list[str] = []
+    segmenter = ensure_segmenter(tmp_path, "ps", data, tiny, lines.append)
+    # val annotated as the model cuts and labels it: every own cut right, so the own-cut threshold keeps
+    # down to the lowest val cut's score
+    model = segmenter.model
+    val = [e.with_segments(segment_episode(model, e.with_segments([]), model.cfg.min_len)) for e in data.val]
+    data = dataclasses.replace(data, val=val)
+    label = data.instructions[0]
+    found = {  # per true span: sure of its cut and label / sure of its label, never of its cut
+        e.episode_id: [
+            Segment(s.start, s.end, label, 1.0, 0.0) if i % 2 else Segment(s.start, s.end, label, 1.0, -800.0)
+            for i, s in enumerate(e.segments)
+        ]
+        for e in data.play
+    }
+    (tmp_path / "found").mkdir()
+    AddedSegments("ps", found).save(tmp_path / "found" / "ps.json")
+    assert AddedSegments.load(tmp_path / "found" / "ps.json").by_episode == found  # log_prob kept
+    own = _ensure_added(tmp_path, "ps_own_cuts", data, tiny, lines.append)
+    assert {k: [(s.start, s.end) for s in v] for k, v in own.by_episode.items()} == {
+        k: [(s.start, s.end) for s in v if s.log_prob == 0.0] for k, v in found.items()
+    }
+    assert own.count > 0 and ", 100% right)" in lines[-1]
+    ps = _ensure_added(tmp_path, "ps", data, tiny, lines.append)  # by the checkpoint's threshold
+    everything = sum(map(len, found.values()))
+    assert ps.count == (everything if segmenter.label_threshold <= 1.0 else 0)
+    assert f"{ps.count} of {everything} segments kept from play" in lines[-1]

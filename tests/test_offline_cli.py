@@ -43,6 +43,9 @@ def test_train_calibrate_segment_evaluate(tiny_data: Path, tmp_path: Path, capsy
     assert "on its own cuts of the val episodes it keeps" in printed
     raw = torch.load(model, weights_only=True)
     assert raw["meta"]["own_cuts"]["segments"] >= raw["meta"]["own_cuts"]["kept"] >= 0
+    own_threshold = raw["meta"]["own_cuts_calibration"]
+    assert own_threshold["num_segments"] == raw["meta"]["own_cuts"]["segments"]
+    assert f"own-cut threshold {own_threshold['threshold']:.3f} (label x cut probability)" in printed
     assert raw["features"]["features"][ACTION]["num_values"] == 7
     assert [spec["kind"] for spec in raw["config"]["encoders"]] == ["babyai.grid_tiles", "discrete_action"]
     # the bias the checkpoint records is the one its model segments with

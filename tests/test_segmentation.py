@@ -15,9 +15,12 @@ from playseg_core.domains.babyai.spec import CAMERA
 from playseg_core.ps.calibration import (
     calibrate_end_bias,
     calibrate_on_annotated,
+    calibrate_on_own_cuts,
     calibrate_ps_model,
     calibrate_threshold,
     check_own_cuts,
+    majority_instructions,
+    segment_probability,
     steps_labelled_right,
 )
 from playseg_core.ps.decoding import OnlineDecoder
@@ -154,6 +157,41 @@ def test_calibrate_ps_model_sets_the_end_bias_and_records_both_calibrations() ->
     assert model.end_bias.item() == record["end_bias"]["bias"]
     assert record["calibration"]["num_segments"] == 12 and record["calibration"]["target_accuracy"] == 0.5
     assert record["own_cuts"]["threshold"] == record["calibration"]["threshold"]
+    own = record["own_cuts_calibration"]
+    assert own["target_accuracy"] == 0.5 and own["num_segments"] == record["own_cuts"]["segments"]
+
+
+def test_majority_instruction_and_segment_probability() -> None:
+    truth = [Segment(0, 3, "a"), Segment(5, 8, "b")]  # steps 3-4 and 8-9: no instruction
+    cut = [Segment(0, 4, "a"), Segment(3, 7, "b"), Segment(6, 10, "b"), Segment(5, 6, "a")]
+    # [3, 7): two unlabelled steps, then two of b: a tie goes to the earliest (none)
+    assert majority_instructions(cut, truth, num_steps=10) == ["a", None, "b", "b"]
+    assert segment_probability(Segment(0, 2, "a", 0.5, math.log(0.4))) == pytest.approx(0.2)
+    assert segment_probability(Segment(0, 2, "a", 1.0, -800.0)) == 0.0  # a cut the model never makes
+
+
+def test_own_cut_calibration_chooses_a_threshold_on_the_model_s_own_segmentation() -> None:
+    model = tiny_ps_model(max_len=5, seed=4)
+    episodes = [synthetic_episode(s, num_segments=4, max_seg_len=4) for s in range(3)]
+    cuts = [segment_episode(model, episode) for episode in episodes]
+    scores = [segment_probability(s) for cut in cuts for s in cut]
+    right = [
+        s.instruction == label
+        for cut, episode in zip(cuts, episodes, strict=True)
+        for s, label in zip(cut, majority_instructions(cut, episode.segments, episode.num_steps), strict=True)
+    ]
+    everything = calibrate_on_own_cuts(model, episodes, target_accuracy=1e-6)
+    assert everything.num_segments == len(scores) and everything.coverage == 1.0
+    assert everything.threshold == pytest.approx(min(scores))
+    assert everything.accuracy_all == pytest.approx(np.mean(right))
+    for target in (0.3, 0.6, 1.0):
+        result = calibrate_on_own_cuts(model, episodes, target_accuracy=target)
+        assert result.threshold == calibrate_threshold(scores, right, target)
+        if math.isfinite(result.threshold):
+            assert result.accuracy_kept >= target
+    unannotated = [episode.with_segments([]) for episode in episodes]
+    with pytest.raises(ValueError, match="annotated episodes"):
+        calibrate_on_own_cuts(model, unannotated, target_accuracy=0.5)
 
 
 def test_steps_labelled_right_count_only_steps_the_truth_labels_the_same() -> None:

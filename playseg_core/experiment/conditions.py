@@ -12,7 +12,10 @@ from the rest of the pool (the play split, whose ground truth the segmenters nev
 - ``ps`` and the baselines (``unloc``, ``tridet``, ``changepoint``): what that segmentation method
   extracts from play, kept when its label confidence reaches the method's calibrated threshold;
 - ``ps_balanced``: what ``ps`` keeps, each instruction capped at its share of the start split
-  (`balance_labels`; the most confident first).
+  (`balance_labels`; the most confident first);
+- ``ps_own_cuts``: what PS cuts from play, kept when the label's probability times the cut's
+  (`segment_probability`) reaches a threshold calibrated on PS's own cuts of the val episodes
+  (`calibrate_on_own_cuts`), not on their true cuts as ``ps``'s.
 
 The ground-truth curve (``--conditions curve``) adds ``gt_<p>pct``: the first p% of the whole pool's
 ground-truth segments (the start split's first, then play's), fewer than the start split when p is below
@@ -35,14 +38,24 @@ GT_MULTIPLES = {"gt_2x": 2, "gt_4x": 4}
 SEGMENTER_CONDITIONS = {"ps": "ps", "random_relabel": "random", "unloc": "unloc", "tridet": "tridet"}
 """condition -> the segmentation method (baselines/registry.py) whose segments it adds."""
 CONDITIONS = ("gt_start", "gt_2x", "gt_4x", "gt_100", "oracle_relabel", "random_relabel", "ps")
-"""The default conditions, in table order; ``ps_balanced``, ``unloc``, ``tridet`` and ``changepoint`` on
+"""The default conditions, in table order; ``ps_balanced``, ``ps_own_cuts``, ``unloc``, ``tridet`` and ``changepoint`` on
 request."""
 BALANCED = {"ps_balanced": "ps"}
 """condition -> the condition whose kept segments it caps per instruction (`balance_labels`)."""
+OWN_CUTS = {"ps_own_cuts": "ps"}
+"""condition -> the segmentation method whose segments it keeps by the own-cut threshold."""
 POOL_PERCENTS = (1, 2, 5, 10, 25, 50)
 """The ground-truth curve's shares of the pool besides the start split and 100% (``gt_<p>pct``)."""
 CURVE_CONDITIONS = tuple(f"gt_{p}pct" for p in POOL_PERCENTS)
-KNOWN_CONDITIONS = (*CONDITIONS, "ps_balanced", "unloc", "tridet", "changepoint", *CURVE_CONDITIONS)
+KNOWN_CONDITIONS = (
+    *CONDITIONS,
+    "ps_balanced",
+    "ps_own_cuts",
+    "unloc",
+    "tridet",
+    "changepoint",
+    *CURVE_CONDITIONS,
+)
 CONDITION_GROUPS = {
     "default": CONDITIONS,
     "curve": ("gt_start", "gt_100", *CURVE_CONDITIONS),
@@ -65,7 +78,7 @@ class AddedSegments:
 
     def save(self, path: Path) -> None:
         rows = {
-            episode_id: [[s.start, s.end, s.instruction, s.confidence] for s in segments]
+            episode_id: [[s.start, s.end, s.instruction, s.confidence, s.log_prob] for s in segments]
             for episode_id, segments in self.by_episode.items()
         }
         tmp = path.with_suffix(".tmp")
@@ -76,8 +89,8 @@ class AddedSegments:
     @classmethod
     def load(cls, path: Path) -> AddedSegments:
         data = json.loads(path.read_text())
-        by_episode = {
-            episode_id: [Segment(int(a), int(b), str(label), float(conf)) for a, b, label, conf in rows]
+        by_episode = {  # rows written before log_prob was kept have 4 columns
+            episode_id: [Segment(int(r[0]), int(r[1]), str(r[2]), *map(float, r[3:5])) for r in rows]
             for episode_id, rows in data["segments"].items()
         }
         return cls(data["condition"], by_episode, data.get("start_kept"))

@@ -76,6 +76,7 @@ def targets_text(summary: dict[str, dict[str, Any]]) -> list[str]:
     gap_goals = (
         ("ps", ">= 0.90"),
         ("ps_balanced", ""),
+        ("ps_own_cuts", ""),
         ("oracle_relabel", ""),
         ("random_relabel", "well below PS"),
     )

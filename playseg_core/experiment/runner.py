@@ -36,6 +36,7 @@ from playseg_core.experiment.conditions import (
     BALANCED,
     CONDITIONS,
     KNOWN_CONDITIONS,
+    OWN_CUTS,
     SEGMENTER_CONDITIONS,
     AddedSegments,
     balance_labels,
@@ -71,6 +72,9 @@ class ExperimentScale:
     segmenter_augment: bool = False
     # the held-out label accuracy PS's confidence threshold is calibrated for (ps/calibration.py)
     segmenter_label_accuracy: float = LABEL_ACCURACY_TARGET
+    # the accuracy of the labels of PS's own val cuts that ``ps_own_cuts``' threshold is calibrated for
+    # (None: segmenter_label_accuracy)
+    own_cuts_accuracy: float | None = None
 
 
 @dataclass(frozen=True)
@@ -246,7 +250,11 @@ def _ensure_data(out: Path, domain: str, scale: ExperimentScale, workers: int, l
 
 def segmenter_methods(conditions: Sequence[str]) -> list[str]:
     """The segmentation methods (baselines/registry.py) the conditions need trained on the start split."""
-    methods = [SEGMENTER_CONDITIONS.get(BALANCED.get(c, c), c) for c in conditions if not c.startswith("gt_")]
+    methods = [
+        OWN_CUTS.get(c) or SEGMENTER_CONDITIONS.get(BALANCED.get(c, c), c)
+        for c in conditions
+        if not c.startswith("gt_")
+    ]
     return list(dict.fromkeys("random" if m == "oracle_relabel" else m for m in methods))
 
 
@@ -337,18 +345,55 @@ def _ensure_added(
                 for episode in data.play
             },
         )
+    elif condition in OWN_CUTS:
+        from playseg_core.ps.calibration import calibrate_on_own_cuts, segment_probability
+
+        segmenter = ensure_segmenter(out, OWN_CUTS[condition], data, scale, log)
+        target = scale.own_cuts_accuracy or scale.segmenter_label_accuracy
+        calibration = calibrate_on_own_cuts(segmenter.model, data.val, target)
+        found = _found_segments(out, OWN_CUTS[condition], segmenter, data, log)
+        added = AddedSegments(
+            condition,
+            {
+                episode_id: [s for s in segments if segment_probability(s) >= calibration.threshold]
+                for episode_id, segments in found.by_episode.items()
+            },
+        )
+        log(
+            f"  {condition}: {added.count} of {found.count} segments kept (own-cut threshold "
+            f"{calibration.threshold:.3f} for {target:.0%}: {calibration.coverage:.0%} of the "
+            f"{calibration.num_segments} val cuts kept, {calibration.accuracy_kept:.0%} right)"
+        )
     else:
-        segmenter = ensure_segmenter(out, SEGMENTER_CONDITIONS.get(condition, condition), data, scale, log)
-        began = time.perf_counter()
-        by_episode = {}
-        for episode in data.play:
-            found = segmenter.segment(episode.with_segments([]))  # the segmenter never sees the truth
-            by_episode[episode.episode_id] = [s for s in found if s.confidence >= segmenter.label_threshold]
+        method = SEGMENTER_CONDITIONS.get(condition, condition)
+        segmenter = ensure_segmenter(out, method, data, scale, log)
+        found = _found_segments(out, method, segmenter, data, log)
+        by_episode = {
+            episode_id: [s for s in segments if s.confidence >= segmenter.label_threshold]
+            for episode_id, segments in found.by_episode.items()
+        }
         added = AddedSegments(condition, by_episode)
-        log(f"  {condition}: {added.count} segments kept from play in {time.perf_counter() - began:.0f} s")
+        log(f"  {condition}: {added.count} of {found.count} segments kept from play")
     path.parent.mkdir(parents=True, exist_ok=True)
     added.save(path)
     return added
+
+
+def _found_segments(out: Path, method: str, segmenter: Any, data: ExperimentData, log) -> AddedSegments:
+    """Every segment ``segmenter`` cuts from play, unfiltered (cached in out/found/<method>.json: the
+    conditions that keep different ones of them segment play once)."""
+    path = out / "found" / f"{method}.json"
+    if path.exists():
+        return AddedSegments.load(path)
+    began = time.perf_counter()
+    found = AddedSegments(
+        method,  # the segmenter never sees the truth
+        {episode.episode_id: segmenter.segment(episode.with_segments([])) for episode in data.play},
+    )
+    log(f"  {method}: play segmented in {time.perf_counter() - began:.0f} s ({found.count} segments)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    found.save(path)
+    return found
 
 
 def training_clips(data: ExperimentData, added: AddedSegments) -> list:

@@ -10,12 +10,16 @@ Both are chosen on the annotated validation split, never on the play being segme
   episodes, and how many of the kept steps carry the true instruction. The threshold is chosen on true
   cuts, as the paper does; play gets the model's cuts, whose pieces (half a task, two tasks) the true
   cuts never show, so this is the figure that says what the filter will keep on play.
-`calibrate_ps_model` does all three and returns what a checkpoint records about them.
+- `calibrate_on_own_cuts`: a threshold chosen on the model's own cuts instead, for the score that
+  ranks them (`segment_probability`: the label's probability times the cut's): the filter for play when
+  the true-cut threshold keeps pieces that are wrong (the experiment's ``ps_own_cuts``).
+`calibrate_ps_model` does all four and returns what a checkpoint records about them.
 """
 
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
 
@@ -151,6 +155,26 @@ class LabelCalibration:
     accuracy_all: float  # label accuracy without a threshold
     num_segments: int
 
+    @classmethod
+    def from_scores(
+        cls, scores: Sequence[float], correct: Sequence[bool], target_accuracy: float, what: str
+    ) -> LabelCalibration:
+        """The threshold on ``scores`` for ``target_accuracy`` (`calibrate_threshold`) and what it keeps;
+        ValueError saying the held-out episodes have no ``what`` when there are no scores."""
+        if not scores:
+            raise ValueError(f"calibration needs {what}; the held-out episodes have none")
+        threshold = calibrate_threshold(scores, correct, target_accuracy)
+        score, hits = np.asarray(scores), np.asarray(correct)
+        kept = score >= threshold
+        return cls(
+            threshold=threshold,
+            target_accuracy=target_accuracy,
+            accuracy_kept=float(hits[kept].mean()) if kept.any() else float("nan"),
+            coverage=float(kept.mean()),
+            accuracy_all=float(hits.mean()),
+            num_segments=int(score.size),
+        )
+
 
 def calibrate_on_annotated(
     model: PSModel | LabelModel, episodes: Iterable[Episode], target_accuracy: float
@@ -163,19 +187,7 @@ def calibrate_on_annotated(
         for predicted in label_segments(model, episode, spans):
             confidences.append(predicted.confidence)
             correct.append(predicted.instruction == truth[(predicted.start, predicted.end)])
-    if not confidences:
-        raise ValueError("calibration needs annotated segments; the held-out episodes have none")
-    threshold = calibrate_threshold(confidences, correct, target_accuracy)
-    conf, hits = np.asarray(confidences), np.asarray(correct)
-    kept = conf >= threshold
-    return LabelCalibration(
-        threshold=threshold,
-        target_accuracy=target_accuracy,
-        accuracy_kept=float(hits[kept].mean()) if kept.any() else float("nan"),
-        coverage=float(kept.mean()),
-        accuracy_all=float(hits.mean()),
-        num_segments=int(conf.size),
-    )
+    return LabelCalibration.from_scores(confidences, correct, target_accuracy, "annotated segments")
 
 
 @dataclass(frozen=True)
@@ -195,23 +207,77 @@ class OwnCutsCheck:
     step_accuracy_all: float
 
 
-def steps_labelled_right(segments: Sequence[Segment], truth: Sequence[Segment], num_steps: int) -> list[int]:
-    """For each of ``segments``, how many of its steps the annotated ``truth`` labels as it does."""
+def true_instructions(truth: Sequence[Segment], num_steps: int) -> list[str | None]:
+    """The annotated instruction of each of ``num_steps`` steps (None where no segment of ``truth`` covers it)."""
     true_label: list[str | None] = [None] * num_steps
     for segment in truth:
         true_label[segment.start : segment.end] = [segment.instruction] * segment.length
+    return true_label
+
+
+def steps_labelled_right(segments: Sequence[Segment], truth: Sequence[Segment], num_steps: int) -> list[int]:
+    """For each of ``segments``, how many of its steps the annotated ``truth`` labels as it does."""
+    true_label = true_instructions(truth, num_steps)
     return [sum(label == s.instruction for label in true_label[s.start : s.end]) for s in segments]
 
 
+def own_cuts(model: PSModel, episodes: Iterable[Episode]) -> list[tuple[Episode, list[Segment]]]:
+    """Each annotated episode of ``episodes`` with ``model``'s segmentation of it, cut as play is (the
+    truth hidden, the model's end bias and L_min)."""
+    return [
+        (episode, segment_episode(model, episode.with_segments([]), min_len=model.cfg.min_len))
+        for episode in episodes
+        if episode.segments
+    ]
+
+
+def segment_probability(segment: Segment) -> float:
+    """The model's probability that ``segment`` is exactly right: its label's probability times its
+    cut's, s(i, j) (no end before j and an end at j, given the start; ``Segment.log_prob``). The label
+    probability alone is what the true-cut threshold reads; on the model's own cuts the cut can be wrong
+    too (half a task, two tasks), and this score ranks those pieces low."""
+    return segment.confidence * math.exp(segment.log_prob)
+
+
+def majority_instructions(
+    segments: Sequence[Segment], truth: Sequence[Segment], num_steps: int
+) -> list[str | None]:
+    """For each of ``segments``, the true instruction of most of its steps (None: most of them lie in
+    no annotated segment); ties go to the earliest."""
+    true_label = true_instructions(truth, num_steps)
+    return [Counter(true_label[s.start : s.end]).most_common(1)[0][0] for s in segments]
+
+
 @torch.no_grad()
-def check_own_cuts(model: PSModel, episodes: Iterable[Episode], threshold: float) -> OwnCutsCheck:
+def calibrate_on_own_cuts(
+    model: PSModel,
+    episodes: Iterable[Episode],
+    target_accuracy: float,
+    cuts: Sequence[tuple[Episode, list[Segment]]] | None = None,
+) -> LabelCalibration:
+    """The lowest `segment_probability` whose kept own cuts of the held-out annotated ``episodes`` are
+    labelled right for ``target_accuracy`` of them, a cut being right when its label is the true
+    instruction of most of its steps (``cuts``: `own_cuts` already computed). Coverage and accuracies are
+    over the cuts; +inf when no threshold reaches the target (`calibrate_threshold`)."""
+    scores, correct = [], []
+    for episode, cut in own_cuts(model, episodes) if cuts is None else cuts:
+        scores += [segment_probability(s) for s in cut]
+        truth = majority_instructions(cut, episode.segments, episode.num_steps)
+        correct += [s.instruction == label for s, label in zip(cut, truth, strict=True)]
+    return LabelCalibration.from_scores(scores, correct, target_accuracy, "annotated episodes")
+
+
+@torch.no_grad()
+def check_own_cuts(
+    model: PSModel,
+    episodes: Iterable[Episode],
+    threshold: float,
+    cuts: Sequence[tuple[Episode, list[Segment]]] | None = None,
+) -> OwnCutsCheck:
     """Segment the annotated ``episodes`` with ``model`` (its end bias as set) and score what
-    ``threshold`` keeps (`OwnCutsCheck`)."""
+    ``threshold`` keeps (`OwnCutsCheck`; ``cuts``: `own_cuts` already computed)."""
     right, steps, kept_right, kept_steps, kept, total = 0, 0, 0, 0, 0, 0
-    for episode in episodes:
-        if not episode.segments:
-            continue
-        cut = segment_episode(model, episode.with_segments([]), min_len=model.cfg.min_len)  # as play
+    for episode, cut in own_cuts(model, episodes) if cuts is None else cuts:
         for segment, hits in zip(
             cut, steps_labelled_right(cut, episode.segments, episode.num_steps), strict=True
         ):
@@ -231,14 +297,20 @@ def check_own_cuts(model: PSModel, episodes: Iterable[Episode], threshold: float
 def calibrate_ps_model(
     model: PSModel, val_episodes: Sequence[Episode], target_accuracy: float = LABEL_ACCURACY_TARGET
 ) -> dict[str, dict]:
-    """Set ``model.end_bias`` from `val_episodes`, calibrate the label threshold on them and check it on
-    the model's own cuts of them.
+    """Set ``model.end_bias`` from `val_episodes`, calibrate the label threshold on them, check it on
+    the model's own cuts of them and calibrate a threshold on those cuts too (both for ``target_accuracy``).
 
-    Returns the checkpoint's record: ``{"end_bias": ..., "calibration": ..., "own_cuts": ...}`` (the
-    label threshold under "calibration", where segmenting commands look for it).
+    Returns the checkpoint's record: ``{"end_bias": ..., "calibration": ..., "own_cuts": ...,
+    "own_cuts_calibration": ...}`` (the paper's label threshold under "calibration", where segmenting
+    commands look for it; the own-cut threshold applies to `segment_probability`).
     """
     end_bias = calibrate_end_bias(model, val_episodes)
     model.end_bias.fill_(end_bias.bias)
     labels = calibrate_on_annotated(model, val_episodes, target_accuracy)
-    own_cuts = check_own_cuts(model, val_episodes, labels.threshold)
-    return {"end_bias": asdict(end_bias), "calibration": asdict(labels), "own_cuts": asdict(own_cuts)}
+    cuts = own_cuts(model, val_episodes)
+    return {
+        "end_bias": asdict(end_bias),
+        "calibration": asdict(labels),
+        "own_cuts": asdict(check_own_cuts(model, val_episodes, labels.threshold, cuts)),
+        "own_cuts_calibration": asdict(calibrate_on_own_cuts(model, val_episodes, target_accuracy, cuts)),
+    }
