@@ -123,6 +123,11 @@ def test_ground_truth_conditions_and_unknown_names() -> None:
     assert check_conditions(["curve", "gt_start", "ps"]) == [
         "gt_start", "gt_100", "gt_1pct", "gt_2pct", "gt_5pct", "gt_10pct", "gt_25pct", "gt_50pct", "ps"
     ]  # fmt: skip
+    from playseg_core.experiment.runner import segmenter_methods
+
+    # what must be trained first: PS for every filter of its cuts, the labelling model of both relabels
+    conditions = ["ps_own_cuts_balanced", "gt_2x", "oracle_relabel", "ps_balanced", "random_relabel", "unloc"]
+    assert segmenter_methods(conditions) == ["ps", "random", "unloc"]
 
 
 def test_an_output_directory_of_another_experiment_is_refused(experiment: Path, capsys) -> None:

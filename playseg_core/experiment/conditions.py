@@ -15,7 +15,8 @@ from the rest of the pool (the play split, whose ground truth the segmenters nev
   (`balance_labels`; the most confident first);
 - ``ps_own_cuts``: what PS cuts from play, kept when the label's probability times the cut's
   (`segment_probability`) reaches a threshold calibrated on PS's own cuts of the val episodes
-  (`calibrate_on_own_cuts`), not on their true cuts as ``ps``'s.
+  (`calibrate_on_own_cuts`), not on their true cuts as ``ps``'s; ``ps_own_cuts_balanced``: those, capped
+  as ``ps_balanced``.
 
 The ground-truth curve (``--conditions curve``) adds ``gt_<p>pct``: the first p% of the whole pool's
 ground-truth segments (the start split's first, then play's), fewer than the start split when p is below
@@ -38,9 +39,9 @@ GT_MULTIPLES = {"gt_2x": 2, "gt_4x": 4}
 SEGMENTER_CONDITIONS = {"ps": "ps", "random_relabel": "random", "unloc": "unloc", "tridet": "tridet"}
 """condition -> the segmentation method (baselines/registry.py) whose segments it adds."""
 CONDITIONS = ("gt_start", "gt_2x", "gt_4x", "gt_100", "oracle_relabel", "random_relabel", "ps")
-"""The default conditions, in table order; ``ps_balanced``, ``ps_own_cuts``, ``unloc``, ``tridet`` and ``changepoint`` on
-request."""
-BALANCED = {"ps_balanced": "ps"}
+"""The default conditions, in table order; ``ps_balanced``, ``ps_own_cuts``, ``ps_own_cuts_balanced``,
+``unloc``, ``tridet`` and ``changepoint`` on request."""
+BALANCED = {"ps_balanced": "ps", "ps_own_cuts_balanced": "ps_own_cuts"}
 """condition -> the condition whose kept segments it caps per instruction (`balance_labels`)."""
 OWN_CUTS = {"ps_own_cuts": "ps"}
 """condition -> the segmentation method whose segments it keeps by the own-cut threshold."""
@@ -51,6 +52,7 @@ KNOWN_CONDITIONS = (
     *CONDITIONS,
     "ps_balanced",
     "ps_own_cuts",
+    "ps_own_cuts_balanced",
     "unloc",
     "tridet",
     "changepoint",

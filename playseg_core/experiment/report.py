@@ -77,6 +77,7 @@ def targets_text(summary: dict[str, dict[str, Any]]) -> list[str]:
         ("ps", ">= 0.90"),
         ("ps_balanced", ""),
         ("ps_own_cuts", ""),
+        ("ps_own_cuts_balanced", ""),
         ("oracle_relabel", ""),
         ("random_relabel", "well below PS"),
     )

@@ -250,11 +250,8 @@ def _ensure_data(out: Path, domain: str, scale: ExperimentScale, workers: int, l
 
 def segmenter_methods(conditions: Sequence[str]) -> list[str]:
     """The segmentation methods (baselines/registry.py) the conditions need trained on the start split."""
-    methods = [
-        OWN_CUTS.get(c) or SEGMENTER_CONDITIONS.get(BALANCED.get(c, c), c)
-        for c in conditions
-        if not c.startswith("gt_")
-    ]
+    bases = [BALANCED.get(c, c) for c in conditions if not c.startswith("gt_")]
+    methods = [OWN_CUTS.get(c) or SEGMENTER_CONDITIONS.get(c, c) for c in bases]
     return list(dict.fromkeys("random" if m == "oracle_relabel" else m for m in methods))
 
 
