@@ -437,7 +437,8 @@ def _add_experiment_command(sub: argparse._SubParsersAction) -> None:
         help="comma-separated conditions or groups, in table order (default: the group 'default' = "
         "gt_start,gt_2x,gt_4x,gt_100,oracle_relabel,random_relabel,ps; 'curve' = the ground-truth curve "
         "gt_1pct..gt_50pct with gt_start and gt_100; 'baselines' = unloc,tridet,changepoint; ps_balanced = "
-        "what ps keeps, each instruction capped at its share of the start split)",
+        "what ps keeps, each instruction capped at its share of the start split; ps_own_cuts = PS's cuts "
+        "kept by a threshold calibrated on its own val cuts; ps_own_cuts_balanced = those, capped)",
     )
     experiment.set_defaults(func=_cmd_experiment)
 

@@ -3,6 +3,7 @@ computes nothing again; a policy run depends on its seed only."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -169,6 +170,21 @@ def test_an_experiment_recorded_before_a_scale_field_existed_still_resumes(exper
         record.write_text(written)
 
 
+def test_a_field_only_new_conditions_read_does_not_refuse_an_older_experiment(tmp_path: Path) -> None:
+    from playseg_core.experiment.runner import ExperimentSpec, _check_same_experiment
+
+    medium = ExperimentSpec.of_domain("tabletop").scale("medium")
+    assert medium.own_cuts_accuracy is not None  # not the default: the case that was refused
+    settings = {"domain": "tabletop", "scale": "medium", "spec": dataclasses.asdict(medium), "policy": "p"}
+    older = json.loads(json.dumps(settings))
+    del older["spec"]["own_cuts_accuracy"]  # written before the field existed
+    (tmp_path / "experiment.json").write_text(json.dumps(older))
+    _check_same_experiment(tmp_path, settings)  # resumes
+    other = {**settings, "spec": {**settings["spec"], "segmenter_label_accuracy": 0.5}}
+    with pytest.raises(ValueError, match="holds another experiment"):
+        _check_same_experiment(tmp_path, other)  # a field the cached conditions read still counts
+
+
 def test_balancing_caps_each_instruction_at_its_start_split_share() -> None:
     from playseg_core.data.episode import Episode, Segment
 
@@ -222,8 +238,6 @@ def test_the_balanced_condition_caps_what_ps_kept(experiment: Path, tmp_path: Pa
 def test_ps_conditions_filter_the_cuts_found_once(experiment: Path, tmp_path: Path) -> None:
     """``ps`` keeps cached cuts by the true-cut label threshold, ``ps_own_cuts`` by the own-cut one on
     the label's probability times the cut's; play is segmented once for both (out/found)."""
-    import dataclasses
-
     from playseg_core.data.episode import Segment
     from playseg_core.experiment.runner import ExperimentSpec, _ensure_added, ensure_segmenter
     from playseg_core.ps.segmentation import segment_episode
@@ -249,6 +263,9 @@ def test_ps_conditions_filter_the_cuts_found_once(experiment: Path, tmp_path: Pa
     (tmp_path / "found").mkdir()
     AddedSegments("ps", found).save(tmp_path / "found" / "ps.json")
     assert AddedSegments.load(tmp_path / "found" / "ps.json").by_episode == found  # log_prob kept
+    written_before = {"condition": "ps", "segments": {"e": [[0, 3, label, 0.5]]}, "start_kept": None}
+    (tmp_path / "old.json").write_text(json.dumps(written_before))  # before log_prob was kept
+    assert AddedSegments.load(tmp_path / "old.json").by_episode == {"e": [Segment(0, 3, label, 0.5, 0.0)]}
     own = _ensure_added(tmp_path, "ps_own_cuts", data, tiny, lines.append)
     assert {k: [(s.start, s.end) for s in v] for k, v in own.by_episode.items()} == {
         k: [(s.start, s.end) for s in v if s.log_prob == 0.0] for k, v in found.items()

@@ -16,7 +16,7 @@ from the rest of the pool (the play split, whose ground truth the segmenters nev
 - ``ps_own_cuts``: what PS cuts from play, kept when the label's probability times the cut's
   (`segment_probability`) reaches a threshold calibrated on PS's own cuts of the val episodes
   (`calibrate_on_own_cuts`), not on their true cuts as ``ps``'s; ``ps_own_cuts_balanced``: those, capped
-  as ``ps_balanced``.
+  as ``ps_balanced`` (the most confident labels first, as there).
 
 The ground-truth curve (``--conditions curve``) adds ``gt_<p>pct``: the first p% of the whole pool's
 ground-truth segments (the start split's first, then play's), fewer than the start split when p is below

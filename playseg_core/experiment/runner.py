@@ -3,6 +3,7 @@
     out/data/                 the domain's generated dataset: train (= the annotated start split), val,
                               play (the rest of the pool, ground truth kept for the gt_* conditions), test
     out/models/<method>.pt    each segmentation method trained on the start split (baselines/registry.py)
+    out/found/<method>.json   every segment that method cut from play (the conditions filter these)
     out/added/<cond>.json     the segments each condition adds from play
     out/runs/<cond>-seed<s>.json   one policy trained and evaluated: success, segments, time
     out/results.md, out/*.png the table next to the paper's figures and the plots (report.py)
@@ -73,8 +74,13 @@ class ExperimentScale:
     # the held-out label accuracy PS's confidence threshold is calibrated for (ps/calibration.py)
     segmenter_label_accuracy: float = LABEL_ACCURACY_TARGET
     # the accuracy of the labels of PS's own val cuts that ``ps_own_cuts``' threshold is calibrated for
-    # (None: segmenter_label_accuracy)
+    # (None: segmenter_label_accuracy); only its conditions read it (`NEW_CONDITIONS_ONLY`)
     own_cuts_accuracy: float | None = None
+
+
+NEW_CONDITIONS_ONLY = frozenset({"own_cuts_accuracy"})
+"""Scale fields that only conditions added with them read: an ``out`` recorded before such a field
+existed cached none of those conditions, so it resumes under the field's current value."""
 
 
 @dataclass(frozen=True)
@@ -221,8 +227,10 @@ def _check_same_experiment(out: Path, settings: dict[str, Any]) -> None:
     recorded = json.loads(json.dumps(settings))  # as it reads back (tuples become lists)
     if path.exists():
         held = json.loads(path.read_text())
-        # A scale field added after ``out`` was written, at its default, is what that experiment ran.
+        # A scale field added after ``out`` was written, at its default, is what that experiment ran
+        # (one that only new conditions read: whatever it is now).
         defaults = {f.name: f.default for f in fields(ExperimentScale) if f.default is not MISSING}
+        defaults |= {k: v for k, v in recorded.get("spec", {}).items() if k in NEW_CONDITIONS_ONLY}
         held_spec = held.get("spec")
         if isinstance(held_spec, dict):
             held["spec"] = {k: defaults[k] for k in defaults.keys() - held_spec.keys()} | held_spec

@@ -232,18 +232,18 @@ def own_cuts(model: PSModel, episodes: Iterable[Episode]) -> list[tuple[Episode,
 
 
 def segment_probability(segment: Segment) -> float:
-    """The model's probability that ``segment`` is exactly right: its label's probability times its
-    cut's, s(i, j) (no end before j and an end at j, given the start; ``Segment.log_prob``). The label
-    probability alone is what the true-cut threshold reads; on the model's own cuts the cut can be wrong
-    too (half a task, two tasks), and this score ranks those pieces low."""
+    """The model's probability that ``segment``, given its start, is exactly right: its label's
+    probability times its cut's, s(i, j) (no end before j and an end at j; ``Segment.log_prob``). The
+    label probability alone is what the true-cut threshold reads; on the model's own cuts the cut can be
+    wrong too (half a task, two tasks), and this score ranks those pieces low."""
     return segment.confidence * math.exp(segment.log_prob)
 
 
 def majority_instructions(
     segments: Sequence[Segment], truth: Sequence[Segment], num_steps: int
 ) -> list[str | None]:
-    """For each of ``segments``, the true instruction of most of its steps (None: most of them lie in
-    no annotated segment); ties go to the earliest."""
+    """For each of ``segments``, the true instruction of more of its steps than any other (None: steps in
+    no annotated segment outnumber each instruction's); ties go to the earliest."""
     true_label = true_instructions(truth, num_steps)
     return [Counter(true_label[s.start : s.end]).most_common(1)[0][0] for s in segments]
 
@@ -257,7 +257,7 @@ def calibrate_on_own_cuts(
 ) -> LabelCalibration:
     """The lowest `segment_probability` whose kept own cuts of the held-out annotated ``episodes`` are
     labelled right for ``target_accuracy`` of them, a cut being right when its label is the true
-    instruction of most of its steps (``cuts``: `own_cuts` already computed). Coverage and accuracies are
+    instruction of the most of its steps (`majority_instructions`; ``cuts``: `own_cuts` already computed). Coverage and accuracies are
     over the cuts; +inf when no threshold reaches the target (`calibrate_threshold`)."""
     scores, correct = [], []
     for episode, cut in own_cuts(model, episodes) if cuts is None else cuts:
