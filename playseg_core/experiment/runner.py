@@ -256,10 +256,14 @@ def _ensure_data(out: Path, domain: str, scale: ExperimentScale, workers: int, l
     return path
 
 
+def segmenter_method(condition: str) -> str:
+    """The segmentation method whose cuts of play a (not balanced) segmenter condition filters."""
+    return OWN_CUTS.get(condition) or SEGMENTER_CONDITIONS.get(condition, condition)
+
+
 def segmenter_methods(conditions: Sequence[str]) -> list[str]:
     """The segmentation methods (baselines/registry.py) the conditions need trained on the start split."""
-    bases = [BALANCED.get(c, c) for c in conditions if not c.startswith("gt_")]
-    methods = [OWN_CUTS.get(c) or SEGMENTER_CONDITIONS.get(c, c) for c in bases]
+    methods = [segmenter_method(BALANCED.get(c, c)) for c in conditions if not c.startswith("gt_")]
     return list(dict.fromkeys("random" if m == "oracle_relabel" else m for m in methods))
 
 
@@ -350,35 +354,31 @@ def _ensure_added(
                 for episode in data.play
             },
         )
-    elif condition in OWN_CUTS:
-        from playseg_core.ps.calibration import calibrate_on_own_cuts, segment_probability
+    else:
+        method = segmenter_method(condition)
+        segmenter = ensure_segmenter(out, method, data, scale, log)
+        found = _found_segments(out, method, segmenter, data, log)
+        if condition in OWN_CUTS:
+            from playseg_core.ps.calibration import calibrate_on_own_cuts, segment_probability
 
-        segmenter = ensure_segmenter(out, OWN_CUTS[condition], data, scale, log)
-        target = scale.own_cuts_accuracy or scale.segmenter_label_accuracy
-        calibration = calibrate_on_own_cuts(segmenter.model, data.val, target)
-        found = _found_segments(out, OWN_CUTS[condition], segmenter, data, log)
+            target = scale.own_cuts_accuracy or scale.segmenter_label_accuracy
+            calibration = calibrate_on_own_cuts(segmenter.model, data.val, target)
+            score, threshold = segment_probability, calibration.threshold
+            how = (
+                f"own-cut threshold {threshold:.3f} for {target:.0%}: {calibration.coverage:.0%} of the "
+                f"{calibration.num_segments} val cuts kept, {calibration.accuracy_kept:.0%} right"
+            )
+        else:
+            score, threshold = (lambda s: s.confidence), segmenter.label_threshold
+            how = f"label threshold {threshold:.3f}"
         added = AddedSegments(
             condition,
             {
-                episode_id: [s for s in segments if segment_probability(s) >= calibration.threshold]
+                episode_id: [s for s in segments if score(s) >= threshold]
                 for episode_id, segments in found.by_episode.items()
             },
         )
-        log(
-            f"  {condition}: {added.count} of {found.count} segments kept (own-cut threshold "
-            f"{calibration.threshold:.3f} for {target:.0%}: {calibration.coverage:.0%} of the "
-            f"{calibration.num_segments} val cuts kept, {calibration.accuracy_kept:.0%} right)"
-        )
-    else:
-        method = SEGMENTER_CONDITIONS.get(condition, condition)
-        segmenter = ensure_segmenter(out, method, data, scale, log)
-        found = _found_segments(out, method, segmenter, data, log)
-        by_episode = {
-            episode_id: [s for s in segments if s.confidence >= segmenter.label_threshold]
-            for episode_id, segments in found.by_episode.items()
-        }
-        added = AddedSegments(condition, by_episode)
-        log(f"  {condition}: {added.count} of {found.count} segments kept from play")
+        log(f"  {condition}: {added.count} of {found.count} segments kept from play ({how})")
     path.parent.mkdir(parents=True, exist_ok=True)
     added.save(path)
     return added

@@ -257,8 +257,9 @@ def calibrate_on_own_cuts(
 ) -> LabelCalibration:
     """The lowest `segment_probability` whose kept own cuts of the held-out annotated ``episodes`` are
     labelled right for ``target_accuracy`` of them, a cut being right when its label is the true
-    instruction of the most of its steps (`majority_instructions`; ``cuts``: `own_cuts` already computed). Coverage and accuracies are
-    over the cuts; +inf when no threshold reaches the target (`calibrate_threshold`)."""
+    instruction of the most of its steps (`majority_instructions`; ``cuts``: `own_cuts` already
+    computed). Coverage and accuracies are over the cuts; +inf when no threshold reaches the target
+    (`calibrate_threshold`)."""
     scores, correct = [], []
     for episode, cut in own_cuts(model, episodes) if cuts is None else cuts:
         scores += [segment_probability(s) for s in cut]
