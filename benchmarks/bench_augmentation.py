@@ -28,7 +28,7 @@ from playseg_core.domains.babyai.imitation import Demonstration, PolicyTrainConf
 from playseg_core.domains.babyai.learner import demonstration
 from playseg_core.domains.babyai.play import PlayConfig, generate_episode
 from playseg_core.domains.babyai.policy import PolicyConfig
-from playseg_core.ps.labelling import keep_confident
+from playseg_core.ps.labelling import KeepRule
 from playseg_core.ps.model import load_model
 from playseg_core.ps.segmentation import segment_episode
 
@@ -67,15 +67,15 @@ def main() -> None:
     )
 
     model, extra = load_model(args.model, kinds=("ps",))
-    threshold = float(extra.get("calibration", {}).get("threshold", 0.0))
+    rule = KeepRule.of_checkpoint("label", extra, args.model)
     started = time.perf_counter()
     extracted = []
     for episode in play:
-        segments = keep_confident(segment_episode(model, episode), threshold)
+        segments = [s for s in segment_episode(model, episode) if rule.keeps(s)]
         extracted.append(episode.with_segments(segments))
     truth_count = sum(len(e.segments) for e in play)
     print(
-        f"PS extracted {sum(len(e.segments) for e in extracted)} segments (label threshold {threshold:.3f}; "
+        f"PS extracted {sum(len(e.segments) for e in extracted)} segments ({rule.describe()}; "
         f"{truth_count} true) in {time.perf_counter() - started:.0f} s"
     )
     settings = {

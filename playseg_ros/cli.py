@@ -28,6 +28,14 @@ CheckpointError; OSError a missing, unreadable or unwritable path or a full disk
 SEGMENTATION_METHODS = ("ps", "unloc", "tridet", "random", "changepoint")
 LABEL_HEADS = ("linear", "text")
 """playseg_core.ps.model.LABEL_HEADS, spelt here so that parsing the command line imports no torch."""
+KEEP_RULE_CHOICES = ("label", "own_cuts", "all")
+"""playseg_core.ps.labelling.KEEP_RULES' names, spelt here for the same reason."""
+KEEP_HELP = (
+    "which segments are kept: label (default: label confidence >= the threshold calibrated on the val "
+    "split's true cuts, the paper's filter), own_cuts (label x cut probability >= the threshold "
+    "calibrated on the model's own cuts of the val episodes; PS; better where its cuts of play are often "
+    "pieces of tasks: docs/segmentation.md 'Calibration'), all"
+)
 """`--method` of train and segment: the names of playseg_core.baselines.registry.METHODS (listed here so
 `playseg --help` need not import torch; tests/test_baselines_cli.py checks they agree)."""
 
@@ -210,6 +218,7 @@ def _cmd_segment(args: argparse.Namespace) -> int:
         args.keep_incomplete,
         args.method,
         args.seed,
+        args.keep,
     )
 
 
@@ -331,6 +340,7 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
         help="the method --model was trained for with `playseg train --method` (default ps)",
     )
     segment.add_argument("--seed", type=int, default=0, help="seed of the random windows (not ps)")
+    segment.add_argument("--keep", default="label", choices=KEEP_RULE_CHOICES, help=KEEP_HELP)
     segment.set_defaults(func=_cmd_segment)
     evaluate = sub.add_parser("evaluate", help="metrics of segmented play against the ground truth")
     evaluate.add_argument("--pred", required=True, help="output of `playseg segment`")
@@ -353,10 +363,14 @@ def _cmd_convert(args: argparse.Namespace) -> int:
         return 0
     if not args.out:
         raise ValueError("--out is required (the dataset directory to write)")
-    if args.method and not args.segment:
-        raise ValueError("--method names the method of the --segment model; give --segment MODEL")
+    if (args.method or args.keep) and not args.segment:
+        raise ValueError("--method and --keep are about the --segment model; give --segment MODEL")
     mapping = load_mapping(args.mapping) if args.mapping else None
-    segmentation = SegmentationSpec.of(args.segment, args.method or "ps") if args.segment else None
+    segmentation = (
+        SegmentationSpec.of(args.segment, args.method or "ps", keep=args.keep or "label")
+        if args.segment
+        else None
+    )
     summary = convert(
         args.bags, args.out, mapping, args.workers, args.overwrite, not args.quiet, output_format=args.format,
         segmentation=segmentation, engine=args.engine, address=args.address,
@@ -388,11 +402,12 @@ def _add_convert_command(sub: argparse._SubParsersAction) -> None:
         "--segment",
         metavar="MODEL",
         help="segment the unannotated episodes with this checkpoint (kept: segments whose label confidence "
-        "reaches its calibrated threshold); annotated episodes keep their human labels",
+        "reaches its calibrated threshold, or as --keep says); annotated episodes keep their human labels",
     )
     convert.add_argument(
         "--method", choices=SEGMENTATION_METHODS, help="the --segment checkpoint's method (default: ps)"
     )
+    convert.add_argument("--keep", choices=KEEP_RULE_CHOICES, help=f"with --segment: {KEEP_HELP}")
     convert.add_argument("--workers", type=int, default=1, help="bags converted in parallel (processes)")
     convert.add_argument(
         "--engine",

@@ -198,7 +198,7 @@ def run_robot_half(bags_dir: Path, run_dir: Path, model: Path) -> RobotHalfResul
     from playseg_core.ps.metrics import evaluate, format_metrics_table
     from playseg_ros.convert import SegmentationSpec, convert, load_mapping
     from playseg_ros.convert.run import playseg_copy
-    from playseg_ros.convert.segmenting import label_threshold
+    from playseg_ros.convert.segmenting import keep_rule
     from playseg_ros.play_bags import read_segment_bag
 
     tabletop = bags_dir / "tabletop"
@@ -237,9 +237,9 @@ def run_robot_half(bags_dir: Path, run_dir: Path, model: Path) -> RobotHalfResul
     copy = PlayDataset.open(playseg_copy(lerobot_dir))
     by_id = {record.episode_id: index for index, record in enumerate(copy.records)}
     stored = copy.segments(by_id[truth.episode_id], truth=True) if truth.episode_id in by_id else []
-    # The segmenter publishes every segment; convert stores those at or above the model's label threshold.
-    threshold = label_threshold(segmentation)
-    confident = [s for s in live if s.confidence >= threshold]
+    # The segmenter publishes every segment; convert stores those its keep rule keeps (the label threshold).
+    rule = keep_rule(segmentation)
+    confident = [s for s in live if rule.keeps(s)]
     same = [(s.start, s.end, s.instruction) for s in stored] == [
         (s.start, s.end, s.instruction) for s in confident
     ]
@@ -252,7 +252,7 @@ def run_robot_half(bags_dir: Path, run_dir: Path, model: Path) -> RobotHalfResul
         "recall": metrics["boundary_recall_tol0"],
         "f1_tol2": metrics["boundary_f1_tol2"],
         "label_accuracy": metrics["label_accuracy"],
-        "label_threshold": threshold,
+        "label_threshold": rule.threshold,
         "stored_segments": len(stored),
         "live_equals_convert": same,
         "lerobot": {"path": str(lerobot_dir), **_lerobot_summary(lerobot_dir)},

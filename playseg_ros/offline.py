@@ -359,11 +359,14 @@ def segment(
     keep_incomplete: bool = False,
     method: str = "ps",
     seed: int = 0,
+    keep: str = "label",
 ) -> int:
     """Segment every episode of the input; write a dataset of labelled segments (and a bag for bags).
 
     ``method`` is the segmentation method the checkpoint is for (playseg_core/baselines/registry.py);
-    ``seed`` draws the random windows of the methods that use them.
+    ``seed`` draws the random windows of the methods that use them. The dataset holds every segment (with
+    its label confidence and log-score, for `evaluate`); the segment bag only those the ``keep`` rule
+    (ps/labelling.py `KEEP_RULES`) keeps, which the dataset's meta records.
     Streams: one episode in memory at a time, the segment bag written as the segments come.
     """
     from playseg_core.baselines.common import SegmentOptions
@@ -382,8 +385,9 @@ def segment(
     episodes, info, kind = _input_episodes(source, splits, camera, keep_incomplete)
     if info.features is not None:
         model.check_features(info.features, f"model {model_path}")
-    threshold = model.label_threshold
-    meta = {"segmented_by": str(model_path), "source": str(source), "label_threshold": threshold}
+    rule = model.keep_rule(keep)
+    meta = {"segmented_by": str(model_path), "source": str(source), "keep": rule.to_json()}
+    meta |= {"label_threshold": model.label_threshold}
     meta |= {"method": method, "tiles": model.tiles}  # evaluate: only precision and label accuracy if not
     instructions = info.instructions or tuple(model.instructions)
     unknown = sorted(set(model.instructions) - set(instructions))
@@ -392,7 +396,7 @@ def segment(
             f"{source}: model {model_path} labels instructions the data does not list: {unknown[:3]}"
         )
     model_id = Path(model_path).name
-    started, steps, count = time.perf_counter(), 0, 0
+    started, steps, count, kept = time.perf_counter(), 0, 0, 0
     with DatasetWriter(
         out, instructions, meta, overwrite=overwrite, features=info.features, domain=info.domain
     ) as writer:
@@ -401,17 +405,15 @@ def segment(
 
         def confident_clips() -> Iterator[SegmentClip]:
             """Segment episode by episode, writing each to the dataset; yield the confident clips."""
-            nonlocal steps, count
+            nonlocal steps, count, kept
             for episode in episodes:
                 segments = model.segment(episode)
                 writer.add(episode.with_segments(segments), "play", extra={"source": kind})
                 steps += episode.num_steps
                 count += len(segments)
-                yield from (
-                    SegmentClip.from_episode(episode, s, model_id)
-                    for s in segments
-                    if s.confidence >= threshold
-                )
+                confident = [s for s in segments if rule.keeps(s)]
+                kept += len(confident)
+                yield from (SegmentClip.from_episode(episode, s, model_id) for s in confident)
 
         if kind == "bag":
             from playseg_ros.play_bags import write_segment_bag
@@ -424,7 +426,7 @@ def segment(
     seconds = time.perf_counter() - started
     print(
         f"{out}: {count} segments from {writer.num_episodes} episodes ({steps} steps) in {seconds:.1f} s "
-        f"({steps / max(seconds, 1e-9):.0f} steps/s)"
+        f"({steps / max(seconds, 1e-9):.0f} steps/s); {kept} kept by {rule.describe()}"
     )
     if kind == "bag":
         print(f"{Path(out) / 'segments_bag'}: {bag.message_count} LabelledSegment messages")

@@ -14,9 +14,10 @@ from test_baselines import FEATURES, INSTRUCTIONS, synthetic_episode
 from playseg_core.baselines.registry import METHODS
 from playseg_core.checkpoint import read_checkpoint
 from playseg_core.data.dataset import DatasetWriter, PlayDataset
+from playseg_core.ps.labelling import KEEP_RULES
 from playseg_core.ps.model import LABEL_HEADS
+from playseg_ros.cli import KEEP_RULE_CHOICES, SEGMENTATION_METHODS
 from playseg_ros.cli import LABEL_HEADS as CLI_LABEL_HEADS
-from playseg_ros.cli import SEGMENTATION_METHODS
 from playseg_ros.cli import main as cli_main
 
 torch.set_num_threads(1)
@@ -32,9 +33,10 @@ def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-def test_the_command_line_offers_the_registry_methods_and_label_heads() -> None:
+def test_the_command_line_offers_the_registry_methods_label_heads_and_keep_rules() -> None:
     assert SEGMENTATION_METHODS == tuple(METHODS)
     assert CLI_LABEL_HEADS == LABEL_HEADS
+    assert KEEP_RULE_CHOICES == tuple(KEEP_RULES)
 
 
 @pytest.mark.parametrize("method", list(METHODS))

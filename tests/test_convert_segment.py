@@ -12,6 +12,7 @@ import torch
 from test_convert import RobotBag, write_mapping, write_rosbag2
 
 from playseg_core.data.dataset import PlayDataset
+from playseg_core.data.episode import Episode
 from playseg_core.data.features import Features
 from playseg_core.ps.model import PSModel, load_model, save_model
 from playseg_core.ps.segmentation import segment_episode
@@ -21,21 +22,33 @@ from playseg_ros.cli import main
 MODEL_INSTRUCTIONS = ["reach", "push", "wave"]
 
 
-def untrained_model(path: Path, features: Features, episode, threshold: float | None = None) -> Path:
+def untrained_model(
+    path: Path, features: Features, episode, threshold: float | None = None, own_cuts: float | None = None
+) -> Path:
     """An untrained PS model over the converted features (it cuts arbitrarily, which is all equality
-    needs); ``threshold`` is stored as its calibrated label threshold."""
+    needs); ``threshold`` is stored as its calibrated label threshold, ``own_cuts`` as its own-cut one."""
     torch.manual_seed(0)
     config = model_config_for(
         features, None, len(MODEL_INSTRUCTIONS), max_len=8, episodes=[episode], min_len=2
     )
     model = PSModel(config, MODEL_INSTRUCTIONS)
-    save_model(path, model, {"calibration": {"threshold": threshold} if threshold is not None else {}})
+    meta = {"calibration": {"threshold": threshold} if threshold is not None else {}}
+    if own_cuts is not None:
+        meta["own_cuts_calibration"] = {"threshold": own_cuts}
+    save_model(path, model, meta)
     return path
 
 
 def convert_cli(bags: list[Path], out: Path, mapping: Path, *extra: str) -> int:
     args = ["convert", *map(str, bags), "--out", str(out), "--mapping", str(mapping), "--quiet", *extra]
     return main(args)
+
+
+def converted_play(bags: dict[str, Path], tmp_path: Path) -> tuple[PlayDataset, Episode]:
+    """The play bag converted without a model, and its episode: what the model will be given."""
+    assert convert_cli([bags["play"]], tmp_path / "plain", bags["mapping"]) == 0
+    plain = PlayDataset.open(tmp_path / "plain")
+    return plain, plain.episode(0, truth=True)
 
 
 @pytest.fixture(scope="module")
@@ -52,10 +65,7 @@ def bags(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 def test_unannotated_episodes_get_the_models_segments_above_its_threshold(
     bags: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    # The converted episode without a model: what the model will be given.
-    assert convert_cli([bags["play"]], tmp_path / "plain", bags["mapping"]) == 0
-    plain = PlayDataset.open(tmp_path / "plain")
-    episode = plain.episode(0, truth=True)
+    plain, episode = converted_play(bags, tmp_path)
     assert plain.records[0].split == "play" and episode.segments == []
     probe = untrained_model(tmp_path / "probe.pt", plain.features, episode)
     model, _ = load_model(probe)
@@ -94,10 +104,11 @@ def test_unannotated_episodes_get_the_models_segments_above_its_threshold(
         (12, 25, "put the cup down", 1.0),
     ]
     assert "annotated:0" in captured.err and "kept its human labels, not segmented" in captured.err
-    assert "below the label threshold" in captured.err
+    assert f"not stored (kept: label confidence >= {threshold:.3f})" in captured.err
     assert f"{len(expected) + 2} segments ({len(expected)} by the model)" in captured.out
     meta = dataset.info["meta"]["convert"]["segmentation"]
     assert meta["method"] == "ps" and meta["label_threshold"] == pytest.approx(threshold)
+    assert meta["keep"]["rule"] == "label" and meta["keep"]["threshold"] == pytest.approx(threshold)
 
     # Resuming: the same model skips both bags; another model is refused (not mixed into the dataset).
     args = ([bags["play"], bags["annotated"]], tmp_path / "data", bags["mapping"])
@@ -134,3 +145,40 @@ def test_a_model_that_cannot_read_the_bag_fails_that_bag_in_one_line(
     assert "--segment nope.pt: no such checkpoint file" in capsys.readouterr().err
     assert convert_cli([bags["play"]], tmp_path / "x", bags["mapping"], "--method", "ps") == 1
     assert "give --segment MODEL" in capsys.readouterr().err
+
+
+def test_keep_own_cuts_stores_the_segments_the_own_cut_threshold_keeps(
+    bags: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from playseg_core.ps.labelling import segment_probability
+
+    plain, episode = converted_play(bags, tmp_path)
+    label_only = untrained_model(tmp_path / "label.pt", plain.features, episode, threshold=0.0)
+    model, _ = load_model(label_only)
+    found = segment_episode(model, episode, min_len=model.cfg.min_len)
+    scores = sorted(segment_probability(s) for s in found)
+    own = float(np.median(scores))
+    expected = [s for s in found if segment_probability(s) >= own]
+    assert 0 < len(expected) < len(found)
+    # A checkpoint calibrated before the own-cut calibration existed: one line, before any bag is read.
+    capsys.readouterr()
+    args = ([bags["play"]], tmp_path / "data", bags["mapping"])
+    assert convert_cli(*args, "--segment", str(label_only), "--keep", "own_cuts") == 1
+    err = capsys.readouterr().err
+    assert "records no own-cut calibration" in err and str(label_only) in err and "Traceback" not in err
+    assert not (tmp_path / "data").exists()
+    assert convert_cli(*args, "--keep", "own_cuts") == 1
+    assert "give --segment MODEL" in capsys.readouterr().err
+
+    model_path = untrained_model(tmp_path / "ps.pt", plain.features, episode, threshold=0.0, own_cuts=own)
+    assert convert_cli(*args, "--segment", str(model_path), "--keep", "own_cuts") == 0
+    dataset = PlayDataset.open(tmp_path / "data")
+    stored = dataset.segments(0, truth=True)
+    assert [(s.start, s.end, s.instruction) for s in stored] == [
+        (s.start, s.end, s.instruction) for s in expected
+    ]
+    meta = dataset.info["meta"]["convert"]["segmentation"]
+    assert meta["keep"] == {"rule": "own_cuts", "threshold": own, "score": "label x cut probability"}
+    # The same model kept by another rule is another segmentation: not mixed into this dataset.
+    assert convert_cli(*args, "--segment", str(model_path)) == 1
+    assert "segmented by" in capsys.readouterr().err

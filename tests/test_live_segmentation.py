@@ -142,6 +142,21 @@ def test_malformed_steps_are_logged_and_the_node_keeps_running(tmp_path, model_p
     assert {s.episode_id for s in collector.segments} == {good.episode_id}
 
 
+def test_a_keep_rule_the_checkpoint_has_no_threshold_for_fails_configure_in_one_line(tmp_path, model_path):
+    segmenter = _start(tmp_path, "segmenter", model=str(model_path), keep="own_cuts")
+    log = tmp_path / "segmenter.log"
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and "own-cut calibration" not in log.read_text():
+            time.sleep(0.2)
+        assert segmenter.processes["segmenter"].poll() is None  # unconfigured, still there to retry
+    finally:
+        segmenter.stop()
+    text = log.read_text()
+    assert f"segmenter: model {model_path}: records no own-cut calibration" in text, text[-2000:]
+    assert "Traceback" not in text
+
+
 def test_reference_form_segments_give_the_trainer_the_same_buffer_as_embedded_ones(tmp_path, model_path):
     """Two pipelines on the same play: segmenter (embedded form) -> trainer, and segmenter (reference form)
     + recorder -> trainer. The reference segments carry no steps (a few hundred bytes); their trainer

@@ -16,6 +16,7 @@ import torch
 from playseg_core.data.dataset import PlayDataset
 from playseg_core.data.features import ACTION, Feature
 from playseg_core.domains.babyai.spec import CAMERA
+from playseg_core.ps.labelling import segment_probability
 from playseg_core.ps.model import load_model
 from playseg_ros.cli import main as cli_main
 from playseg_ros.offline import _action_features
@@ -80,6 +81,17 @@ def test_train_calibrate_segment_evaluate(tiny_data: Path, tmp_path: Path, capsy
     assert cli_main(["evaluate", "--pred", str(pred), "--truth", str(tiny_data), "--plot-episodes", "0"]) == 0
     metrics = json.loads((pred / "metrics.json").read_text())
     assert 0.0 <= metrics["boundary_precision_tol0"] <= 1.0 and metrics["episodes"] == len(segmented)
+    assert segmented.info["meta"]["keep"]["rule"] == "label"
+    # Kept by the own-cut threshold: the dataset holds every segment, the meta says which are kept.
+    capsys.readouterr()
+    assert cli_main([*segment_argv(model, tiny_data, tmp_path / "own"), "--keep", "own_cuts"]) == 0
+    own = PlayDataset.open(tmp_path / "own")
+    keep = own.info["meta"]["keep"]
+    assert keep["rule"] == "own_cuts" and keep["threshold"] == own_threshold["threshold"]
+    every = [s for i in range(len(own)) for s in own.segments(i, truth=True)]
+    kept = sum(segment_probability(s) >= keep["threshold"] for s in every)
+    assert f"{len(every)} segments from" in (out := capsys.readouterr().out)
+    assert f"; {kept} kept by label x cut probability >= {keep['threshold']:.3f}" in out
 
 
 def test_end_lookahead_reaches_the_checkpoint_and_segmenting(tiny_data: Path, tmp_path: Path, capsys) -> None:

@@ -20,11 +20,10 @@ from playseg_core.ps.calibration import (
     calibrate_threshold,
     check_own_cuts,
     majority_instructions,
-    segment_probability,
     steps_labelled_right,
 )
 from playseg_core.ps.decoding import OnlineDecoder
-from playseg_core.ps.labelling import keep_confident, label_segments
+from playseg_core.ps.labelling import KeepRule, label_segments, segment_probability
 from playseg_core.ps.metrics import evaluate
 from playseg_core.ps.segmentation import segment_episode
 
@@ -108,7 +107,7 @@ def test_calibrated_threshold_keeps_accurate_items_on_random_data() -> None:
     assert 0.6 < threshold < 0.95  # most of the mass above 0.8 is needed for 90% accuracy
 
 
-def test_calibrate_on_annotated_and_keep_confident() -> None:
+def test_calibrate_on_annotated_and_keep_by_label() -> None:
     model = tiny_ps_model(max_len=5)
     episodes = [synthetic_episode(s, num_segments=3) for s in range(3)]
     calibration = calibrate_on_annotated(model, episodes, target_accuracy=0.5)
@@ -116,7 +115,7 @@ def test_calibrate_on_annotated_and_keep_confident() -> None:
     if math.isfinite(calibration.threshold):
         assert calibration.accuracy_kept >= 0.5
     segments = segment_episode(model, episodes[0])
-    kept = keep_confident(segments, calibration.threshold)
+    kept = [s for s in segments if KeepRule("label", calibration.threshold).keeps(s)]
     assert all(s.confidence >= calibration.threshold for s in kept)
 
 
@@ -192,6 +191,28 @@ def test_own_cut_calibration_chooses_a_threshold_on_the_model_s_own_segmentation
     unannotated = [episode.with_segments([]) for episode in episodes]
     with pytest.raises(ValueError, match="annotated episodes"):
         calibrate_on_own_cuts(model, unannotated, target_accuracy=0.5)
+
+
+def test_keep_rules_score_and_threshold_as_the_checkpoint_records_them() -> None:
+    meta = {"calibration": {"threshold": 0.6}, "own_cuts_calibration": {"threshold": 0.3}}
+    sure_label_bad_cut = Segment(0, 4, "a", 0.9, math.log(0.1))  # own-cut score 0.09
+    sure_both = Segment(4, 8, "a", 0.7, math.log(0.5))  # 0.35
+    unsure = Segment(8, 9, "b", 0.4, 0.0)  # 0.4
+    segments = [sure_label_bad_cut, sure_both, unsure]
+    label = KeepRule.of_checkpoint("label", meta, "m.pt")
+    own = KeepRule.of_checkpoint("own_cuts", meta, "m.pt")
+    assert (label.threshold, own.threshold) == (0.6, 0.3)
+    assert [s for s in segments if label.keeps(s)] == [sure_label_bad_cut, sure_both]
+    assert [s for s in segments if own.keeps(s)] == [sure_both, unsure]
+    assert all(KeepRule.of_checkpoint("all", meta, "m.pt").keeps(s) for s in segments)
+    assert own.describe() == "label x cut probability >= 0.300"
+    assert own.to_json()["rule"] == "own_cuts"
+    # A checkpoint calibrated before the own-cut calibration existed: one line naming it.
+    assert KeepRule.of_checkpoint("label", {}, "old.pt").threshold == 0.0
+    with pytest.raises(ValueError, match="old.pt: records no own-cut calibration"):
+        KeepRule.of_checkpoint("own_cuts", {"calibration": {"threshold": 0.6}}, "old.pt")
+    with pytest.raises(ValueError, match="keep rule must be one of label, own_cuts, all"):
+        KeepRule("confident")
 
 
 def test_steps_labelled_right_count_only_steps_the_truth_labels_the_same() -> None:

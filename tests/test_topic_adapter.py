@@ -63,8 +63,8 @@ def test_live_steps_and_segments_equal_playseg_convert_segment(
     peer.node.create_subscription(PlayStep, "/play/steps", steps.append, qos.PLAY_STEPS)
     peer.node.create_subscription(LabelledSegment, "/segments", segments.append, qos.SEGMENTS)
     segmenter, segmenter_log = procs.node(
-        "segmenter", "segmenter", model=str(model_path), min_confidence=threshold
-    )
+        "segmenter", "segmenter", model=str(model_path), keep="label"
+    )  # the checkpoint's label threshold, as convert --segment keeps by default
     adapter, adapter_log = procs.node(
         "topic_adapter",
         "adapter",

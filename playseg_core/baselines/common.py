@@ -16,6 +16,7 @@ import zlib
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -27,6 +28,7 @@ from playseg_core.data.episode import Episode, Segment
 from playseg_core.data.features import Features
 from playseg_core.ps.calibration import LABEL_ACCURACY_TARGET, check_target_accuracy
 from playseg_core.ps.encoders import EncoderSpec, StepEncoders, as_tensors
+from playseg_core.ps.labelling import KeepRule
 from playseg_core.ps.metrics import LabelCounts, label_accuracy
 
 
@@ -107,7 +109,20 @@ class Segmenter:
     instructions: list[str]
     features: Features  # what the model reads, as its training data declared it
     feature_names: list[str]  # the features it actually reads
-    label_threshold: float = 0.0  # confidence a segment needs to be used (calibrated; 0: all)
+    # The checkpoint's calibration records (PS: "calibration", "own_cuts_calibration"), which the keep
+    # rules' thresholds come from; none: keep by label at threshold 0 (all).
+    calibration: Mapping[str, Any] = MappingProxyType({})
+    source: str = "the checkpoint"  # its path, for errors
+
+    def keep_rule(self, kind: str) -> KeepRule:
+        """Which of its segments to use (ps/labelling.py `KEEP_RULES`), with this checkpoint's threshold;
+        ValueError naming the checkpoint when it has no calibration for ``kind``."""
+        return KeepRule.of_checkpoint(kind, self.calibration, self.source)
+
+    @property
+    def label_threshold(self) -> float:
+        """The label confidence a segment needs to be used (the paper's filter; 0 when uncalibrated)."""
+        return self.keep_rule("label").threshold
 
     def check_features(self, data: Features, what: str) -> None:
         """FeatureError naming the first feature the method reads that ``data`` lacks or declares otherwise."""

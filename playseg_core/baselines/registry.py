@@ -38,13 +38,15 @@ class PlaySegmenter(Segmenter):
     method = "ps"
     tiles = True
 
-    def __init__(self, model: PSModel, meta: dict[str, Any], options: SegmentOptions) -> None:
+    def __init__(
+        self, model: PSModel, meta: dict[str, Any], options: SegmentOptions, source: str = "the PS model"
+    ) -> None:
         self.model = model.eval()
         self.instructions = model.instructions
         self.features = model.cfg.features
         self.feature_names = model.cfg.feature_names
         self.min_len = options.min_len or model.cfg.min_len
-        self.label_threshold = float(meta.get("calibration", {}).get("threshold", 0.0))
+        self.calibration, self.source = meta, source
 
     def segment(self, episode: Episode) -> list[Segment]:
         from playseg_core.ps.segmentation import segment_episode
@@ -75,7 +77,7 @@ def train_play_segmentation(data: TrainingData, options: TrainOptions) -> Traine
 
 def load_play_segmenter(path: str | Path, options: SegmentOptions) -> PlaySegmenter:
     model, meta = load_model(path, kinds=("ps",))
-    return PlaySegmenter(model, meta, options)
+    return PlaySegmenter(model, meta, options, f"checkpoint {path}")
 
 
 @dataclass(frozen=True)

@@ -359,22 +359,23 @@ def _ensure_added(
         segmenter = ensure_segmenter(out, method, data, scale, log)
         found = _found_segments(out, method, segmenter, data, log)
         if condition in OWN_CUTS:
-            from playseg_core.ps.calibration import calibrate_on_own_cuts, segment_probability
+            from playseg_core.ps.calibration import calibrate_on_own_cuts
+            from playseg_core.ps.labelling import KeepRule
 
             target = scale.own_cuts_accuracy or scale.segmenter_label_accuracy
             calibration = calibrate_on_own_cuts(segmenter.model, data.val, target)
-            score, threshold = segment_probability, calibration.threshold
+            rule = KeepRule("own_cuts", calibration.threshold)
             how = (
-                f"own-cut threshold {threshold:.3f} for {target:.0%}: {calibration.coverage:.0%} of the "
+                f"{rule.describe()} for {target:.0%}: {calibration.coverage:.0%} of the "
                 f"{calibration.num_segments} val cuts kept, {calibration.accuracy_kept:.0%} right"
             )
         else:
-            score, threshold = (lambda s: s.confidence), segmenter.label_threshold
-            how = f"label threshold {threshold:.3f}"
+            rule = segmenter.keep_rule("label")
+            how = rule.describe()
         added = AddedSegments(
             condition,
             {
-                episode_id: [s for s in segments if score(s) >= threshold]
+                episode_id: [s for s in segments if rule.keeps(s)]
                 for episode_id, segments in found.by_episode.items()
             },
         )

@@ -28,7 +28,7 @@ import torch
 
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.ps.decoding import decode_segments
-from playseg_core.ps.labelling import label_segments
+from playseg_core.ps.labelling import label_segments, segment_probability
 from playseg_core.ps.metrics import BoundaryCounts, match_boundaries
 from playseg_core.ps.model import LabelModel, PSModel
 from playseg_core.ps.segmentation import segment_episode
@@ -229,14 +229,6 @@ def own_cuts(model: PSModel, episodes: Iterable[Episode]) -> list[tuple[Episode,
         for episode in episodes
         if episode.segments
     ]
-
-
-def segment_probability(segment: Segment) -> float:
-    """The model's probability that ``segment``, given its start, is exactly right: its label's
-    probability times its cut's, s(i, j) (no end before j and an end at j; ``Segment.log_prob``). The
-    label probability alone is what the true-cut threshold reads; on the model's own cuts the cut can be
-    wrong too (half a task, two tasks), and this score ranks those pieces low."""
-    return segment.confidence * math.exp(segment.log_prob)
 
 
 def majority_instructions(

@@ -1,13 +1,23 @@
-"""Labelling extracted segments, and keeping those whose label is confident enough.
+"""Labelling extracted segments, and which of them are kept for training (`KeepRule`).
 
-A segment's confidence is the probability of its predicted instruction. The threshold comes from
-calibration.py (chosen on held-out annotated data for a target label accuracy); applied to extracted
-segments, it trades coverage for label quality before policy training.
+A segment's confidence is the probability of its predicted instruction. A keep rule is a score and a
+threshold from calibration.py, chosen on held-out annotated data for a target label accuracy; applied to
+extracted segments, it trades coverage for label quality before policy training. The rules:
+
+- ``label``: label confidence >= the threshold chosen on the *true* cuts of the val episodes (the
+  paper's filter; ``calibration`` in a checkpoint's record);
+- ``own_cuts``: label x cut probability (`segment_probability`) >= the threshold chosen on the model's
+  *own* cuts of the val episodes (``own_cuts_calibration``; PS only): what to use when the model's cuts
+  of play are often pieces of tasks, which the label confidence cannot see;
+- ``all``: every segment.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -33,6 +43,56 @@ def label_segments(
     return labelled
 
 
-def keep_confident(segments: Iterable[Segment], threshold: float) -> list[Segment]:
-    """The segments whose label confidence reaches the calibrated threshold."""
-    return [seg for seg in segments if seg.confidence >= threshold]
+def segment_probability(segment: Segment) -> float:
+    """The model's probability that ``segment``, given its start, is exactly right: its label's
+    probability times its cut's, s(i, j) (no end before j and an end at j; ``Segment.log_prob``). The
+    label probability alone is what the true-cut threshold reads; on the model's own cuts the cut can be
+    wrong too (half a task, two tasks), and this score ranks those pieces low."""
+    return segment.confidence * math.exp(segment.log_prob)
+
+
+KEEP_RULES: dict[str, tuple[str, str]] = {
+    "label": ("calibration", "label confidence"),
+    "own_cuts": ("own_cuts_calibration", "label x cut probability"),
+    "all": ("", "every segment"),
+}
+"""Keep rule -> (the checkpoint record holding its threshold, what its score is)."""
+
+
+@dataclass(frozen=True)
+class KeepRule:
+    """Which extracted segments are used: those whose score (`KEEP_RULES`) reaches ``threshold``."""
+
+    kind: str
+    threshold: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in KEEP_RULES:
+            raise ValueError(f"keep rule must be one of {', '.join(KEEP_RULES)}, got {self.kind!r}")
+
+    def score(self, segment: Segment) -> float:
+        return segment_probability(segment) if self.kind == "own_cuts" else segment.confidence
+
+    def keeps(self, segment: Segment) -> bool:
+        return self.kind == "all" or self.score(segment) >= self.threshold
+
+    def describe(self) -> str:
+        what = KEEP_RULES[self.kind][1]
+        return what if self.kind == "all" else f"{what} >= {self.threshold:.3f}"
+
+    def to_json(self) -> dict[str, Any]:
+        return {"rule": self.kind, "threshold": self.threshold, "score": KEEP_RULES[self.kind][1]}
+
+    @classmethod
+    def of_checkpoint(cls, kind: str, meta: Mapping[str, Any], source: str) -> KeepRule:
+        """The rule ``kind`` with the threshold the checkpoint's ``meta`` records for it. A checkpoint
+        without a label calibration keeps everything by label (threshold 0, as before calibration
+        existed); ValueError naming ``source`` when it records no own-cut calibration."""
+        rule = cls(kind)  # checks the kind
+        record = KEEP_RULES[kind][0]
+        if kind == "own_cuts" and "threshold" not in meta.get(record, {}):
+            raise ValueError(
+                f"{source}: records no own-cut calibration (a PS checkpoint calibrated by this version: "
+                "`playseg calibrate` adds it); keep by 'label' instead"
+            )
+        return cls(kind, float(meta.get(record, {}).get("threshold", 0.0))) if record else rule

@@ -243,6 +243,10 @@ def convert(
     bags = find_bags(inputs)
     if not bags:
         raise ValueError(f"{', '.join(map(str, inputs))}: no bags found")
+    if segmentation is not None:
+        from playseg_ros.convert.segmenting import keep_rule
+
+        keep_rule(segmentation)  # a checkpoint without the rule's calibration fails before any bag is read
     if segmentation is not None and workers > 1 and segmentation.threads is None:
         segmentation = replace(segmentation, threads=max(1, (os.cpu_count() or 1) // workers))
     previous = _previous_dataset(out, mapping, overwrite, segmentation)
@@ -448,9 +452,11 @@ def _merge(
 def _segmentation_meta(segmentation: SegmentationSpec | None) -> dict[str, Any] | None:
     if segmentation is None:
         return None
-    from playseg_ros.convert.segmenting import label_threshold
+    from playseg_ros.convert.segmenting import keep_rule, load_segmenter
 
-    return {**segmentation.describe(), "label_threshold": label_threshold(segmentation)}
+    rule = keep_rule(segmentation)
+    threshold = load_segmenter(segmentation).label_threshold
+    return {**segmentation.describe(), "keep": rule.to_json(), "label_threshold": threshold}
 
 
 def _unique_id(episode: Episode, bag: str, used: set[str]) -> Episode:

@@ -2,9 +2,9 @@
 segmentation model (playseg_core/baselines/registry.py: ps, unloc, tridet, random, changepoint).
 
 Which episodes: an episode without any human annotation is segmented; its segments are stored with
-their label confidence and segment log-score, keeping only those whose confidence reaches the model's
-calibrated ``label_threshold`` (0 for an uncalibrated checkpoint: all), and it stays in the ``play``
-split (the segments are predictions, not ground truth). An episode with at least one human annotation,
+their label confidence and segment log-score, keeping only those the spec's keep rule keeps
+(ps/labelling.py `KEEP_RULES`; default ``label``: confidence >= the model's calibrated label threshold,
+0 for an uncalibrated checkpoint: all), and it stays in the ``play`` split (the segments are predictions, not ground truth). An episode with at least one human annotation,
 even one covering a few of its steps, is **not** segmented: it keeps exactly its human segments (in
 ``train``), and its unannotated stretches stay unlabelled; a note says how many of its steps the
 annotations cover. Mixing predicted and human labels inside one episode would make predictions look
@@ -28,26 +28,34 @@ from playseg_ros.convert.errors import ConvertError
 
 if TYPE_CHECKING:
     from playseg_core.baselines.common import Segmenter
+    from playseg_core.ps.labelling import KeepRule
 
 
 @dataclass(frozen=True)
 class SegmentationSpec:
     """Which model segments the unannotated episodes: checkpoint, method, the seed of methods that draw
-    random windows, and a digest of all three (a dataset segmented by another model is not resumed)."""
+    random windows, which of its segments are kept (a keep rule), and a digest of all four (a dataset
+    segmented by another model, or kept by another rule, is not resumed)."""
 
     model: Path
     method: str
     seed: int
     digest: str
+    keep: str = "label"
     threads: int | None = None  # torch threads per worker (None: torch's default); not in the digest
 
     @classmethod
-    def of(cls, model: str | Path, method: str = "ps", seed: int = 0) -> SegmentationSpec:
+    def of(
+        cls, model: str | Path, method: str = "ps", seed: int = 0, keep: str = "label"
+    ) -> SegmentationSpec:
         """The spec of checkpoint ``model``; FileNotFoundError / ValueError (one line) before any bag is
-        read when the file or the method is wrong."""
+        read when the file, the method or the keep rule is wrong (the rule's threshold is checked when
+        the model is loaded: `keep_rule`)."""
         from playseg_core.baselines.registry import get_method  # torch: only when segmenting
+        from playseg_core.ps.labelling import KeepRule
 
         get_method(method)
+        KeepRule(keep)
         path = Path(model).resolve()
         if not path.is_file():
             raise FileNotFoundError(f"--segment {model}: no such checkpoint file")
@@ -55,8 +63,9 @@ class SegmentationSpec:
         with open(path, "rb") as file:
             for block in iter(lambda: file.read(1 << 20), b""):
                 digest.update(block)
-        digest.update(f"|{method}|{seed}".encode())
-        return cls(path, method, seed, digest.hexdigest())
+        # The default rule leaves the digest as it was before rules existed: those datasets resume.
+        digest.update(f"|{method}|{seed}".encode() + (b"" if keep == "label" else f"|{keep}".encode()))
+        return cls(path, method, seed, digest.hexdigest(), keep)
 
     def describe(self) -> dict[str, object]:
         """What a dataset's meta.convert records about the segmentation."""
@@ -101,7 +110,7 @@ def segment_unannotated(
             segmenter.check_features(features, f"model {spec.model}")
         except ValueError as error:
             raise ConvertError(bag, str(error)) from None
-    threshold = segmenter.label_threshold
+    rule = keep_rule(spec)
     result = SegmentedEpisodes([], 0, 0, 0, [])
     for episode in episodes:
         if episode.segments:
@@ -114,18 +123,20 @@ def segment_unannotated(
             result.episodes.append(episode)
             continue
         segments = segmenter.segment(episode)
-        kept = [s for s in segments if s.confidence >= threshold]
+        kept = [s for s in segments if rule.keeps(s)]
         result.segmented += 1
         result.model_segments += len(kept)
         result.below_threshold += len(segments) - len(kept)
         result.episodes.append(episode.with_segments(kept))
     if result.below_threshold:
         result.notes.append(
-            f"segmented by {spec.model.name}: {result.below_threshold} segment(s) below the label "
-            f"threshold {threshold:.3f} not stored"
+            f"segmented by {spec.model.name}: {result.below_threshold} segment(s) not stored (kept: "
+            f"{rule.describe()})"
         )
     return result
 
 
-def label_threshold(spec: SegmentationSpec) -> float:
-    return float(load_segmenter(spec).label_threshold)
+def keep_rule(spec: SegmentationSpec) -> KeepRule:
+    """The keep rule of ``spec`` with its model's calibrated threshold; ValueError naming the checkpoint
+    when it has none for the rule."""
+    return load_segmenter(spec).keep_rule(spec.keep)

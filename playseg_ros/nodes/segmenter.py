@@ -25,6 +25,7 @@ from playseg_msgs.msg import LabelledSegment, PlayStep
 from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 
 from playseg_core.data.features import DEFAULT_CAMERA
+from playseg_core.ps.labelling import KEEP_RULES, KeepRule
 from playseg_core.ps.model import load_model
 from playseg_core.ps.streaming import StreamingSegmenter
 from playseg_ros import qos
@@ -64,8 +65,16 @@ class SegmenterNode(ReleasingLifecycleNode):
         )
         self.steps_topic = declare(self, "steps_topic", "/play/steps", "PlayStep input topic")
         self.segments_topic = declare(self, "segments_topic", "/segments", "LabelledSegment output topic")
+        self.keep = declare(
+            self,
+            "keep",
+            "all",
+            "which segments to publish: all, label (label confidence >= the checkpoint's threshold "
+            "calibrated on true cuts), own_cuts (label x cut probability >= its threshold calibrated on its "
+            "own cuts of the val episodes: docs/segmentation.md 'Calibration')",
+        )
         self.min_confidence = declare(
-            self, "min_confidence", 0.0, "publish only segments with label confidence >= this"
+            self, "min_confidence", 0.0, "publish only segments with label confidence >= this (and kept)"
         )
         self.min_len = declare(self, "min_len", 0, "minimum segment length in steps (0 = the model's L_min)")
         self.episode_timeout_s = declare(
@@ -85,6 +94,7 @@ class SegmenterNode(ReleasingLifecycleNode):
             self, "recording_bag", "", "reference form: the recorder's bag directory (its 'output')"
         )
         self.model = None
+        self.keep_rule = KeepRule("all")  # from the checkpoint, in on_configure
         self.camera = DEFAULT_CAMERA  # the feature the PlaySteps' image is: the model's camera
         self.episodes: dict[str, _OpenEpisode] = {}
         self.finished: set[str] = set()
@@ -112,7 +122,11 @@ class SegmenterNode(ReleasingLifecycleNode):
             # absolute: the trainer resolves it from its own working directory
             self.recording_bag = os.path.abspath(self.recording_bag) if self.recording_bag else ""
             torch.set_num_threads(self.threads)
-            self.model, _ = load_model(self.model_path, kinds=("ps",))
+            self.model, meta = load_model(self.model_path, kinds=("ps",))
+            require(self.keep in KEEP_RULES, self, f"keep: {' | '.join(KEEP_RULES)}")
+            self.keep_rule = KeepRule.of_checkpoint(
+                self.keep, meta, f"{self.get_name()}: model {self.model_path}"
+            )
             self.min_len = self.min_len or self.model.cfg.min_len
             features = self.model.cfg.features
             cameras = features.cameras
@@ -131,7 +145,7 @@ class SegmenterNode(ReleasingLifecycleNode):
         form = f"reference to {self.recording_bag}" if self.reference else "embedded"
         self.get_logger().info(
             f"model {self.model_path} (L_max {self.model.max_len}); {self.steps_topic} -> {self.segments_topic} "
-            f"({form} segments)"
+            f"({form} segments; kept: {self.keep_rule.describe()})"
         )
         return TransitionCallbackReturn.SUCCESS
 
@@ -210,7 +224,7 @@ class SegmenterNode(ReleasingLifecycleNode):
             episode.first_step += drop
 
     def _publish(self, episode: _OpenEpisode, segment) -> None:
-        if segment.confidence < self.min_confidence:
+        if segment.confidence < self.min_confidence or not self.keep_rule.keeps(segment):
             return
         steps = episode.steps[segment.start - episode.first_step : segment.end - episode.first_step + 1]
         stamp = self.get_clock().now().nanoseconds
