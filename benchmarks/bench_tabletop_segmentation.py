@@ -4,8 +4,9 @@ Reads a segmented dataset (`playseg segment` output) and the dataset it came fro
 precision / recall / F1 exact, at +-2 and +-5 steps, the per-step label accuracy over covered steps (as
 `playseg evaluate`), then the errors: unmatched predicted ends at the end of an unlabelled stretch (idle
 or a failed task: the truth has no boundary there, a tiling segmenter must have one) or elsewhere,
-missed true ends, the figures when a stretch's end counts as a boundary, and the label accuracy per
-instruction family with the most frequent confusions.
+missed true ends, the figures when a stretch's end counts as a boundary, per family of the true task how
+many of its ends are found, how many of its spans are cut exactly and how many of those labelled right,
+and the label accuracy per instruction family with the most frequent confusions.
 
     .venv/bin/python benchmarks/bench_tabletop_segmentation.py --pred /tmp/ttps/seg --truth /tmp/ttps/data
 """
@@ -66,6 +67,10 @@ def main() -> None:
     confusions: Counter[tuple[str, str]] = Counter()
     family_steps: Counter[str] = Counter()
     family_correct: Counter[str] = Counter()
+    family_tasks: Counter[str] = Counter()
+    family_ends_found: Counter[str] = Counter()
+    family_exact: Counter[str] = Counter()
+    family_exact_right: Counter[str] = Counter()
     for episode_id, true_segments in truth.items():
         pred_ends = [s.end for s in pred[episode_id]]
         true_ends = [s.end for s in true_segments]
@@ -83,8 +88,14 @@ def main() -> None:
         labels: list[str | None] = [None] * steps[episode_id]
         for segment in pred[episode_id]:
             labels[segment.start : segment.end] = [segment.instruction] * segment.length
+        cut = {(s.start, s.end): s.instruction for s in pred[episode_id]}
         for segment in true_segments:
             family = task_for(segment.instruction).family
+            family_tasks[family] += 1
+            family_ends_found[family] += any(abs(segment.end - end) <= tol for end in pred_ends)
+            exact = cut.get((segment.start, segment.end))
+            family_exact[family] += exact is not None
+            family_exact_right[family] += exact == segment.instruction
             for step in range(segment.start, segment.end):
                 family_steps[family] += 1
                 if labels[step] == segment.instruction:
@@ -103,6 +114,13 @@ def main() -> None:
     recall = matched_with_stretches / truth_with_stretches if truth_with_stretches else 0.0
     f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
     print(f"  if a stretch's end were a boundary: P {precision:.3f}  R {recall:.3f}  F1 {f1:.3f}")
+    print(f"by the true task's family: its end found (+-{tol} steps), its span cut exactly, labelled right:")
+    for family in sorted(family_tasks):
+        tasks = family_tasks[family]
+        print(
+            f"  {family:<22} {tasks:5d} tasks  ends found {family_ends_found[family] / tasks:.3f}  exact spans "
+            f"{family_exact[family] / tasks:.3f}  of those labelled right {family_exact_right[family]}/{family_exact[family]}"
+        )
     print("label accuracy by family (covered steps):")
     for family in sorted(family_steps):
         print(

@@ -16,7 +16,7 @@ from playseg_core.experiment.conditions import (
     check_conditions,
     ground_truth_added,
 )
-from playseg_core.experiment.runner import ExperimentData
+from playseg_core.experiment.runner import ExperimentData, file_digest
 from playseg_ros.cli import main as cli_main
 
 CONDITIONS = "gt_start,gt_2x,gt_100,oracle_relabel,random_relabel,gt_5pct,gt_50pct"
@@ -94,6 +94,36 @@ def test_a_rerun_computes_nothing_again_and_a_run_depends_on_its_seed_only(exper
     again = json.loads((runs / "gt_2x-seed1.json").read_text())
     for key in ("success", "train_loss", "segments"):
         assert again[key] == first[key], key
+
+
+def test_a_cache_made_from_a_file_replaced_since_is_refused_as_stale(
+    experiment: Path, tmp_path: Path, capsys
+) -> None:
+    import shutil
+
+    out = tmp_path / "out"
+    shutil.copytree(experiment, out, ignore=shutil.ignore_patterns("data"))
+    (out / "data").symlink_to(experiment / "data")
+    added = AddedSegments.load(out / "added" / "oracle_relabel.json")
+    assert added.made_from == {"models/random.pt": file_digest(out / "models" / "random.pt")}
+    assert json.loads((out / "runs" / "gt_2x-seed0.json").read_text())["added_digest"] == file_digest(
+        out / "added" / "gt_2x.json"
+    )
+    argv = ["experiment", "babyai", "--scale", "tiny", "--seeds", "1", "--out", str(out)]
+    assert cli_main([*argv, "--conditions", "gt_2x,oracle_relabel"]) == 0  # all cached, all current
+    capsys.readouterr()
+    # A segmenter trained again: what its segments were made from is no longer there.
+    with open(out / "models" / "random.pt", "ab") as model:
+        model.write(b"retrained")
+    assert cli_main([*argv, "--conditions", "oracle_relabel"]) == 1
+    err = capsys.readouterr().err
+    assert f"added/oracle_relabel.json: made from another {out / 'models' / 'random.pt'}" in err
+    assert "Traceback" not in err
+    # Added segments made again: the policy runs trained on the old ones are stale.
+    gt_2x = AddedSegments.load(out / "added" / "gt_2x.json")
+    AddedSegments("gt_2x", dict(list(gt_2x.by_episode.items())[1:])).save(out / "added" / "gt_2x.json")
+    assert cli_main([*argv, "--conditions", "gt_2x"]) == 1
+    assert "runs/gt_2x-seed0.json: made from another" in capsys.readouterr().err
 
 
 def test_the_report_covers_every_cached_run_whatever_was_asked_this_time(experiment: Path) -> None:

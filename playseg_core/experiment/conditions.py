@@ -73,6 +73,9 @@ class AddedSegments:
     condition: str
     by_episode: dict[str, list[Segment]]
     start_kept: int | None = None  # how many of the start split's segments are trained on (None: all)
+    # the checkpoints the segments come from, method -> digest of its file (None: not recorded, as in
+    # files written before it was); a cache made from another checkpoint is stale
+    made_from: dict[str, str] | None = None
 
     @property
     def count(self) -> int:
@@ -85,6 +88,7 @@ class AddedSegments:
         }
         tmp = path.with_suffix(".tmp")
         record = {"condition": self.condition, "segments": rows, "start_kept": self.start_kept}
+        record["made_from"] = self.made_from
         tmp.write_text(json.dumps(record))
         tmp.replace(path)  # a cached file is always complete
 
@@ -95,7 +99,7 @@ class AddedSegments:
             episode_id: [Segment(int(r[0]), int(r[1]), str(r[2]), *map(float, r[3:5])) for r in rows]
             for episode_id, rows in data["segments"].items()
         }
-        return cls(data["condition"], by_episode, data.get("start_kept"))
+        return cls(data["condition"], by_episode, data.get("start_kept"), data.get("made_from"))
 
 
 def check_conditions(names: Sequence[str]) -> list[str]:
@@ -178,4 +182,5 @@ def balance_labels(added: AddedSegments, condition: str, start: Sequence[Episode
         episode_id: [s for index, s in enumerate(group) if (episode_id, index) in kept]
         for episode_id, group in added.by_episode.items()
     }
-    return AddedSegments(condition, {e: group for e, group in by_episode.items() if group})
+    kept_groups = {e: group for e, group in by_episode.items() if group}
+    return AddedSegments(condition, kept_groups, made_from=added.made_from)

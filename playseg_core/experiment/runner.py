@@ -9,13 +9,17 @@
     out/results.md, out/*.png the table next to the paper's figures and the plots (report.py)
 
 A stage whose file exists is not run again, and every file appears only when complete, so an
-interrupted run resumes where it stopped. Policy runs of different conditions and seeds are independent
+interrupted run resumes where it stopped. What a stage made from another stage's file records that
+file's digest (found and added segments: the checkpoints they come from; a policy run: its added
+segments), so a file made from one that has since been replaced (a segmenter trained again) is reported
+as stale, never reported under the new one. Policy runs of different conditions and seeds are independent
 and run in a process pool (``workers``); each uses one torch thread, so a run's result depends on its
 seed only, not on the number of workers.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import time
@@ -267,6 +271,32 @@ def segmenter_methods(conditions: Sequence[str]) -> list[str]:
     return list(dict.fromkeys("random" if m == "oracle_relabel" else m for m in methods))
 
 
+def file_digest(path: Path) -> str:
+    """sha256 of a file's bytes (hex)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        for block in iter(lambda: file.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _models_digest(out: Path, methods: Sequence[str]) -> dict[str, str]:
+    """What segments made by ``methods`` record they were made from: models/<method>.pt -> digest."""
+    return {f"models/{method}.pt": file_digest(out / "models" / f"{method}.pt") for method in methods}
+
+
+def _check_made_from(out: Path, path: Path, made_from: dict[str, str] | None) -> None:
+    """ValueError when a file a cached ``path`` was made from (``made_from``: path under ``out`` ->
+    digest) is no longer what it was; a file without the record is trusted, as before it was kept."""
+    for name, digest in (made_from or {}).items():
+        source = out / name
+        if not source.exists() or file_digest(source) != digest:
+            raise ValueError(
+                f"{path}: made from another {source} than the one there now (made again?); delete it and "
+                "what was made from it (out/added and out/runs of the conditions that use it) to redo them"
+            )
+
+
 def train_segmenter(out: str, method: str, scale: ExperimentScale, threads: int) -> str:
     """Train ``method`` on the start split of out/data into out/models/<method>.pt (skipped when there),
     with the scale's segmenter settings; its one-line report. A top-level function so that a process
@@ -334,7 +364,9 @@ def _ensure_added(
 ) -> AddedSegments:
     path = out / "added" / f"{condition}.json"
     if path.exists():
-        return AddedSegments.load(path)
+        added = AddedSegments.load(path)
+        _check_made_from(out, path, added.made_from)
+        return added
     if condition.startswith("gt_"):
         added = ground_truth_added(condition, data.play, data.start_segments)
     elif condition in BALANCED:
@@ -353,6 +385,7 @@ def _ensure_added(
                 )
                 for episode in data.play
             },
+            made_from=_models_digest(out, ["random"]),
         )
     else:
         method = segmenter_method(condition)
@@ -378,6 +411,7 @@ def _ensure_added(
                 episode_id: [s for s in segments if rule.keeps(s)]
                 for episode_id, segments in found.by_episode.items()
             },
+            made_from=found.made_from,
         )
         log(f"  {condition}: {added.count} of {found.count} segments kept from play ({how})")
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -390,11 +424,14 @@ def _found_segments(out: Path, method: str, segmenter: Any, data: ExperimentData
     conditions that keep different ones of them segment play once)."""
     path = out / "found" / f"{method}.json"
     if path.exists():
-        return AddedSegments.load(path)
+        found = AddedSegments.load(path)
+        _check_made_from(out, path, found.made_from)
+        return found
     began = time.perf_counter()
     found = AddedSegments(
         method,  # the segmenter never sees the truth
         {episode.episode_id: segmenter.segment(episode.with_segments([])) for episode in data.play},
+        made_from=_models_digest(out, [method]),
     )
     log(f"  {method}: play segmented in {time.perf_counter() - began:.0f} s ({found.count} segments)")
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -420,7 +457,8 @@ def run_policy(settings: RunSettings) -> dict[str, Any]:
     if path.exists():
         return json.loads(path.read_text())
     data = ExperimentData.open(out / "data")
-    added = AddedSegments.load(out / "added" / f"{settings.condition}.json")
+    added_path = out / "added" / f"{settings.condition}.json"
+    added = AddedSegments.load(added_path)
     clips = training_clips(data, added)
     config = {**settings.policy_config, "seed": settings.seed}
     learner = load_policy_learner(settings.policy, config, features=data.features)
@@ -433,6 +471,7 @@ def run_policy(settings: RunSettings) -> dict[str, Any]:
         "seed": settings.seed,
         "segments": len(clips),
         "added_segments": added.count,
+        "added_digest": file_digest(added_path),  # what it trained on: a stale run is found by it
         "success": None if evaluation is None else evaluation.success_rate,
         "eval_episodes": 0 if evaluation is None else evaluation.num_episodes,
         # episode by episode ("1" = success), for paired comparisons of conditions on the same episodes
@@ -464,6 +503,10 @@ def per_instruction_success(evaluation: Any) -> dict[str, list[int]]:
 
 def _run_policies(runs: list[RunSettings], workers: int, log) -> list[dict[str, Any]]:
     cached = [run for run in runs if run.result_path.exists()]
+    for run in cached:  # each trained on the added segments there now
+        trained_on = json.loads(run.result_path.read_text()).get("added_digest")
+        if trained_on is not None:
+            _check_made_from(Path(run.out), run.result_path, {f"added/{run.condition}.json": trained_on})
     log(f"policy runs: {len(runs)} ({len(cached)} cached), {workers} worker(s)")
     # spawn: a fresh interpreter per worker (forking a process that already ran torch can deadlock)
     pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn")) if workers > 1 else nullcontext()
