@@ -38,15 +38,13 @@ class PlaySegmenter(Segmenter):
     method = "ps"
     tiles = True
 
-    def __init__(
-        self, model: PSModel, meta: dict[str, Any], options: SegmentOptions, source: str = "the PS model"
-    ) -> None:
+    def __init__(self, model: PSModel, meta: dict[str, Any], options: SegmentOptions) -> None:
         self.model = model.eval()
         self.instructions = model.instructions
         self.features = model.cfg.features
         self.feature_names = model.cfg.feature_names
         self.min_len = options.min_len or model.cfg.min_len
-        self.calibration, self.source = meta, source
+        self.calibration = meta
 
     def segment(self, episode: Episode) -> list[Segment]:
         from playseg_core.ps.segmentation import segment_episode
@@ -77,7 +75,7 @@ def train_play_segmentation(data: TrainingData, options: TrainOptions) -> Traine
 
 def load_play_segmenter(path: str | Path, options: SegmentOptions) -> PlaySegmenter:
     model, meta = load_model(path, kinds=("ps",))
-    return PlaySegmenter(model, meta, options, f"checkpoint {path}")
+    return PlaySegmenter(model, meta, options)
 
 
 @dataclass(frozen=True)
@@ -144,4 +142,7 @@ def train_segmenter(name: str, data: TrainingData, options: TrainOptions) -> Tra
 
 
 def load_segmenter(name: str, path: str | Path, options: SegmentOptions | None = None) -> Segmenter:
-    return get_method(name).load(path, options or SegmentOptions())
+    """The segmenter of method ``name`` saved at ``path`` (its errors name the checkpoint)."""
+    segmenter = get_method(name).load(path, options or SegmentOptions())
+    segmenter.source = f"checkpoint {path}"
+    return segmenter

@@ -352,11 +352,11 @@ def _train_segmenters(out: Path, methods: list[str], scale: ExperimentScale, wor
 def ensure_segmenter(out: Path, method: str, data: ExperimentData, scale: ExperimentScale, log) -> Any:
     """The segmentation method trained on the start split (cached in out/models), loaded back."""
     from playseg_core.baselines.common import SegmentOptions
-    from playseg_core.baselines.registry import get_method
+    from playseg_core.baselines.registry import load_segmenter
 
     if not (out / "models" / f"{method}.pt").exists():
         log(f"  {train_segmenter(str(out), method, scale, RUN_THREADS)}")
-    return get_method(method).load(out / "models" / f"{method}.pt", SegmentOptions(seed=0))
+    return load_segmenter(method, out / "models" / f"{method}.pt", SegmentOptions(seed=0))
 
 
 def _ensure_added(

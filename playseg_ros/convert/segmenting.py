@@ -77,12 +77,12 @@ def _loaded(spec: SegmentationSpec) -> Segmenter:
     import torch
 
     from playseg_core.baselines.common import SegmentOptions
-    from playseg_core.baselines.registry import get_method
+    from playseg_core.baselines.registry import load_segmenter as load_method
 
     if spec.threads is not None:  # several workers on few cores: one thread each, not cores x workers
         torch.set_num_threads(spec.threads)
 
-    return get_method(spec.method).load(spec.model, SegmentOptions(seed=spec.seed))
+    return load_method(spec.method, spec.model, SegmentOptions(seed=spec.seed))
 
 
 def load_segmenter(spec: SegmentationSpec) -> Segmenter:
