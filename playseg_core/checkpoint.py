@@ -17,6 +17,7 @@ the feature. Building the model from ``config`` is the owner's job (ps/model.py,
 
 from __future__ import annotations
 
+import hashlib
 import os
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -26,6 +27,18 @@ from typing import Any, Literal
 import torch
 
 from playseg_core.data.features import FeatureError, Features
+
+
+def file_digest(path: str | Path, suffix: bytes = b"") -> str:
+    """sha256 (hex) of a file's bytes followed by ``suffix``: what a result made from a checkpoint (or
+    another file) records, so that one made from a file replaced since is found stale."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        for block in iter(lambda: file.read(1 << 20), b""):
+            digest.update(block)
+    digest.update(suffix)
+    return digest.hexdigest()
+
 
 CHECKPOINT_FORMAT = "playseg-checkpoint"
 CHECKPOINT_VERSION = 1

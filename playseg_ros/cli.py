@@ -26,6 +26,8 @@ EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError)
 CheckpointError; OSError a missing, unreadable or unwritable path or a full disk."""
 
 SEGMENTATION_METHODS = ("ps", "unloc", "tridet", "random", "changepoint")
+"""`--method` of train and segment: the names of playseg_core.baselines.registry.METHODS (listed here so
+`playseg --help` need not import torch; tests/test_baselines_cli.py checks they agree)."""
 LABEL_HEADS = ("linear", "text")
 """playseg_core.ps.model.LABEL_HEADS, spelt here so that parsing the command line imports no torch."""
 KEEP_RULE_CHOICES = ("label", "own_cuts", "all")
@@ -36,8 +38,6 @@ KEEP_HELP = (
     "calibrated on the model's own cuts of the val episodes; PS; better where its cuts of play are often "
     "pieces of tasks: docs/segmentation.md 'Calibration'), all"
 )
-"""`--method` of train and segment: the names of playseg_core.baselines.registry.METHODS (listed here so
-`playseg --help` need not import torch; tests/test_baselines_cli.py checks they agree)."""
 
 DEFAULT_DOMAIN = "babyai"
 """The domain `playseg generate` plays in unless told otherwise (the sample bags' domain)."""

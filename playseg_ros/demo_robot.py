@@ -239,9 +239,9 @@ def run_robot_half(bags_dir: Path, run_dir: Path, model: Path) -> RobotHalfResul
     stored = copy.segments(by_id[truth.episode_id], truth=True) if truth.episode_id in by_id else []
     # The segmenter publishes every segment; convert stores those its keep rule keeps (the label threshold).
     rule = keep_rule(segmentation)
-    confident = [s for s in live if rule.keeps(s)]
+    kept = [s for s in live if rule.keeps(s)]
     same = [(s.start, s.end, s.instruction) for s in stored] == [
-        (s.start, s.end, s.instruction) for s in confident
+        (s.start, s.end, s.instruction) for s in kept
     ]
     summary = {
         "bag": str(play_bag),
@@ -259,7 +259,7 @@ def run_robot_half(bags_dir: Path, run_dir: Path, model: Path) -> RobotHalfResul
     }
     (robot_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     if not same:
-        live_rows = [(s.start, s.end, s.instruction) for s in confident]
+        live_rows = [(s.start, s.end, s.instruction) for s in kept]
         stored_rows = [(s.start, s.end, s.instruction) for s in stored]
         first = next(
             (i for i, (a, b) in enumerate(zip(live_rows, stored_rows, strict=False)) if a != b),

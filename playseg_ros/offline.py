@@ -380,12 +380,12 @@ def segment(
         raise FileNotFoundError(f"--input {source}: no such bag or dataset")
     _check_not_inside(Path(out), source)
     model = load_segmenter(method, model_path, SegmentOptions(min_len=min_len, seed=seed))
+    rule = model.keep_rule(keep)
     cameras = model.features.cameras
     camera = cameras[0] if len(cameras) == 1 else None
     episodes, info, kind = _input_episodes(source, splits, camera, keep_incomplete)
     if info.features is not None:
         model.check_features(info.features, f"model {model_path}")
-    rule = model.keep_rule(keep)
     meta = {"segmented_by": str(model_path), "source": str(source), "keep": rule.to_json()}
     meta |= {"label_threshold": model.label_threshold}
     meta |= {"method": method, "tiles": model.tiles}  # evaluate: only precision and label accuracy if not
@@ -403,25 +403,25 @@ def segment(
         for stale in writer.removed_stale:
             print(f"{stale}: removed (left behind by a killed run)")
 
-        def confident_clips() -> Iterator[SegmentClip]:
-            """Segment episode by episode, writing each to the dataset; yield the confident clips."""
+        def kept_clips() -> Iterator[SegmentClip]:
+            """Segment episode by episode, writing each to the dataset; yield the clips the rule keeps."""
             nonlocal steps, count, kept
             for episode in episodes:
                 segments = model.segment(episode)
                 writer.add(episode.with_segments(segments), "play", extra={"source": kind})
                 steps += episode.num_steps
                 count += len(segments)
-                confident = [s for s in segments if rule.keeps(s)]
-                kept += len(confident)
-                yield from (SegmentClip.from_episode(episode, s, model_id) for s in confident)
+                chosen = [s for s in segments if rule.keeps(s)]
+                kept += len(chosen)
+                yield from (SegmentClip.from_episode(episode, s, model_id) for s in chosen)
 
         if kind == "bag":
             from playseg_ros.play_bags import write_segment_bag
 
             # Inside the dataset's staging directory: it appears with the dataset or not at all.
-            bag = write_segment_bag(writer.staging_dir / "segments_bag", confident_clips(), info=info)
+            bag = write_segment_bag(writer.staging_dir / "segments_bag", kept_clips(), info=info)
         else:
-            for _ in confident_clips():
+            for _ in kept_clips():
                 pass
     seconds = time.perf_counter() - started
     print(

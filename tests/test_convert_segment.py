@@ -182,3 +182,18 @@ def test_keep_own_cuts_stores_the_segments_the_own_cut_threshold_keeps(
     # The same model kept by another rule is another segmentation: not mixed into this dataset.
     assert convert_cli(*args, "--segment", str(model_path)) == 1
     assert "segmented by" in capsys.readouterr().err
+
+
+def test_the_default_keep_rule_leaves_the_segmentation_digest_as_before_rules_existed(tmp_path: Path) -> None:
+    """A dataset converted with --segment before keep rules existed resumes: its digest is the same."""
+    import hashlib
+
+    from playseg_ros.convert import SegmentationSpec
+
+    path = tmp_path / "ps.pt"
+    path.write_bytes(b"checkpoint bytes")  # the digest is of the file; the model is loaded later
+    assert SegmentationSpec.of(path).digest == hashlib.sha256(b"checkpoint bytes|ps|0").hexdigest()
+    own = SegmentationSpec.of(path, keep="own_cuts")
+    assert own.digest == hashlib.sha256(b"checkpoint bytes|ps|0|own_cuts").hexdigest()
+    with pytest.raises(ValueError, match="--keep: keep rule must be one of label, own_cuts, all"):
+        SegmentationSpec.of(path, keep="confident")

@@ -10,13 +10,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from playseg_core.checkpoint import file_digest
 from playseg_core.experiment.conditions import (
     AddedSegments,
     balance_labels,
     check_conditions,
     ground_truth_added,
 )
-from playseg_core.experiment.runner import ExperimentData, file_digest
+from playseg_core.experiment.runner import ExperimentData
 from playseg_ros.cli import main as cli_main
 
 CONDITIONS = "gt_start,gt_2x,gt_100,oracle_relabel,random_relabel,gt_5pct,gt_50pct"
@@ -101,6 +102,8 @@ def test_a_cache_made_from_a_file_replaced_since_is_refused_as_stale(
 ) -> None:
     import shutil
 
+    import torch
+
     out = tmp_path / "out"
     shutil.copytree(experiment, out, ignore=shutil.ignore_patterns("data"))
     (out / "data").symlink_to(experiment / "data")
@@ -112,18 +115,36 @@ def test_a_cache_made_from_a_file_replaced_since_is_refused_as_stale(
     argv = ["experiment", "babyai", "--scale", "tiny", "--seeds", "1", "--out", str(out)]
     assert cli_main([*argv, "--conditions", "gt_2x,oracle_relabel"]) == 0  # all cached, all current
     capsys.readouterr()
-    # A segmenter trained again: what its segments were made from is no longer there.
-    with open(out / "models" / "random.pt", "ab") as model:
-        model.write(b"retrained")
-    assert cli_main([*argv, "--conditions", "oracle_relabel"]) == 1
-    err = capsys.readouterr().err
-    assert f"added/oracle_relabel.json: made from another {out / 'models' / 'random.pt'}" in err
-    assert "Traceback" not in err
-    # Added segments made again: the policy runs trained on the old ones are stale.
+    found = AddedSegments.load(out / "found" / "random.json")  # random_relabel's windows, cut once
+    assert found.made_from == added.made_from
+    # A segmenter trained again: what its segments were made from is no longer there. Refused for the
+    # conditions asked for and for those only reported (their cached runs are in the table too).
+    checkpoint = torch.load(out / "models" / "random.pt", weights_only=True)
+    checkpoint["meta"]["retrained"] = True
+    torch.save(checkpoint, out / "models" / "random.pt")
+    for asked in ("oracle_relabel", "gt_2x"):
+        assert cli_main([*argv, "--conditions", asked]) == 1
+        err = capsys.readouterr().err
+        assert f"added/oracle_relabel.json: made from another {out / 'models' / 'random.pt'}" in err
+        assert "Traceback" not in err
+    # Their added segments and runs deleted, as the message says: cutting them again from the cached
+    # cuts of play is refused too (cut by the old checkpoint).
+    for condition in ("oracle_relabel", "random_relabel"):
+        (out / "added" / f"{condition}.json").unlink()
+        for seed in (0, 1):
+            (out / "runs" / f"{condition}-seed{seed}.json").unlink()
+    assert cli_main([*argv, "--conditions", "random_relabel"]) == 1
+    assert f"found/random.json: made from another {out / 'models' / 'random.pt'}" in capsys.readouterr().err
+    (out / "found" / "random.json").unlink()
+    # Added segments made again, or gone: the policy runs trained on them are stale, asked for or not.
     gt_2x = AddedSegments.load(out / "added" / "gt_2x.json")
     AddedSegments("gt_2x", dict(list(gt_2x.by_episode.items())[1:])).save(out / "added" / "gt_2x.json")
-    assert cli_main([*argv, "--conditions", "gt_2x"]) == 1
-    assert "runs/gt_2x-seed0.json: made from another" in capsys.readouterr().err
+    assert cli_main([*argv, "--conditions", "gt_start"]) == 1
+    err = capsys.readouterr().err
+    assert "runs/gt_2x-seed0.json: made from another" in err and "delete it to train that run again" in err
+    (out / "added" / "gt_2x.json").unlink()
+    assert cli_main([*argv, "--conditions", "gt_start"]) == 1
+    assert f"made from {out / 'added' / 'gt_2x.json'}, which is missing" in capsys.readouterr().err
 
 
 def test_the_report_covers_every_cached_run_whatever_was_asked_this_time(experiment: Path) -> None:

@@ -109,15 +109,15 @@ class Segmenter:
     instructions: list[str]
     features: Features  # what the model reads, as its training data declared it
     feature_names: list[str]  # the features it actually reads
-    # The checkpoint's calibration records (PS: "calibration", "own_cuts_calibration"), which the keep
-    # rules' thresholds come from; none: keep by label at threshold 0 (all).
-    calibration: Mapping[str, Any] = MappingProxyType({})
+    # The checkpoint's meta, whose calibration records (PS: "calibration", "own_cuts_calibration") the
+    # keep rules' thresholds come from; none: keep by label at threshold 0 (all).
+    checkpoint_meta: Mapping[str, Any] = MappingProxyType({})
     source: str = "the checkpoint"  # its path, for errors
 
     def keep_rule(self, kind: str) -> KeepRule:
         """Which of its segments to use (ps/labelling.py `KEEP_RULES`), with this checkpoint's threshold;
         ValueError naming the checkpoint when it has no calibration for ``kind``."""
-        return KeepRule.of_checkpoint(kind, self.calibration, self.source)
+        return KeepRule.of_checkpoint(kind, self.checkpoint_meta, self.source)
 
     @property
     def label_threshold(self) -> float:

@@ -44,7 +44,7 @@ class PlaySegmenter(Segmenter):
         self.features = model.cfg.features
         self.feature_names = model.cfg.feature_names
         self.min_len = options.min_len or model.cfg.min_len
-        self.calibration = meta
+        self.checkpoint_meta = meta
 
     def segment(self, episode: Episode) -> list[Segment]:
         from playseg_core.ps.segmentation import segment_episode

@@ -10,7 +10,8 @@ from the rest of the pool (the play split, whose ground truth the segmenters nev
 - ``random_relabel``: random windows of play (lengths between the shortest and longest annotated
   segment), labelled by the labelling model;
 - ``ps`` and the baselines (``unloc``, ``tridet``, ``changepoint``): what that segmentation method
-  extracts from play, kept when its label confidence reaches the method's calibrated threshold;
+  extracts from play, kept by its checkpoint's ``label`` keep rule (ps/labelling.py): PS's calibrated
+  label threshold; the baselines record none, so all of theirs;
 - ``ps_balanced``: what ``ps`` keeps, each instruction capped at its share of the start split
   (`balance_labels`; the most confident first);
 - ``ps_own_cuts``: what PS cuts from play, kept when the label's probability times the cut's

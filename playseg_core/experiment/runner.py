@@ -19,7 +19,6 @@ seed only, not on the number of workers.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import time
@@ -33,6 +32,7 @@ from typing import Any
 
 from playseg_core.augment.policy import load_policy_learner, torch_threads
 from playseg_core.augment.retraining import annotated_clips
+from playseg_core.checkpoint import file_digest
 from playseg_core.data.dataset import PlayDataset, is_dataset
 from playseg_core.data.episode import Episode
 from playseg_core.data.features import Features
@@ -189,6 +189,7 @@ def run_experiment(
     )
     _train_segmenters(out, segmenter_methods(conditions), scale, workers, log)
     added = {condition: _ensure_added(out, condition, data, scale, log) for condition in conditions}
+    _check_cached_runs(out)  # every cached run, asked for this time or only reported
     runs = [
         RunSettings(str(out), condition, seed, spec.policy, scale.policy, scale.eval_episodes, RUN_THREADS)
         for seed in range(seeds)  # every condition's seed 0 first: an interrupted run has whole rows
@@ -197,7 +198,7 @@ def run_experiment(
     rows = _run_policies(runs, workers, log)
     reported = cached_rows(out)  # what earlier invocations ran too (other conditions, more seeds)
     for condition in {row["condition"] for row in reported} - added.keys():
-        added[condition] = AddedSegments.load(out / "added" / f"{condition}.json")
+        added[condition] = load_cached_segments(out, out / "added" / f"{condition}.json")
     added = dict(sorted(added.items(), key=lambda item: table_position(item[0])))
     write_report(out, spec, scale_name, reported, data, added)
     log(f"experiment done in {time.perf_counter() - began:.0f} s: {out / 'results.md'}")
@@ -271,30 +272,44 @@ def segmenter_methods(conditions: Sequence[str]) -> list[str]:
     return list(dict.fromkeys("random" if m == "oracle_relabel" else m for m in methods))
 
 
-def file_digest(path: Path) -> str:
-    """sha256 of a file's bytes (hex)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as file:
-        for block in iter(lambda: file.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def _models_digest(out: Path, methods: Sequence[str]) -> dict[str, str]:
     """What segments made by ``methods`` record they were made from: models/<method>.pt -> digest."""
     return {f"models/{method}.pt": file_digest(out / "models" / f"{method}.pt") for method in methods}
 
 
-def _check_made_from(out: Path, path: Path, made_from: dict[str, str] | None) -> None:
-    """ValueError when a file a cached ``path`` was made from (``made_from``: path under ``out`` ->
-    digest) is no longer what it was; a file without the record is trusted, as before it was kept."""
+def _check_made_from(out: Path, path: Path, made_from: dict[str, str] | None, redo: str) -> None:
+    """ValueError when a file the cached ``path`` was made from (``made_from``: path under ``out`` ->
+    digest) is missing or no longer what it was, saying what to delete (``redo``); a file without the
+    record is trusted, as before it was kept."""
     for name, digest in (made_from or {}).items():
         source = out / name
-        if not source.exists() or file_digest(source) != digest:
-            raise ValueError(
-                f"{path}: made from another {source} than the one there now (made again?); delete it and "
-                "what was made from it (out/added and out/runs of the conditions that use it) to redo them"
-            )
+        if not source.exists():
+            raise ValueError(f"{path}: made from {source}, which is missing; {redo}")
+        if file_digest(source) != digest:
+            raise ValueError(f"{path}: made from another {source} than the one there now; {redo}")
+
+
+def load_cached_segments(out: Path, path: Path) -> AddedSegments:
+    """A cached file of segments (out/found or out/added), checked against the checkpoints it was made
+    from: ValueError when one has been replaced since (a segmenter trained again)."""
+    segments = AddedSegments.load(path)
+    redo = "delete it and the out/added and out/runs files of the conditions made from it to redo them"
+    _check_made_from(out, path, segments.made_from, redo)
+    return segments
+
+
+def _check_cached_runs(out: Path) -> None:
+    """ValueError when a cached policy run trained on other added segments than out/added holds now
+    (made again since), or those were made from a checkpoint replaced since: before anything runs or is
+    reported."""
+    rows = [(path, json.loads(path.read_text())) for path in sorted((out / "runs").glob("*-seed*.json"))]
+    for condition in sorted({row["condition"] for _, row in rows}):
+        if (out / "added" / f"{condition}.json").exists():
+            load_cached_segments(out, out / "added" / f"{condition}.json")
+    for path, row in rows:
+        if row.get("added_digest") is not None:
+            added = {f"added/{row['condition']}.json": row["added_digest"]}
+            _check_made_from(out, path, added, "delete it to train that run again")
 
 
 def train_segmenter(out: str, method: str, scale: ExperimentScale, threads: int) -> str:
@@ -364,9 +379,7 @@ def _ensure_added(
 ) -> AddedSegments:
     path = out / "added" / f"{condition}.json"
     if path.exists():
-        added = AddedSegments.load(path)
-        _check_made_from(out, path, added.made_from)
-        return added
+        return load_cached_segments(out, path)
     if condition.startswith("gt_"):
         added = ground_truth_added(condition, data.play, data.start_segments)
     elif condition in BALANCED:
@@ -424,9 +437,7 @@ def _found_segments(out: Path, method: str, segmenter: Any, data: ExperimentData
     conditions that keep different ones of them segment play once)."""
     path = out / "found" / f"{method}.json"
     if path.exists():
-        found = AddedSegments.load(path)
-        _check_made_from(out, path, found.made_from)
-        return found
+        return load_cached_segments(out, path)
     began = time.perf_counter()
     found = AddedSegments(
         method,  # the segmenter never sees the truth
@@ -503,10 +514,6 @@ def per_instruction_success(evaluation: Any) -> dict[str, list[int]]:
 
 def _run_policies(runs: list[RunSettings], workers: int, log) -> list[dict[str, Any]]:
     cached = [run for run in runs if run.result_path.exists()]
-    for run in cached:  # each trained on the added segments there now
-        trained_on = json.loads(run.result_path.read_text()).get("added_digest")
-        if trained_on is not None:
-            _check_made_from(Path(run.out), run.result_path, {f"added/{run.condition}.json": trained_on})
     log(f"policy runs: {len(runs)} ({len(cached)} cached), {workers} worker(s)")
     # spawn: a fresh interpreter per worker (forking a process that already ran torch can deadlock)
     pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn")) if workers > 1 else nullcontext()

@@ -92,7 +92,7 @@ class KeepRule:
         record = KEEP_RULES[kind][0]
         if kind == "own_cuts" and "threshold" not in meta.get(record, {}):
             raise ValueError(
-                f"{source}: records no own-cut calibration (a PS checkpoint calibrated by this version: "
-                "`playseg calibrate` adds it); keep by 'label' instead"
+                f"{source}: records no own-cut calibration (PS checkpoints calibrated since 2026-12-04 do; "
+                "`playseg calibrate` adds it to an older one); keep by 'label' instead"
             )
         return cls(kind, float(meta.get(record, {}).get("threshold", 0.0))) if record else rule

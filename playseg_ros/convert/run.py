@@ -243,12 +243,12 @@ def convert(
     bags = find_bags(inputs)
     if not bags:
         raise ValueError(f"{', '.join(map(str, inputs))}: no bags found")
+    if segmentation is not None and workers > 1 and segmentation.threads is None:
+        segmentation = replace(segmentation, threads=max(1, (os.cpu_count() or 1) // workers))
     if segmentation is not None:
         from playseg_ros.convert.segmenting import keep_rule
 
         keep_rule(segmentation)  # a checkpoint without the rule's calibration fails before any bag is read
-    if segmentation is not None and workers > 1 and segmentation.threads is None:
-        segmentation = replace(segmentation, threads=max(1, (os.cpu_count() or 1) // workers))
     previous = _previous_dataset(out, mapping, overwrite, segmentation)
     done = {} if previous is None else convert_meta(previous)["bags"]  # type: ignore[index]
     reports: dict[Path, BagReport] = {}

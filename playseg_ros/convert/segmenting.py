@@ -16,7 +16,6 @@ features; a bag the model cannot read fails with the bag and the feature named.
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -52,20 +51,20 @@ class SegmentationSpec:
         read when the file, the method or the keep rule is wrong (the rule's threshold is checked when
         the model is loaded: `keep_rule`)."""
         from playseg_core.baselines.registry import get_method  # torch: only when segmenting
+        from playseg_core.checkpoint import file_digest
         from playseg_core.ps.labelling import KeepRule
 
         get_method(method)
-        KeepRule(keep)
+        try:
+            KeepRule(keep)
+        except ValueError as error:
+            raise ValueError(f"--keep: {error}") from None
         path = Path(model).resolve()
         if not path.is_file():
             raise FileNotFoundError(f"--segment {model}: no such checkpoint file")
-        digest = hashlib.sha256()
-        with open(path, "rb") as file:
-            for block in iter(lambda: file.read(1 << 20), b""):
-                digest.update(block)
         # The default rule leaves the digest as it was before rules existed: those datasets resume.
-        digest.update(f"|{method}|{seed}".encode() + (b"" if keep == "label" else f"|{keep}".encode()))
-        return cls(path, method, seed, digest.hexdigest(), keep)
+        suffix = f"|{method}|{seed}" + ("" if keep == "label" else f"|{keep}")
+        return cls(path, method, seed, file_digest(path, suffix.encode()), keep)
 
     def describe(self) -> dict[str, object]:
         """What a dataset's meta.convert records about the segmentation."""
@@ -94,8 +93,8 @@ def load_segmenter(spec: SegmentationSpec) -> Segmenter:
 class SegmentedEpisodes:
     episodes: list[Episode]
     segmented: int  # episodes the model segmented
-    model_segments: int  # segments it gave that reached the threshold (stored)
-    below_threshold: int  # segments it gave that did not (not stored)
+    model_segments: int  # segments it gave that its keep rule keeps (stored)
+    not_kept: int  # segments it gave that the rule does not keep (not stored)
     notes: list[str]
 
 
@@ -126,11 +125,11 @@ def segment_unannotated(
         kept = [s for s in segments if rule.keeps(s)]
         result.segmented += 1
         result.model_segments += len(kept)
-        result.below_threshold += len(segments) - len(kept)
+        result.not_kept += len(segments) - len(kept)
         result.episodes.append(episode.with_segments(kept))
-    if result.below_threshold:
+    if result.not_kept:
         result.notes.append(
-            f"segmented by {spec.model.name}: {result.below_threshold} segment(s) not stored (kept: "
+            f"segmented by {spec.model.name}: {result.not_kept} segment(s) not stored (kept: "
             f"{rule.describe()})"
         )
     return result

@@ -122,8 +122,8 @@ class SegmenterNode(ReleasingLifecycleNode):
             # absolute: the trainer resolves it from its own working directory
             self.recording_bag = os.path.abspath(self.recording_bag) if self.recording_bag else ""
             torch.set_num_threads(self.threads)
-            self.model, meta = load_model(self.model_path, kinds=("ps",))
             require(self.keep in KEEP_RULES, self, f"keep: {' | '.join(KEEP_RULES)}")
+            self.model, meta = load_model(self.model_path, kinds=("ps",))
             self.keep_rule = KeepRule.of_checkpoint(
                 self.keep, meta, f"{self.get_name()}: model {self.model_path}"
             )
