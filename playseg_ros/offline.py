@@ -386,9 +386,14 @@ def segment(
     episodes, info, kind = _input_episodes(source, splits, camera, keep_incomplete)
     if info.features is not None:
         model.check_features(info.features, f"model {model_path}")
-    meta = {"segmented_by": str(model_path), "source": str(source), "keep": rule.to_json()}
-    meta |= {"label_threshold": model.label_threshold}
-    meta |= {"method": method, "tiles": model.tiles}  # evaluate: only precision and label accuracy if not
+    meta = {
+        "segmented_by": str(model_path),
+        "source": str(source),
+        "keep": rule.to_json(),
+        "label_threshold": model.label_threshold,
+        "method": method,
+        "tiles": model.tiles,  # evaluate: only precision and label accuracy if not
+    }
     instructions = info.instructions or tuple(model.instructions)
     unknown = sorted(set(model.instructions) - set(instructions))
     if unknown:

@@ -74,8 +74,8 @@ class AddedSegments:
     condition: str
     by_episode: dict[str, list[Segment]]
     start_kept: int | None = None  # how many of the start split's segments are trained on (None: all)
-    # the checkpoints the segments come from, method -> digest of its file (None: not recorded, as in
-    # files written before it was); a cache made from another checkpoint is stale
+    # the checkpoints the segments come from, their path under the experiment's out -> digest of the file
+    # (None: not recorded, as in files written before it was); a cache made from another one is stale
     made_from: dict[str, str] | None = None
 
     @property
@@ -88,8 +88,12 @@ class AddedSegments:
             for episode_id, segments in self.by_episode.items()
         }
         tmp = path.with_suffix(".tmp")
-        record = {"condition": self.condition, "segments": rows, "start_kept": self.start_kept}
-        record["made_from"] = self.made_from
+        record = {
+            "condition": self.condition,
+            "segments": rows,
+            "start_kept": self.start_kept,
+            "made_from": self.made_from,
+        }
         tmp.write_text(json.dumps(record))
         tmp.replace(path)  # a cached file is always complete
 

@@ -189,7 +189,7 @@ def run_experiment(
     )
     _train_segmenters(out, segmenter_methods(conditions), scale, workers, log)
     added = {condition: _ensure_added(out, condition, data, scale, log) for condition in conditions}
-    _check_cached_runs(out)  # every cached run, asked for this time or only reported
+    added |= _check_cached_runs(out, added)  # every cached run, asked for this time or only reported
     runs = [
         RunSettings(str(out), condition, seed, spec.policy, scale.policy, scale.eval_episodes, RUN_THREADS)
         for seed in range(seeds)  # every condition's seed 0 first: an interrupted run has whole rows
@@ -197,7 +197,7 @@ def run_experiment(
     ]
     rows = _run_policies(runs, workers, log)
     reported = cached_rows(out)  # what earlier invocations ran too (other conditions, more seeds)
-    for condition in {row["condition"] for row in reported} - added.keys():
+    for condition in {row["condition"] for row in reported} - added.keys():  # a run without its added file
         added[condition] = load_cached_segments(out, out / "added" / f"{condition}.json")
     added = dict(sorted(added.items(), key=lambda item: table_position(item[0])))
     write_report(out, spec, scale_name, reported, data, added)
@@ -298,18 +298,20 @@ def load_cached_segments(out: Path, path: Path) -> AddedSegments:
     return segments
 
 
-def _check_cached_runs(out: Path) -> None:
+def _check_cached_runs(out: Path, loaded: dict[str, AddedSegments]) -> dict[str, AddedSegments]:
     """ValueError when a cached policy run trained on other added segments than out/added holds now
     (made again since), or those were made from a checkpoint replaced since: before anything runs or is
-    reported."""
+    reported. Returns the added segments of the runs' conditions not in ``loaded`` (for the report)."""
     rows = [(path, json.loads(path.read_text())) for path in sorted((out / "runs").glob("*-seed*.json"))]
-    for condition in sorted({row["condition"] for _, row in rows}):
+    more = {}
+    for condition in sorted({row["condition"] for _, row in rows} - loaded.keys()):
         if (out / "added" / f"{condition}.json").exists():
-            load_cached_segments(out, out / "added" / f"{condition}.json")
+            more[condition] = load_cached_segments(out, out / "added" / f"{condition}.json")
     for path, row in rows:
         if row.get("added_digest") is not None:
             added = {f"added/{row['condition']}.json": row["added_digest"]}
             _check_made_from(out, path, added, "delete it to train that run again")
+    return more
 
 
 def train_segmenter(out: str, method: str, scale: ExperimentScale, threads: int) -> str:

@@ -452,11 +452,11 @@ def _merge(
 def _segmentation_meta(segmentation: SegmentationSpec | None) -> dict[str, Any] | None:
     if segmentation is None:
         return None
-    from playseg_ros.convert.segmenting import keep_rule, load_segmenter
+    from playseg_ros.convert.segmenting import load_segmenter
 
-    rule = keep_rule(segmentation)
-    threshold = load_segmenter(segmentation).label_threshold
-    return {**segmentation.describe(), "keep": rule.to_json(), "label_threshold": threshold}
+    segmenter = load_segmenter(segmentation)
+    rule = segmenter.keep_rule(segmentation.keep)
+    return {**segmentation.describe(), "keep": rule.to_json(), "label_threshold": segmenter.label_threshold}
 
 
 def _unique_id(episode: Episode, bag: str, used: set[str]) -> Episode:

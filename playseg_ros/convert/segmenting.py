@@ -4,10 +4,10 @@ segmentation model (playseg_core/baselines/registry.py: ps, unloc, tridet, rando
 Which episodes: an episode without any human annotation is segmented; its segments are stored with
 their label confidence and segment log-score, keeping only those the spec's keep rule keeps
 (ps/labelling.py `KEEP_RULES`; default ``label``: confidence >= the model's calibrated label threshold,
-0 for an uncalibrated checkpoint: all), and it stays in the ``play`` split (the segments are predictions, not ground truth). An episode with at least one human annotation,
-even one covering a few of its steps, is **not** segmented: it keeps exactly its human segments (in
-``train``), and its unannotated stretches stay unlabelled; a note says how many of its steps the
-annotations cover. Mixing predicted and human labels inside one episode would make predictions look
+0 for an uncalibrated checkpoint: all), and it stays in the ``play`` split (the segments are
+predictions, not ground truth). An episode with at least one human annotation, even one covering a
+few of its steps, is **not** segmented: it keeps exactly its human segments (in ``train``), and its
+unannotated stretches stay unlabelled; a note says how many of its steps the annotations cover. Mixing predicted and human labels inside one episode would make predictions look
 like ground truth to `playseg train`.
 
 The model is loaded once per process (a worker converts many bags) and checked against each bag's
