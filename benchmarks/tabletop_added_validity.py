@@ -22,31 +22,13 @@ from playseg_core.data.dataset import PlayDataset
 from playseg_core.domains.tabletop import play
 from playseg_core.domains.tabletop.instructions import FAMILIES, is_done, task_for
 from playseg_core.domains.tabletop.robot_log import dataset_play_config
-from playseg_core.domains.tabletop.sim import Scene
 from playseg_core.experiment.conditions import AddedSegments
-
-
-class SceneRecorder(play.Recorder):
-    """Keeps the scene after every step instead of camera frames (what the oracle reads)."""
-
-    def __init__(self, sim, renderer) -> None:  # noqa: ANN001 - play.play's recorder factory signature
-        self.sim, self.renderer = sim, renderer
-        self.scene = sim.scene()
-        self.scenes: list[Scene] = [self.scene]
-        self.frames, self.states, self.actions = [], [], []
-
-    def step(self, action: np.ndarray) -> Scene:
-        self.actions.append(self.sim.step(action))
-        self.scene = self.sim.scene()
-        self.scenes.append(self.scene)
-        return self.scene
 
 
 def judged_rows(config: play.PlayConfig, added: AddedSegments) -> list[dict]:
     rows = []
     for episode_id, segments in added.by_episode.items():
-        recording, truth, _ = play.play(config, int(episode_id.rsplit("-", 1)[1]), recorder=SceneRecorder)
-        scenes = recording.scenes
+        scenes, truth = play.replay_scenes(config, episode_id)
         label = np.full(len(scenes) - 1, "", dtype=object)
         family = np.full(len(scenes) - 1, "(none)", dtype=object)
         for t in truth:

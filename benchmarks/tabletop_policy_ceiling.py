@@ -33,7 +33,7 @@ from playseg_core.data.episode import Episode, SegmentClip
 from playseg_core.data.features import ACTION, STATE, Feature, Features
 from playseg_core.domains.tabletop.evaluation import evaluation_start
 from playseg_core.domains.tabletop.instructions import Task, is_done, region_box, task_for
-from playseg_core.domains.tabletop.play import PlayConfig, Recorder, play
+from playseg_core.domains.tabletop.play import PlayConfig, replay_scenes
 from playseg_core.domains.tabletop.sim import Scene
 from playseg_core.domains.tabletop.spec import EVAL_STEP_BUDGET, MAX_SPEED
 from playseg_core.experiment.runner import EVAL_SEED
@@ -57,34 +57,17 @@ def oracle_features(task: Task, scene: Scene) -> np.ndarray:
     return np.concatenate([effector, scene.effector_velocity, block, other, region]).astype(np.float32)
 
 
-class SceneRecorder(Recorder):
-    """A recorder that also keeps every scene (what the oracle features are read from)."""
-
-    def __init__(self, sim, renderer) -> None:  # noqa: ANN001 - play's recorder factory signature
-        super().__init__(sim, renderer)
-        self.scenes = [self.scene]
-
-    def step(self, action: np.ndarray) -> Scene:
-        scene = super().step(action)
-        self.scenes.append(scene)
-        return scene
-
-
 def oracle_clips(episodes: Sequence[Episode], config: PlayConfig) -> list[SegmentClip]:
     """Every annotated segment with oracle observations, from its episode replayed."""
     clips = []
     for episode in episodes:
         if not episode.segments:
             continue
-        seed = int(episode.episode_id.rsplit("-", 1)[-1])
-        recording, _, _ = play(config, seed, SceneRecorder)
-        replayed = np.asarray(recording.actions, np.float32).reshape(-1, 2)
-        if replayed.shape != episode.actions.shape or not np.allclose(replayed, episode.actions):
-            raise SystemExit(f"episode {episode.episode_id}: replaying seed {seed} gives other commands")
+        scenes, _ = replay_scenes(config, episode.episode_id, episode.actions)
         for clip in annotated_clips([episode]):
             task = task_for(clip.segment.instruction)
-            scenes = recording.scenes[clip.segment.start : clip.segment.end + 1]
-            state = np.stack([oracle_features(task, scene) for scene in scenes])
+            in_clip = scenes[clip.segment.start : clip.segment.end + 1]
+            state = np.stack([oracle_features(task, scene) for scene in in_clip])
             clips.append(SegmentClip(clip.episode_id, clip.segment, clip.actions, {}, state, "annotation"))
     return clips
 
@@ -132,7 +115,10 @@ def main() -> None:
         raise SystemExit(f"--data {args.data}: a {dataset.domain!r} dataset, not a tabletop one")
     config = PlayConfig.from_json(dataset.info["meta"]["play_config"])
     began = time.perf_counter()
-    clips = oracle_clips([*dataset.episodes("train"), *dataset.episodes("val")], config)
+    try:
+        clips = oracle_clips([*dataset.episodes("train"), *dataset.episodes("val")], config)
+    except ValueError as error:  # a replay that differs from the recording
+        raise SystemExit(f"--data {args.data}: {error}") from None
     features = Features.of(
         [
             Feature(STATE, "state", "float32", (len(ORACLE_NAMES),), names=ORACLE_NAMES),

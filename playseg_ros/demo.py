@@ -433,11 +433,13 @@ def run_demo(bags_dir: Path = Path("bags"), out_dir: Path = DEMO_DIR) -> int:
         return 1
     print(robot.table)
     r = robot.summary
+    # null in the summary: no threshold reached the calibration's accuracy target, so nothing is kept
+    threshold = "none (keeps nothing)" if r["label_threshold"] is None else f"{r['label_threshold']:.2f}"
     _log(
         f"{r['bag']}: {r['segments']} segments live ({r['true_segments']} true); boundary precision "
         f"{r['precision']:.3f} recall {r['recall']:.3f} (exact), F1 {r['f1_tol2']:.3f} within 2 steps (0.2 s), "
         f"label accuracy {r['label_accuracy']:.3f}; convert --segment stored the {r['stored_segments']} at or above "
-        f"the label threshold {r['label_threshold']:.2f}, the same as live: {r['live_equals_convert']}"
+        f"the label threshold {threshold}, the same as live: {r['live_equals_convert']}"
     )
     lerobot = r["lerobot"]
     _log(

@@ -195,6 +195,7 @@ def _lerobot_summary(root: Path) -> dict:
 def run_robot_half(bags_dir: Path, run_dir: Path, model: Path) -> RobotHalfResult:
     """The robot half of the demo (module docstring); ``model`` is a tabletop PS checkpoint."""
     from playseg_core.data.dataset import PlayDataset
+    from playseg_core.ps.labelling import threshold_json
     from playseg_core.ps.metrics import evaluate, format_metrics_table
     from playseg_ros.convert import SegmentationSpec, convert, load_mapping
     from playseg_ros.convert.run import playseg_copy
@@ -252,7 +253,7 @@ def run_robot_half(bags_dir: Path, run_dir: Path, model: Path) -> RobotHalfResul
         "recall": metrics["boundary_recall_tol0"],
         "f1_tol2": metrics["boundary_f1_tol2"],
         "label_accuracy": metrics["label_accuracy"],
-        "label_threshold": rule.threshold,
+        "label_threshold": threshold_json(rule.threshold),
         "stored_segments": len(stored),
         "live_equals_convert": same,
         "lerobot": {"path": str(lerobot_dir), **_lerobot_summary(lerobot_dir)},

@@ -372,6 +372,7 @@ def segment(
     from playseg_core.baselines.common import SegmentOptions
     from playseg_core.baselines.registry import load_segmenter
     from playseg_core.data.dataset import DatasetWriter
+    from playseg_core.ps.labelling import threshold_json
 
     if min_len is not None and min_len < 1:
         raise ValueError(f"--min-len must be >= 1, got {min_len}")
@@ -390,7 +391,7 @@ def segment(
         "segmented_by": str(model_path),
         "source": str(source),
         "keep": rule.to_json(),
-        "label_threshold": model.label_threshold,
+        "label_threshold": threshold_json(model.label_threshold),
         "method": method,
         "tiles": model.tiles,  # evaluate: only precision and label accuracy if not
     }

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -27,6 +28,10 @@ def tiny_data(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("data") / "tiny"
     assert cli_main(["generate", "--preset", "tiny", "--seed", "3", "--out", str(out), "--quiet"]) == 0
     return out
+
+
+def _refuse(constant: str) -> None:
+    raise AssertionError(f"{constant} is not JSON")
 
 
 def segment_argv(model: Path, data: Path, out: Path) -> list[str]:
@@ -92,6 +97,14 @@ def test_train_calibrate_segment_evaluate(tiny_data: Path, tmp_path: Path, capsy
     kept = sum(segment_probability(s) >= keep["threshold"] for s in every)
     assert f"{len(every)} segments from" in (out := capsys.readouterr().out)
     assert f"; {kept} kept by label x cut probability >= {keep['threshold']:.3f}" in out
+    # A threshold no accuracy target reached (+inf: keeps nothing) is null in the meta's strict JSON.
+    unreachable = torch.load(model, weights_only=True)
+    unreachable["meta"]["calibration"]["threshold"] = math.inf
+    torch.save(unreachable, tmp_path / "ps-inf.pt")
+    assert cli_main(segment_argv(tmp_path / "ps-inf.pt", tiny_data, tmp_path / "inf")) == 0
+    meta = json.loads((tmp_path / "inf" / "meta" / "info.json").read_text(), parse_constant=_refuse)["meta"]
+    assert meta["keep"] == {"rule": "label", "threshold": None, "score": "label confidence"}
+    assert meta["label_threshold"] is None
 
 
 def test_end_lookahead_reaches_the_checkpoint_and_segmenting(tiny_data: Path, tmp_path: Path, capsys) -> None:

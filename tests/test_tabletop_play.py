@@ -7,7 +7,13 @@ import numpy as np
 import pytest
 
 from playseg_core.domains.tabletop.instructions import INSTRUCTIONS, is_done, task_for
-from playseg_core.domains.tabletop.play import PlayConfig, draw_task, generate_episode
+from playseg_core.domains.tabletop.play import (
+    PlayConfig,
+    draw_task,
+    generate_episode,
+    replay_scenes,
+    seed_of_episode,
+)
 from playseg_core.domains.tabletop.sim import TabletopSim
 from playseg_core.domains.tabletop.spec import CAMERA
 
@@ -61,6 +67,20 @@ def test_the_ground_truth_holds_when_the_actions_are_replayed(played) -> None:
         task, start = task_for(seg.instruction), scenes[seg.start]
         done = [is_done(task, scenes[t], start) for t in range(seg.start + 1, seg.end + 1)]
         assert done[-1] and not any(done[:-1]), seg
+
+
+def test_replay_scenes_gives_the_recorded_episode_s_scenes_and_checks_its_commands(played) -> None:
+    episode = played.episode
+    assert seed_of_episode(episode.episode_id) == 11
+    scenes, segments = replay_scenes(IDLE, episode.episode_id, episode.actions)
+    states = np.array([[*s.effector, *s.effector_velocity] for s in scenes], np.float32)
+    np.testing.assert_array_equal(states, episode.state)
+    assert segments == episode.segments
+    # Other commands than the replay's (another play config): one line naming the episode.
+    with pytest.raises(ValueError, match="episode tabletop-11: replaying its seed gives other commands"):
+        replay_scenes(IDLE, episode.episode_id, episode.actions + 0.01)
+    with pytest.raises(ValueError, match="episode 'babyai-3': not a generated tabletop episode"):
+        seed_of_episode("babyai-3")
 
 
 def test_same_seed_same_episode_other_seed_another() -> None:

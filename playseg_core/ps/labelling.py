@@ -51,6 +51,13 @@ def segment_probability(segment: Segment) -> float:
     return segment.confidence * math.exp(segment.log_prob)
 
 
+def threshold_json(threshold: float) -> float | None:
+    """A threshold as strict JSON: null for +inf, the threshold calibration returns when none reaches its
+    target (keeps nothing). ``json.dumps`` would write ``Infinity``, which JSON parsers outside Python
+    refuse."""
+    return threshold if math.isfinite(threshold) else None
+
+
 KEEP_RULES: dict[str, tuple[str, str]] = {
     "label": ("calibration", "label confidence"),
     "own_cuts": ("own_cuts_calibration", "label x cut probability"),
@@ -81,7 +88,11 @@ class KeepRule:
         return what if self.kind == "all" else f"{what} >= {self.threshold:.3f}"
 
     def to_json(self) -> dict[str, Any]:
-        return {"rule": self.kind, "threshold": self.threshold, "score": KEEP_RULES[self.kind][1]}
+        return {
+            "rule": self.kind,
+            "threshold": threshold_json(self.threshold),
+            "score": KEEP_RULES[self.kind][1],
+        }
 
     @classmethod
     def of_checkpoint(cls, kind: str, meta: Mapping[str, Any], source: str) -> KeepRule:

@@ -452,11 +452,16 @@ def _merge(
 def _segmentation_meta(segmentation: SegmentationSpec | None) -> dict[str, Any] | None:
     if segmentation is None:
         return None
+    from playseg_core.ps.labelling import threshold_json
     from playseg_ros.convert.segmenting import load_segmenter
 
     segmenter = load_segmenter(segmentation)
     rule = segmenter.keep_rule(segmentation.keep)
-    return {**segmentation.describe(), "keep": rule.to_json(), "label_threshold": segmenter.label_threshold}
+    return {
+        **segmentation.describe(),
+        "keep": rule.to_json(),
+        "label_threshold": threshold_json(segmenter.label_threshold),
+    }
 
 
 def _unique_id(episode: Episode, bag: str, used: set[str]) -> Episode:

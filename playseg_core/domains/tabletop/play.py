@@ -185,9 +185,52 @@ class Recorder:
         return self.scene
 
 
+_EPISODE_PREFIX = "tabletop-"
+
+
 def episode_id_for_seed(seed: int) -> str:
     """The id of the play episode generated from ``seed``."""
-    return f"tabletop-{seed}"
+    return f"{_EPISODE_PREFIX}{seed}"
+
+
+def seed_of_episode(episode_id: str) -> int:
+    """The seed the play episode ``episode_id`` was generated from (`episode_id_for_seed`'s inverse)."""
+    seed = episode_id.removeprefix(_EPISODE_PREFIX)
+    if seed == episode_id or not seed.isdigit():
+        raise ValueError(
+            f"episode {episode_id!r}: not a generated tabletop episode ({_EPISODE_PREFIX}<seed>)"
+        )
+    return int(seed)
+
+
+class SceneRecorder(Recorder):
+    """Keeps the scene after every step and renders nothing: what the task oracle reads in a replay."""
+
+    def __init__(self, sim: TabletopSim, renderer: Renderer) -> None:
+        self.sim, self.renderer = sim, renderer
+        self.scene = sim.scene()
+        self.scenes = [self.scene]
+        self.frames, self.states, self.actions = [], [], []
+
+    def step(self, action: np.ndarray) -> Scene:
+        self.actions.append(self.sim.step(action))
+        self.scene = self.sim.scene()
+        self.scenes.append(self.scene)
+        return self.scene
+
+
+def replay_scenes(
+    config: PlayConfig, episode_id: str, actions: np.ndarray | None = None
+) -> tuple[list[Scene], list[Segment]]:
+    """The T+1 scenes and the true segments of the play episode ``episode_id``, played again from its
+    seed (play is deterministic). ``actions``, the episode's recorded commands, are checked against the
+    replay's: ValueError naming the episode when they differ (another play config or domain version)."""
+    recording, segments, _ = play(config, seed_of_episode(episode_id), SceneRecorder)
+    assert isinstance(recording, SceneRecorder)
+    replayed = np.asarray(recording.actions, np.float32).reshape(-1, 2)
+    if actions is not None and (replayed.shape != actions.shape or not np.allclose(replayed, actions)):
+        raise ValueError(f"episode {episode_id}: replaying its seed gives other commands than recorded")
+    return recording.scenes, segments
 
 
 def draw_task(scene: Scene, rng: np.random.Generator, exclude: Task | None = None) -> Task | None:
@@ -274,11 +317,14 @@ def generate_episode(config: PlayConfig, seed: int) -> PlayEpisode:
 __all__ = [
     "PlayConfig",
     "Recorder",
+    "SceneRecorder",
     "PlayEpisode",
     "PlayStats",
     "draw_task",
     "episode_id_for_seed",
     "generate_episode",
     "play",
+    "replay_scenes",
     "run_task",
+    "seed_of_episode",
 ]
