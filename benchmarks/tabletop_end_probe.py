@@ -41,6 +41,7 @@ from playseg_core.data.episode import Episode
 from playseg_core.domains.tabletop.encoder import ObjectMapEncoder
 from playseg_core.domains.tabletop.instructions import DIRECTIONS, FAMILIES, REGION_CELLS, task_for
 from playseg_core.domains.tabletop.play import PlayConfig, replay_scenes
+from playseg_core.domains.tabletop.robot_log import dataset_play_config
 from playseg_core.domains.tabletop.spec import BLOCKS, COLOURS, CUBE_SIDE, SHAPES, TABLE_SIZE
 
 PAST, NEXT, AFTER = 4, 2, 3  # commands read before and from a step; steps read past the true end
@@ -192,15 +193,13 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=3, help="probes trained per row (mean, spread)")
     args = parser.parse_args()
     torch.set_num_threads(2)
-    dataset = PlayDataset.open(args.data)
-    if dataset.domain != "tabletop":
-        raise SystemExit(f"--data {args.data}: a {dataset.domain!r} dataset, not a tabletop one")
-    config = PlayConfig.from_json(dataset.info["meta"]["play_config"])
     began = time.perf_counter()
-    try:
+    try:  # no dataset, not generated tabletop play, or a replay other than the recording: one line
+        dataset = PlayDataset.open(args.data)
+        config = dataset_play_config(dataset)
         train, val = (probe_episodes(dataset, split, config) for split in ("train", "val"))
-    except ValueError as error:  # a replay that differs from the recording
-        raise SystemExit(f"--data {args.data}: {error}") from None
+    except (OSError, ValueError) as error:
+        raise SystemExit(str(error)) from None
     print(
         f"{args.data}: {sum(len(p.episode.segments) for p in train)} train and "
         f"{sum(len(p.episode.segments) for p in val)} val segments replayed in {time.perf_counter() - began:.0f} s"

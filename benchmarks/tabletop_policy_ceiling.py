@@ -34,6 +34,7 @@ from playseg_core.data.features import ACTION, STATE, Feature, Features
 from playseg_core.domains.tabletop.evaluation import evaluation_start
 from playseg_core.domains.tabletop.instructions import Task, is_done, region_box, task_for
 from playseg_core.domains.tabletop.play import PlayConfig, replay_scenes
+from playseg_core.domains.tabletop.robot_log import dataset_play_config
 from playseg_core.domains.tabletop.sim import Scene
 from playseg_core.domains.tabletop.spec import EVAL_STEP_BUDGET, MAX_SPEED
 from playseg_core.experiment.runner import EVAL_SEED
@@ -110,15 +111,14 @@ def main() -> None:
     parser.add_argument("--read-velocity", action="store_true", help="the policy reads the velocity")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    dataset = PlayDataset.open(args.data)
-    if dataset.domain != "tabletop":
-        raise SystemExit(f"--data {args.data}: a {dataset.domain!r} dataset, not a tabletop one")
-    config = PlayConfig.from_json(dataset.info["meta"]["play_config"])
     began = time.perf_counter()
-    try:
-        clips = oracle_clips([*dataset.episodes("train"), *dataset.episodes("val")], config)
-    except ValueError as error:  # a replay that differs from the recording
-        raise SystemExit(f"--data {args.data}: {error}") from None
+    try:  # no dataset, not generated tabletop play, or a replay other than the recording: one line
+        dataset = PlayDataset.open(args.data)
+        clips = oracle_clips(
+            [*dataset.episodes("train"), *dataset.episodes("val")], dataset_play_config(dataset)
+        )
+    except (OSError, ValueError) as error:
+        raise SystemExit(str(error)) from None
     features = Features.of(
         [
             Feature(STATE, "state", "float32", (len(ORACLE_NAMES),), names=ORACLE_NAMES),
