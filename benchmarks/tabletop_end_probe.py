@@ -39,11 +39,22 @@ from torch import nn
 from playseg_core.data.dataset import PlayDataset
 from playseg_core.data.episode import Episode
 from playseg_core.domains.tabletop.encoder import ObjectMapEncoder
-from playseg_core.domains.tabletop.instructions import DIRECTIONS, FAMILIES, REGION_CELLS, task_for
+from playseg_core.domains.tabletop.instructions import (
+    DIRECTIONS,
+    FAMILIES,
+    REGION_CELLS,
+    Task,
+    block_gap,
+    distance_to_region,
+    region_box,
+    task_for,
+)
 from playseg_core.domains.tabletop.play import PlayConfig, replay_scenes
 from playseg_core.domains.tabletop.robot_log import dataset_play_config
+from playseg_core.domains.tabletop.sim import Scene
 from playseg_core.domains.tabletop.spec import BLOCKS, COLOURS, CUBE_SIDE, SHAPES, TABLE_SIZE
 
+POSITIONS = ("camera", "true", "named")
 PAST, NEXT, AFTER = 4, 2, 3  # commands read before and from a step; steps read past the true end
 # the encoder orders blocks colour-major (each colour's SHAPES in turn), spec.BLOCKS shape-major
 ENCODER_ORDER = [BLOCKS.index(f"{colour} {shape}") for colour in COLOURS for shape in SHAPES]
@@ -54,6 +65,7 @@ class ProbeEpisode:
     episode: Episode
     seen: np.ndarray  # (T+1, 16) block positions found in the frames, image units, encoder order
     true: np.ndarray  # (T+1, 16) true block positions (m), the same order
+    scenes: list[Scene]  # (T+1) the replay's
 
 
 def probe_episodes(dataset: PlayDataset, split: str, config: PlayConfig) -> list[ProbeEpisode]:
@@ -68,7 +80,7 @@ def probe_episodes(dataset: PlayDataset, split: str, config: PlayConfig) -> list
             frames = torch.from_numpy(np.array(episode.images[camera]))  # a copy: the dataset maps read-only
             seen = torch.cat([encoder(chunk) for chunk in frames.split(256)]).numpy()
         true = np.stack([scene.blocks for scene in scenes])[:, ENCODER_ORDER].reshape(len(seen), -1)
-        found.append(ProbeEpisode(episode, seen, true))
+        found.append(ProbeEpisode(episode, seen, true, scenes))
     return found
 
 
@@ -83,6 +95,29 @@ def instruction_one_hot(text: str) -> np.ndarray:
         [task.direction == name for name in DIRECTIONS],
     ]
     return np.concatenate([np.asarray(part, np.float32) for part in parts])
+
+
+def named_geometry(task: Task, scene: Scene, start: Scene) -> np.ndarray:
+    """The true geometry of what ``task`` names: its block's position and displacement since ``start``,
+    the other block relative to it, the region's centre relative to what has to reach it, the
+    displacement along the direction, the blocks' gap and the distance to the region (zeros for what
+    the task does not name): every quantity the task oracle decides by."""
+    zero = np.zeros(2)
+    block = scene.blocks[task.block] if task.block >= 0 else zero
+    moved = block - start.blocks[task.block] if task.block >= 0 else zero
+    other = scene.blocks[task.other] - block if task.other >= 0 else zero
+    region = zero
+    if task.region:
+        x_low, y_low, x_high, y_high = region_box(task.region)
+        mover = block if task.block >= 0 else scene.effector
+        region = np.array([(x_low + x_high) / 2, (y_low + y_high) / 2]) - mover
+    along = float(np.dot(DIRECTIONS[task.direction], moved)) if task.direction else 0.0
+    # the oracle's own distances: the two blocks' gap, the mover's distance to the region's box
+    gap = block_gap(scene, task.block, task.other) if task.other >= 0 else 0.0
+    outside = (
+        distance_to_region(block if task.block >= 0 else scene.effector, task.region) if task.region else 0.0
+    )
+    return np.concatenate([block, moved, other, region, [along, gap, outside]])
 
 
 @dataclass
@@ -106,12 +141,16 @@ def probe_rows(episodes: Sequence[ProbeEpisode], positions: str, told: bool) -> 
         for segment in episode.segments:
             start, end = segment.start, segment.end
             told_vector = instruction_one_hot(segment.instruction) if told else np.zeros(0, np.float32)
+            task = task_for(segment.instruction)
             for t in range(start + 1, min(end + AFTER, episode.num_steps) + 1):
+                if positions == "named":
+                    where = named_geometry(task, probe.scenes[t], probe.scenes[start])
+                else:
+                    where = np.concatenate([blocks[t], blocks[t] - blocks[start]])
                 xs.append(
                     np.concatenate(
                         [
-                            blocks[t],
-                            blocks[t] - blocks[start],
+                            where,
                             state[t],
                             state[t, :2] - state[start, :2],
                             actions[t : t + PAST + NEXT].ravel(),  # a_{t-4} .. a_{t+1}
@@ -124,7 +163,7 @@ def probe_rows(episodes: Sequence[ProbeEpisode], positions: str, told: bool) -> 
                 segment_of.append(len(ends))
                 offsets.append(t - start)
             ends.append(end - start)
-            families.append(task_for(segment.instruction).family)
+            families.append(task.family)
     return Rows(
         np.asarray(xs, np.float32),
         np.asarray(ys, np.float32),
@@ -191,7 +230,19 @@ def main() -> None:
     parser.add_argument("--data", required=True, help="a generated tabletop dataset")
     parser.add_argument("--steps", type=int, default=4000, help="optimizer steps per probe (512 rows)")
     parser.add_argument("--seeds", type=int, default=3, help="probes trained per row (mean, spread)")
+    parser.add_argument(
+        "--rows",
+        default="camera,camera+told,true,true+told,named+told",
+        help="the rows: where the blocks are (camera, true, named: the geometry of what the instruction names), "
+        "+told: the probe is told the instruction",
+    )
     args = parser.parse_args()
+    rows = [(row.removesuffix("+told"), row.endswith("+told")) for row in args.rows.split(",")]
+    for positions, told in rows:
+        if positions not in POSITIONS or (positions == "named" and not told):
+            raise SystemExit(
+                f"--rows: {args.rows!r}: each is camera, true or named, +told (named only +told)"
+            )
     torch.set_num_threads(2)
     began = time.perf_counter()
     try:  # no dataset, not generated tabletop play, or a replay other than the recording: one line
@@ -206,28 +257,27 @@ def main() -> None:
     )
     print("the camera's block positions against the true ones:", perception_error(train + val))
     header = None
-    for positions in ("camera", "true"):
-        for told in (False, True):
-            train_rows, val_rows = probe_rows(train, positions, told), probe_rows(val, positions, told)
-            results = []
-            for seed in range(args.seeds):
-                model, mean, std = train_probe(train_rows, args.steps, seed)
-                results.append(score(model, mean, std, val_rows))
-            families = list(results[0][1])
-            if header is None:
-                header = "| block positions | told the instruction | val AP | " + " | ".join(families) + " |"
-                print(f"\nval ends found within 2 steps, mean (min-max) over {args.seeds} probes")
-                print(header)
-                print("|---" * (3 + len(families)) + "|")
-            ap = np.array([r[0] for r in results])
-            cells = []
-            for family in families:
-                shares = np.array([r[1][family] for r in results])
-                cells.append(f"{shares.mean():.2f} ({shares.min():.2f}-{shares.max():.2f})")
-            print(
-                f"| {positions} | {'yes' if told else 'no'} | {ap.mean():.3f} | " + " | ".join(cells) + " |",
-                flush=True,
-            )
+    for positions, told in rows:
+        train_rows, val_rows = probe_rows(train, positions, told), probe_rows(val, positions, told)
+        results = []
+        for seed in range(args.seeds):
+            model, mean, std = train_probe(train_rows, args.steps, seed)
+            results.append(score(model, mean, std, val_rows))
+        families = list(results[0][1])
+        if header is None:
+            header = "| block positions | told the instruction | val AP | " + " | ".join(families) + " |"
+            print(f"\nval ends found within 2 steps, mean (min-max) over {args.seeds} probes")
+            print(header)
+            print("|---" * (3 + len(families)) + "|")
+        ap = np.array([r[0] for r in results])
+        cells = []
+        for family in families:
+            shares = np.array([r[1][family] for r in results])
+            cells.append(f"{shares.mean():.2f} ({shares.min():.2f}-{shares.max():.2f})")
+        print(
+            f"| {positions} | {'yes' if told else 'no'} | {ap.mean():.3f} | " + " | ".join(cells) + " |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":
