@@ -14,7 +14,7 @@ from rosbags.highlevel import AnyReader
 
 from playseg_core.data.dataset import PlayDataset
 from playseg_core.domains.tabletop.play import PlayConfig
-from playseg_core.domains.tabletop.robot_log import record_robot_log
+from playseg_core.domains.tabletop.robot_log import EPISODE_GAP_NS, LOG_START_NS, record_robot_log
 from playseg_ros.cli import main as cli_main
 from playseg_ros.tabletop.bags import (
     ANNOTATION_TOPIC,
@@ -58,10 +58,20 @@ def read_topics(bag: Path) -> dict[str, list[tuple[int, object]]]:
     return messages
 
 
+def test_the_episodes_follow_one_another_in_time(bags: Path) -> None:
+    spans = []
+    for index in range(2):
+        with AnyReader([bags / f"tabletop-{index}"], default_typestore=typestore()) as reader:
+            spans.append((reader.start_time, reader.end_time))
+    (_, first_end), (second_start, _) = spans
+    last = first_end - 1  # rosbags' end_time is one past the last message
+    assert spans[0][0] == LOG_START_NS and second_start - last == EPISODE_GAP_NS
+
+
 @pytest.mark.parametrize("index", [0, 1])
 def test_rosbags_reads_back_types_rates_and_contents(bags: Path, index: int) -> None:
-    log = record_robot_log(CONFIG, index)
-    topics = read_topics(bags / log.episode_id)
+    topics = read_topics(bags / f"tabletop-{index}")
+    log = record_robot_log(CONFIG, index, start_ns=topics[CAMERA_TOPIC][0][0])
     assert (ANNOTATION_TOPIC in topics) == (index == 0)  # only the first bag is annotated
     steps = len(log.commands)
 

@@ -91,6 +91,23 @@ def test_bags_hold_standard_messages_and_the_ground_truth(generated: Path) -> No
             assert [round(a["end"] * 10) for a in truth] == [s.end for s in episode.segments]  # 10 Hz
 
 
+def test_the_bags_follow_one_another_in_the_datasets_order(generated: Path) -> None:
+    dataset = PlayDataset.open(generated)
+    where = {}
+    for name in DATASET_BAGS:
+        where.update(
+            {
+                episode_id: generated / "bags" / name / episode_id
+                for episode_id in episodes_of(dataset, name, True)
+            }
+        )
+    spans = []
+    for record in dataset.records:
+        with AnyReader([where[record.episode_id]], default_typestore=typestore()) as reader:
+            spans.append((reader.start_time, reader.end_time))
+    assert all(end < next_start for (_, end), (next_start, _) in zip(spans, spans[1:], strict=False))
+
+
 def test_bad_requests_are_refused_before_writing(generated: Path, tmp_path: Path) -> None:
     with pytest.raises(FileExistsError, match="bags/annotated: already exists"):
         write_generated_bags("tabletop", generated, generated / "bags")

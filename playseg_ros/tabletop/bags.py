@@ -48,7 +48,10 @@ from playseg_core.data.generation import episode_seed
 from playseg_core.domains.tabletop.play import PlayConfig
 from playseg_core.domains.tabletop.robot_log import (
     DEFAULT_STATE_HZ,
+    EPISODE_GAP_NS,
+    LOG_START_NS,
     RobotLog,
+    consecutive_starts_ns,
     dataset_play_config,
     record_robot_log,
     replay_dataset_episode,
@@ -288,7 +291,8 @@ def write_sample_bags(
     overwrite: bool = False,
 ) -> list[WrittenBag]:
     """``episodes`` tabletop play episodes (seeds ``seed * 10**9 + i``, as `playseg generate`) as robot
-    bags in ``out``; the first ``annotated`` of them carry the annotations topic."""
+    bags in ``out``, recorded one after the other (`EPISODE_GAP_NS` apart); the first ``annotated`` of
+    them carry the annotations topic."""
     _check_images(images)
     if episodes < 1 or not 0 <= annotated <= episodes:
         raise ValueError(
@@ -307,8 +311,10 @@ def write_sample_bags(
     staging.mkdir(parents=True)
     written = []
     try:
+        start_ns = LOG_START_NS
         for index in range(episodes):
-            log = record_robot_log(config, episode_seed(seed, index), state_hz=state_hz)
+            log = record_robot_log(config, episode_seed(seed, index), state_hz=state_hz, start_ns=start_ns)
+            start_ns = log.end_ns + EPISODE_GAP_NS
             bag = write_robot_bag(
                 log, staging / log.episode_id, annotate=index < annotated, images=images, storage=storage
             )
@@ -341,6 +347,7 @@ class _BagTask:
     images: str
     state_hz: float
     storage: str
+    start_ns: int
 
 
 _OPEN: dict[str, PlayDataset] = {}
@@ -350,7 +357,9 @@ def _write_dataset_bag(task: _BagTask) -> WrittenBag:
     dataset = _OPEN.get(task.dataset)
     if dataset is None:  # one open per process: the arrays stay memory-mapped between episodes
         dataset = _OPEN[task.dataset] = PlayDataset.open(task.dataset)
-    log = replay_dataset_episode(dataset, task.index, task.config, state_hz=task.state_hz)
+    log = replay_dataset_episode(
+        dataset, task.index, task.config, state_hz=task.state_hz, start_ns=task.start_ns
+    )
     return write_robot_bag(log, task.path, annotate=task.annotate, images=task.images, storage=task.storage)
 
 
@@ -383,6 +392,7 @@ def write_dataset_bags(
     with the annotations topic), ``out_dir/play/...`` and ``out_dir/test/...`` (ground truth only in the
     sidecar), plus ``out_dir/mapping.yaml`` and ``mapping_truth.yaml``.
 
+    The episodes are recorded one after the other in the dataset's order (`consecutive_starts_ns`).
     Every episode is replayed from its seed and checked against the dataset, so converting a directory
     with the mapping gives back its episodes (with ``images="raw"`` or "both"; "jpeg" frames are lossy).
     Written into ``out_dir/.partial`` and moved into place at the end: nothing half-written stays.
@@ -401,11 +411,14 @@ def write_dataset_bags(
     staging = out / ".partial"
     shutil.rmtree(staging, ignore_errors=True)
     tasks: list[_BagTask] = []
+    starts = consecutive_starts_ns([record.num_steps for record in dataset.records])
     for name, (splits, annotated) in DATASET_BAGS.items():
         (staging / name).mkdir(parents=True)
         for index in sorted(i for split in splits for i in dataset.episode_indices(split)):
             path = staging / name / dataset.records[index].episode_id
-            task = _BagTask(str(dataset.path), index, config, path, annotated, images, state_hz, storage)
+            task = _BagTask(
+                str(dataset.path), index, config, path, annotated, images, state_hz, storage, starts[index]
+            )
             tasks.append(task)
     try:
         written = list(_run(tasks, workers))

@@ -164,24 +164,36 @@ class PlayEpisode:
 
 
 class Recorder:
-    """Runs the sim step by step and keeps every observation (frame, state) and applied action."""
+    """Runs the sim step by step and keeps every observation (frame, state) and applied action.
+
+    Subclasses change what is kept through `observe` (after the start and every step) and `apply`.
+    """
 
     def __init__(self, sim: TabletopSim, renderer: Renderer) -> None:
         self.sim, self.renderer = sim, renderer
         self.scene = sim.scene()
-        self.frames = [renderer.render(self.scene)]
-        self.states = [sim.state_vector()]
+        self.frames: list[np.ndarray] = []
+        self.states: list[np.ndarray] = []
         self.actions: list[tuple[float, float]] = []
+        self.observe()
 
     @property
     def steps(self) -> int:
         return len(self.actions)
 
-    def step(self, action: np.ndarray) -> Scene:
-        self.actions.append(self.sim.step(action))
-        self.scene = self.sim.scene()
+    def apply(self, action: np.ndarray) -> tuple[float, float]:
+        """Steps the sim with ``action``; the command it applied (clipped)."""
+        return self.sim.step(action)
+
+    def observe(self) -> None:
+        """Keeps the observation of ``self.scene``, just reached: its frame and the state vector."""
         self.frames.append(self.renderer.render(self.scene))
         self.states.append(self.sim.state_vector())
+
+    def step(self, action: np.ndarray) -> Scene:
+        self.actions.append(self.apply(action))
+        self.scene = self.sim.scene()
+        self.observe()
         return self.scene
 
 
@@ -207,16 +219,11 @@ class SceneRecorder(Recorder):
     """Keeps the scene after every step and renders nothing: what the task oracle reads in a replay."""
 
     def __init__(self, sim: TabletopSim, renderer: Renderer) -> None:
-        self.sim, self.renderer = sim, renderer
-        self.scene = sim.scene()
-        self.scenes = [self.scene]
-        self.frames, self.states, self.actions = [], [], []
+        self.scenes: list[Scene] = []
+        super().__init__(sim, renderer)
 
-    def step(self, action: np.ndarray) -> Scene:
-        self.actions.append(self.sim.step(action))
-        self.scene = self.sim.scene()
+    def observe(self) -> None:
         self.scenes.append(self.scene)
-        return self.scene
 
 
 def replay_scenes(

@@ -14,6 +14,7 @@ the oracle said done).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,7 +23,7 @@ from playseg_core.data.dataset import PlayDataset
 from playseg_core.data.episode import Segment
 from playseg_core.domains.tabletop.play import PlayConfig, PlayStats, Recorder, episode_id_for_seed, play
 from playseg_core.domains.tabletop.render import Renderer
-from playseg_core.domains.tabletop.sim import Scene, TabletopSim
+from playseg_core.domains.tabletop.sim import TabletopSim
 from playseg_core.domains.tabletop.spec import CAMERA, CONTROL_HZ, DOMAIN, PHYSICS_SUBSTEPS
 
 JOINT_NAMES: tuple[str, str] = ("effector_x", "effector_y")
@@ -35,6 +36,19 @@ DEFAULT_STATE_HZ = 50.0
 """The joint-state sensor's default rate (Hz)."""
 
 NS = 10**9
+
+EPISODE_GAP_NS = 5 * NS
+"""The pause between two logs recorded one after the other (the operator resets the table)."""
+
+
+def consecutive_starts_ns(num_steps: Sequence[int], first_ns: int = LOG_START_NS) -> list[int]:
+    """The start of each of logs of ``num_steps`` control steps recorded one after the other, from
+    ``first_ns``, ``EPISODE_GAP_NS`` apart: a robot's episodes follow one another in time."""
+    starts, at = [], first_ns
+    for steps in num_steps:
+        starts.append(at)
+        at += steps * round(NS / CONTROL_HZ) + EPISODE_GAP_NS
+    return starts
 
 
 @dataclass
@@ -81,14 +95,10 @@ class _SampledRecorder(Recorder):
         scene = self.scene
         self.samples: list[tuple[float, float, float, float]] = [(*scene.effector, *scene.effector_velocity)]
 
-    def step(self, action: np.ndarray) -> Scene:
+    def apply(self, action: np.ndarray) -> tuple[float, float]:
         command, samples = self.sim.step_sampled(action, self.every)
-        self.actions.append(command)
         self.samples.extend(samples)
-        self.scene = self.sim.scene()
-        self.frames.append(self.renderer.render(self.scene))
-        self.states.append(self.sim.state_vector())
-        return self.scene
+        return command
 
 
 def record_robot_log(
@@ -179,8 +189,10 @@ def replay_dataset_episode(
 __all__ = [
     "DEFAULT_STATE_HZ",
     "JOINT_NAMES",
+    "EPISODE_GAP_NS",
     "LOG_START_NS",
     "RobotLog",
+    "consecutive_starts_ns",
     "dataset_play_config",
     "record_robot_log",
     "replay_dataset_episode",
