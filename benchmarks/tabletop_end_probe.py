@@ -11,7 +11,11 @@ commands and the step's offset from the start; the rows differ in
   apart by size: what PS's `blocks` pooling reads), or their true positions (each episode replayed from
   its seed; the replayed commands are checked against the recorded ones);
 - whether the probe is told the segment's true instruction (its family, block, other block, region and
-  direction, one-hot), which PS's end head is not.
+  direction, one-hot), which PS's end head is not;
+- `attend`: the camera's positions, but each block a token of its own (its position and displacement,
+  plus a learnt embedding of its slot), and two attention heads whose queries come from the instruction
+  pick the blocks the MLP reads: how a generic end head conditioned on a label could find what the label
+  names, without being given it.
 
 With the true positions and the instruction, whether a task is done is a function of what the probe reads
 (the task oracle's), so what it misses there is what the training segments cannot teach it; what it loses
@@ -54,7 +58,8 @@ from playseg_core.domains.tabletop.robot_log import dataset_play_config
 from playseg_core.domains.tabletop.sim import Scene
 from playseg_core.domains.tabletop.spec import BLOCKS, COLOURS, CUBE_SIDE, SHAPES, TABLE_SIZE
 
-POSITIONS = ("camera", "true", "named")
+POSITIONS = ("camera", "true", "named", "attend")
+NUM_BLOCKS = len(BLOCKS)
 PAST, NEXT, AFTER = 4, 2, 3  # commands read before and from a step; steps read past the true end
 # the encoder orders blocks colour-major (each colour's SHAPES in turn), spec.BLOCKS shape-major
 ENCODER_ORDER = [BLOCKS.index(f"{colour} {shape}") for colour in COLOURS for shape in SHAPES]
@@ -82,6 +87,9 @@ def probe_episodes(dataset: PlayDataset, split: str, config: PlayConfig) -> list
         true = np.stack([scene.blocks for scene in scenes])[:, ENCODER_ORDER].reshape(len(seen), -1)
         found.append(ProbeEpisode(episode, seen, true, scenes))
     return found
+
+
+TOLD_DIM = len(FAMILIES) + 2 * len(BLOCKS) + len(REGION_CELLS) + len(DIRECTIONS)
 
 
 def instruction_one_hot(text: str) -> np.ndarray:
@@ -134,7 +142,7 @@ def probe_rows(episodes: Sequence[ProbeEpisode], positions: str, told: bool) -> 
     xs, ys, segment_of, offsets, ends, families = [], [], [], [], [], []
     for probe in episodes:
         episode = probe.episode
-        blocks = probe.true if positions == "true" else probe.seen
+        blocks = probe.true if positions == "true" else probe.seen  # attend: the camera's
         state = episode.state
         assert state is not None
         actions = np.concatenate([np.zeros((PAST, 2), np.float32), episode.actions, np.zeros((NEXT, 2))])
@@ -174,13 +182,42 @@ def probe_rows(episodes: Sequence[ProbeEpisode], positions: str, told: bool) -> 
     )
 
 
-def train_probe(rows: Rows, steps: int, seed: int) -> tuple[nn.Module, np.ndarray, np.ndarray]:
+class AttendProbe(nn.Module):
+    """Rows whose first 4 x NUM_BLOCKS columns are the blocks' positions and displacements and whose last
+    ``told_dim`` the instruction: the instruction's queries attend over the blocks' slots (which block,
+    not where it is, decides what is read), and the MLP reads what they pick with the other columns."""
+
+    def __init__(self, in_dim: int, told_dim: int, heads: int = 2, dim: int = 64) -> None:
+        super().__init__()
+        self.told_dim, self.heads, self.dim = told_dim, heads, dim
+        self.slot = nn.Parameter(torch.randn(NUM_BLOCKS, dim) * 0.1)
+        self.token = nn.Linear(4, dim)
+        self.query = nn.Linear(told_dim, heads * dim)
+        rest = in_dim - 4 * NUM_BLOCKS
+        self.mlp = nn.Sequential(
+            nn.Linear(heads * dim + rest, 256), nn.GELU(), nn.Linear(256, 256), nn.GELU(), nn.Linear(256, 1)
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        blocks = x[:, : 4 * NUM_BLOCKS].reshape(len(x), 2, NUM_BLOCKS, 2).permute(0, 2, 1, 3).flatten(2)
+        query = self.query(x[:, -self.told_dim :]).view(len(x), self.heads, self.dim)
+        weights = torch.softmax(query @ self.slot.T / self.dim**0.5, dim=-1)  # (B, heads, blocks)
+        picked = weights @ (self.token(blocks) + self.slot)  # (B, heads, dim)
+        return self.mlp(torch.cat([picked.flatten(1), x[:, 4 * NUM_BLOCKS :]], dim=-1))
+
+
+def train_probe(
+    rows: Rows, steps: int, seed: int, attend: bool = False
+) -> tuple[nn.Module, np.ndarray, np.ndarray]:
     torch.manual_seed(seed)
     mean, std = rows.x.mean(0), rows.x.std(0) + 1e-6
     x, y = torch.from_numpy((rows.x - mean) / std), torch.from_numpy(rows.y)
-    model = nn.Sequential(
-        nn.Linear(x.shape[1], 256), nn.GELU(), nn.Linear(256, 256), nn.GELU(), nn.Linear(256, 1)
-    )
+    if attend:
+        model: nn.Module = AttendProbe(x.shape[1], TOLD_DIM)
+    else:
+        model = nn.Sequential(
+            nn.Linear(x.shape[1], 256), nn.GELU(), nn.Linear(256, 256), nn.GELU(), nn.Linear(256, 1)
+        )
     optimizer = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-4)
     generator = torch.Generator().manual_seed(seed)
     for _ in range(steps):
@@ -233,15 +270,17 @@ def main() -> None:
     parser.add_argument(
         "--rows",
         default="camera,camera+told,true,true+told,named+told",
-        help="the rows: where the blocks are (camera, true, named: the geometry of what the instruction names), "
-        "+told: the probe is told the instruction",
+        help="the rows: where the blocks are (camera, true, named: the geometry of what the instruction names, "
+        "attend: the camera's, read through the instruction's attention over the blocks), +told: the probe "
+        "is told the instruction",
     )
     args = parser.parse_args()
     rows = [(row.removesuffix("+told"), row.endswith("+told")) for row in args.rows.split(",")]
     for positions, told in rows:
-        if positions not in POSITIONS or (positions == "named" and not told):
+        if positions not in POSITIONS or (positions in ("named", "attend") and not told):
             raise SystemExit(
-                f"--rows: {args.rows!r}: each is camera, true or named, +told (named only +told)"
+                f"--rows: {args.rows!r}: each is camera, true, named or attend, +told (named and attend "
+                "only +told)"
             )
     torch.set_num_threads(2)
     began = time.perf_counter()
@@ -261,7 +300,7 @@ def main() -> None:
         train_rows, val_rows = probe_rows(train, positions, told), probe_rows(val, positions, told)
         results = []
         for seed in range(args.seeds):
-            model, mean, std = train_probe(train_rows, args.steps, seed)
+            model, mean, std = train_probe(train_rows, args.steps, seed, attend=positions == "attend")
             results.append(score(model, mean, std, val_rows))
         families = list(results[0][1])
         if header is None:

@@ -196,6 +196,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         args.augment,
         args.label_accuracy,
         args.end_lookahead,
+        args.end_grounding,
     )
 
 
@@ -306,6 +307,14 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
         help="PS: steps past a candidate end its end head also reads (0 = the paper's model; 1 reads the "
         "first command after the end, where a demonstrator's intent changes; live segmenting then decides "
         "each end that many steps later); default: the domain's choice, else 0",
+    )
+    train.add_argument(
+        "--end-grounding",
+        type=int,
+        metavar="HEADS",
+        help="PS: an end head grounded on the label, with HEADS attention heads over the things a step "
+        "encoder tracks by position (which to read chosen by the label's words); 0 = none; default: the "
+        "domain's choice, else 0",
     )
     train.set_defaults(func=_cmd_train)
     calibrate = sub.add_parser(

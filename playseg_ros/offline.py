@@ -149,6 +149,7 @@ def train(
     augment: bool = False,
     label_accuracy: float | None = None,
     end_lookahead: int | None = None,
+    end_grounding: int | None = None,
 ) -> int:
     """Train the PS model (and optionally the stand-alone labeller) on a dataset's train/val splits,
     or another segmentation method (``method``, playseg_core/baselines/registry.py).
@@ -156,13 +157,13 @@ def train(
     ``bounds`` (min_len, max_len, k_max; None = derived, see `segment_bounds`) and ``encoders``
     (``FEATURE=KIND`` overrides of the step encoders) and ``label_head`` (None: the domain's, else
     linear) and ``augment`` (training clips under the domain's symmetries, or rotated/mirrored frames)
-    and ``end_lookahead`` (None: the domain's, else 0) come from the command line.
+    and ``end_lookahead`` and ``end_grounding`` (None: the domain's, else 0) come from the command line.
 
     The outputs are checked before training starts (a model is never trained only to be lost).
     """
     from playseg_core.baselines.registry import get_method
     from playseg_core.ps.calibration import calibrate_ps_model
-    from playseg_core.ps.model import MAX_END_LOOKAHEAD, save_model
+    from playseg_core.ps.model import MAX_END_GROUNDING, MAX_END_LOOKAHEAD, save_model
     from playseg_core.ps.training import (
         TrainConfig,
         clip_symmetries_of,
@@ -186,6 +187,10 @@ def train(
         raise ValueError(f"--end-lookahead: only with --method ps, not {method}")
     if end_lookahead is not None and not 0 <= end_lookahead <= MAX_END_LOOKAHEAD:
         raise ValueError(f"--end-lookahead: must be in 0..{MAX_END_LOOKAHEAD}, got {end_lookahead}")
+    if end_grounding is not None and method != "ps":
+        raise ValueError(f"--end-grounding: only with --method ps, not {method}")
+    if end_grounding is not None and not 0 <= end_grounding <= MAX_END_GROUNDING:
+        raise ValueError(f"--end-grounding: must be in 0..{MAX_END_GROUNDING}, got {end_grounding}")
     if encoders_from and method not in ("unloc", "tridet"):
         raise ValueError(f"--encoders-from: only with --method unloc or tridet, not {method}")
     dataset = _open_dataset(data)
@@ -227,6 +232,7 @@ def train(
         min_len=chosen.min_len,
         label_head=label_head,
         end_lookahead=end_lookahead,
+        end_grounding=end_grounding,
     )
     read = ", ".join(f"{spec.feature} ({spec.kind})" for spec in model_cfg.encoders)
     unread = (
@@ -239,6 +245,8 @@ def train(
         if model_cfg.end_lookahead
         else ""
     )
+    if model_cfg.end_grounding:
+        ahead += f"; its end grounded on the label ({model_cfg.end_grounding} attention heads)"
     print(
         f"model reads {read}{unread}; {model_cfg.label_head} label head{ahead}; {chosen.describe()}",
         flush=True,

@@ -12,6 +12,8 @@ step encoders (ps/encoders.py) and exposes:
   "text", ps/model.py `LABEL_HEADS`);
 - optionally ``END_LOOKAHEAD``: how many steps past a candidate end its PS end head reads by default
   (ps/model.py `ModelConfig.end_lookahead`; 0, the paper's model, otherwise);
+- optionally ``END_GROUNDING``: the attention heads of its PS end head's grounded part by default
+  (ps/model.py `GroundedEndHead`; 0, none, otherwise);
 - optionally ``CLIP_SYMMETRIES``: the symmetries of its world (ps/samples.py `ClipSymmetries`: how
   many, and how each turns a training clip as recorded and its instruction), what `playseg train
   --augment` trains on; without them, ``--augment`` turns the camera frames only, for models that read

@@ -65,6 +65,9 @@ class ObservationEncoder(StepEncoder):
     """
 
     entity_dim: int = 0  # width of the entities `encode_with_entities` gives; 0: this encoder has none
+    # > 0: the output is this many things' (x, y) positions, each slot always the same thing (what an end
+    # head grounded on the label reads: ps/model.py `GroundedEndHead`); 0: it is not
+    position_slots: int = 0
 
     def __init__(self, feature: Feature) -> None:
         super().__init__()
@@ -282,6 +285,18 @@ class StepEncoders(nn.Module):
     @property
     def reads_actions(self) -> bool:
         return any(isinstance(e, PreviousActionEncoder) for e in self.encoders)
+
+    @property
+    def position_slots(self) -> list[tuple[int, int]]:
+        """(first column, number of slots) in the step features of each encoder whose output is things'
+        positions (`ObservationEncoder.position_slots`), in order."""
+        found, column = [], 0
+        for encoder in self.encoders:
+            slots = getattr(encoder, "position_slots", 0)
+            if slots:
+                found.append((column, slots))
+            column += encoder.out_dim
+        return found
 
     def episode_inputs(self, episode: Episode) -> dict[str, np.ndarray]:
         """Every encoder's input rows for o_0..o_T, by feature (memory-mapped where the episode is)."""

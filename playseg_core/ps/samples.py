@@ -95,6 +95,7 @@ class Batch:
     label_window: torch.Tensor  # (M,) window of each positive
     label_position: torch.Tensor  # (M,) its length (the position of its end in the window)
     labels: torch.Tensor  # (M,) its class index
+    window_labels: torch.Tensor  # (S,) the class of the annotated segment starting the window, else -1
 
     @property
     def needed_len(self) -> torch.Tensor:
@@ -174,7 +175,7 @@ def make_batch(
     raw = [spec.feature for spec in encoders.specs if spec.feature not in cached]
     inputs: dict[str, list[torch.Tensor]] = {feature: [] for feature in raw}
     encoded: dict[str, list[torch.Tensor]] = {feature: [] for feature in cached}
-    rows, starts_episode, targets, weights = [], [], [], []
+    rows, starts_episode, targets, weights, window_labels = [], [], [], [], []
     label_window, label_position, labels = [], [], []
     offset = 0
     for (ep, seg), (lo, hi) in zip(items, regions, strict=True):
@@ -204,6 +205,7 @@ def make_batch(
                 steps = sample.start + np.arange(num_pos + lookahead)
                 rows.append(np.where(steps <= hi, offset + steps - lo, zero_row))
                 starts_episode.append(sample.start == 0)
+                window_labels.append(label if sample.start == seg.start else -1)
                 targets.append(np.zeros(num_pos, np.float32))
                 weights.append(np.zeros(num_pos, np.float32))
             row, position = windows[sample.start], sample.end - sample.start
@@ -238,4 +240,5 @@ def make_batch(
         label_window=torch.tensor(label_window, dtype=torch.long),
         label_position=torch.tensor(label_position, dtype=torch.long),
         labels=torch.tensor(labels, dtype=torch.long),
+        window_labels=torch.tensor(window_labels, dtype=torch.long),
     )

@@ -114,11 +114,13 @@ def model_config_for(
     min_len: int = 1,
     label_head: str | None = None,
     end_lookahead: int | None = None,
+    end_grounding: int | None = None,
 ) -> ModelConfig:
     """The default model for data with ``features`` (step encoders by `choose_encoders`; the state and a
     continuous action standardised with ``episodes``' statistics, computed only when read; the label
     head ``label_head``, else the domain's ``LABEL_HEAD``, else "linear"; the end head's lookahead
-    ``end_lookahead``, else the domain's ``END_LOOKAHEAD``, else 0, the paper's)."""
+    ``end_lookahead``, else the domain's ``END_LOOKAHEAD``, else 0, the paper's; the grounded end
+    head's attention heads ``end_grounding``, else the domain's ``END_GROUNDING``, else 0: none)."""
     needs = [f.name for f in (features.state, features.action) if f is not None and not f.is_discrete]
     episodes = list(episodes)
     statistics = feature_statistics(episodes, needs) if episodes and needs else {}
@@ -130,6 +132,8 @@ def model_config_for(
         label_head = getattr(load_domain(domain), "LABEL_HEAD", "linear") if domain else "linear"
     if end_lookahead is None:
         end_lookahead = int(getattr(load_domain(domain), "END_LOOKAHEAD", 0)) if domain else 0
+    if end_grounding is None:
+        end_grounding = int(getattr(load_domain(domain), "END_GROUNDING", 0)) if domain else 0
     return ModelConfig(
         encoders,
         read,
@@ -138,6 +142,7 @@ def model_config_for(
         min_len=min_len,
         label_head=label_head,
         end_lookahead=end_lookahead,
+        end_grounding=end_grounding,
     )
 
 
@@ -176,7 +181,8 @@ def ps_loss(model: PSModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tenso
         # The end head also reads `lookahead` positions past each supervised one.
         windows = _gather_windows(features, batch.window_index[members, : length + model.lookahead])
         hidden = model.trunk(windows, batch.starts_episode[members])
-        logits = model.raw_end_logits(hidden)  # without end_bias: that is for segmenting only
+        # without end_bias: that is for segmenting only; a grounded end is told the window's label if known
+        logits = model.raw_end_logits(hidden, windows, batch.window_labels[members])
         target, weight = batch.end_target[members, :length], batch.end_weight[members, :length]
         bce = F.binary_cross_entropy_with_logits(
             logits, target, reduction="none", pos_weight=logits.new_tensor(cfg.end_pos_weight)
@@ -418,7 +424,8 @@ def train_labeller(
 ) -> TrainResult:
     """Train the stand-alone labelling model on the annotated segments (positives only)."""
     torch.manual_seed(cfg.seed)
-    model_cfg = replace(model_cfg, end_lookahead=0)  # it labels given segments: no end head to look ahead
+    # it labels given segments: no end head to look ahead or ground
+    model_cfg = replace(model_cfg, end_lookahead=0, end_grounding=0)
     model = LabelModel(model_cfg, list(instructions))
     return _fit(
         model,
