@@ -285,20 +285,28 @@ class GroundedEndHead(nn.Module):
         """(B, P, hidden_in) what the end head reads at each position, (B, >= P, step_dim) the windows'
         step features, (B, P, K) class indices -> (B, P, K) logits added to the end logit if the segment
         ending at that position has that label."""
-        num_pos = hidden_in.shape[1]
+        batch, num_pos = hidden_in.shape[:2]
         where = torch.cat(
             [windows[:, :num_pos, first : first + 2 * n].unflatten(-1, (n, 2)) for first, n in self.slots],
             dim=2,
         )  # (B, P, S, 2)
-        tokens = self.token(torch.cat([where, where - where[:, :1]], dim=-1)) + self.slot_identity
-        label = self.words(self.label_words)[labels]  # (B, P, K, dim)
-        query = self.query(label).unflatten(-1, (self.heads, self.dim))  # (B, P, K, H, dim)
-        weights = torch.softmax(query @ self.slot_identity.T / self.dim**0.5, dim=-1)  # (B, P, K, H, S)
-        picked = weights @ tokens.unsqueeze(2)  # (B, P, K, H, dim)
-        mixed = self.from_hidden(hidden_in).unsqueeze(2) + self.from_label(
-            torch.cat([picked.flatten(-2), label], dim=-1)
+        moved = where - where[:, :1]
+        tokens = (
+            self.token(torch.cat([where, moved], dim=-1)).flatten(0, 1) + self.slot_identity
+        )  # (B*P, S, dim)
+        # What a label attends to and adds depends on the label alone: computed once per label.
+        label = self.words(self.label_words)  # (L, dim)
+        query = self.query(label).unflatten(-1, (self.heads, self.dim))  # (L, H, dim)
+        weights = torch.softmax(query @ self.slot_identity.T / self.dim**0.5, dim=-1)  # (L, H, S)
+        split = self.heads * self.dim
+        from_words = F.linear(label, self.from_label.weight[:, split:])  # (L, width)
+        chosen = labels.flatten(0, 1)  # (B * P, K)
+        picked = weights[chosen].flatten(1, 2) @ tokens  # (B * P, K * H, dim)
+        mixed = F.linear(
+            picked.unflatten(1, (chosen.shape[1], -1)).flatten(2), self.from_label.weight[:, :split]
         )
-        return self.out(F.gelu(mixed)).squeeze(-1)
+        mixed = mixed + from_words[chosen] + self.from_hidden(hidden_in).flatten(0, 1).unsqueeze(1)
+        return self.out(F.gelu(mixed)).squeeze(-1).unflatten(0, (batch, num_pos))
 
 
 def make_label_head(kind: str, in_dim: int, instructions: list[str]) -> nn.Module:
