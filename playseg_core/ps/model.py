@@ -416,43 +416,49 @@ class PSModel(StepModel):
     def lookahead(self) -> int:
         return self.cfg.end_lookahead
 
-    def raw_end_logits(
-        self, hidden: torch.Tensor, windows: torch.Tensor | None = None, labels: torch.Tensor | None = None
-    ) -> torch.Tensor:
+    def _end_head_input(self, hidden: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """What the end head reads at each position p (the states at p .. p + lookahead) and its logit."""
+        num_pos = hidden.shape[1] - self.lookahead
+        read = hidden
+        if self.lookahead:
+            read = torch.cat([hidden[:, k : k + num_pos] for k in range(self.lookahead + 1)], dim=-1)
+        return read, self.end_head(read).squeeze(-1)
+
+    def raw_end_logits(self, hidden: torch.Tensor, windows: torch.Tensor | None = None) -> torch.Tensor:
         """(B, P, hidden) trunk states of windows -> (B, P - lookahead): [b, p] = logit that the window's
         segment ends at position p, from positions p .. p + lookahead; without the end bias (training).
 
         With a grounded end head, ``windows`` (the trunk's (B, P, step_dim) input) is needed too, and the
         end's probability is p(end) = sum_l q_l sigmoid(end + grounded_l) over the label head's
         `GROUNDED_LABELS` likeliest labels l at each position (q_l their probability; the rest of q gets
-        sigmoid(end)), or for a window whose ``labels`` entry (B,) is a class index (training: the
-        annotated segment's own start), that label's alone; -1: not known.
+        sigmoid(end)).
         """
-        num_pos = hidden.shape[1] - self.lookahead
-        read = hidden
-        if self.lookahead:
-            read = torch.cat([hidden[:, k : k + num_pos] for k in range(self.lookahead + 1)], dim=-1)
-        end = self.end_head(read).squeeze(-1)
+        read, end = self._end_head_input(hidden)
         if self.grounded_end is None:
             return end
         if windows is None:
             raise ValueError("a PS model with a grounded end head scores ends from the windows' features too")
         with torch.no_grad():  # the label loss trains the label head, not the ends
-            probability = torch.softmax(self.label_head(hidden[:, :num_pos]), dim=-1)
+            probability = torch.softmax(self.label_head(hidden[:, : end.shape[1]]), dim=-1)
             top, candidates = probability.topk(min(GROUNDED_LABELS, probability.shape[-1]), dim=-1)
             weights = torch.cat([top, (1.0 - top.sum(-1, keepdim=True)).clamp_min(0.0)], dim=-1)
-            if labels is not None:
-                known = (labels >= 0)[:, None, None]
-                candidates = torch.where(known, labels.clamp_min(0)[:, None, None], candidates)
-                told = torch.zeros_like(weights)
-                told[..., 0] = 1.0
-                weights = torch.where(known, told, weights)
         grounded = self.grounded_end(read, windows, candidates)  # (B, P, K)
         logits = torch.cat([end.unsqueeze(-1) + grounded, end.unsqueeze(-1)], dim=-1)
         log_weights = weights.log()
         ended = torch.logsumexp(log_weights + F.logsigmoid(logits), dim=-1)
         going_on = torch.logsumexp(log_weights + F.logsigmoid(-logits), dim=-1)
         return ended - going_on
+
+    def told_end_logits(
+        self, hidden: torch.Tensor, windows: torch.Tensor, labels: torch.Tensor
+    ) -> torch.Tensor:
+        """As `raw_end_logits`, the grounded end told each window's label (B,) instead of marginalised:
+        end + grounded_label (training, where an annotated segment starts the window)."""
+        if self.grounded_end is None:
+            raise ValueError("told_end_logits: this PS model has no grounded end head")
+        read, end = self._end_head_input(hidden)
+        told = labels[:, None, None].expand(-1, end.shape[1], 1)
+        return end + self.grounded_end(read, windows, told).squeeze(-1)
 
     def end_logits(self, features: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
         """(T+1, d) -> (T, L_max): [i, k] = logit that the segment [i, i+k+1) ends at i+k+1, end bias

@@ -181,13 +181,22 @@ def ps_loss(model: PSModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tenso
         # The end head also reads `lookahead` positions past each supervised one.
         windows = _gather_windows(features, batch.window_index[members, : length + model.lookahead])
         hidden = model.trunk(windows, batch.starts_episode[members])
-        # without end_bias: that is for segmenting only; a grounded end is told the window's label if known
-        logits = model.raw_end_logits(hidden, windows, batch.window_labels[members])
+        logits = model.raw_end_logits(hidden, windows)  # without end_bias: that is for segmenting only
         target, weight = batch.end_target[members, :length], batch.end_weight[members, :length]
         bce = F.binary_cross_entropy_with_logits(
             logits, target, reduction="none", pos_weight=logits.new_tensor(cfg.end_pos_weight)
         )
         end_sum = end_sum + (bce * weight).sum()
+        if model.grounded_end is not None:  # also told the label where an annotated segment starts
+            known = batch.window_labels[members] >= 0
+            if known.any():
+                told = model.told_end_logits(
+                    hidden[known], windows[known], batch.window_labels[members][known]
+                )
+                bce = F.binary_cross_entropy_with_logits(
+                    told, target[known], reduction="none", pos_weight=told.new_tensor(cfg.end_pos_weight)
+                )
+                end_sum = end_sum + (bce * weight[known]).sum()
         end_correct += int((((logits > 0).float() == target) & (weight > 0)).sum())
         # Label head: hidden state at the end of each positive whose window is in this group.
         slot = torch.full((num_windows,), -1, dtype=torch.long)
