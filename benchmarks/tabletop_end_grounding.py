@@ -18,11 +18,8 @@ import argparse
 import time
 from pathlib import Path
 
-from playseg_core.augment.policy import torch_threads
-from playseg_core.baselines.common import TrainingData, TrainOptions
-from playseg_core.baselines.registry import get_method
 from playseg_core.domains import load_domain
-from playseg_core.experiment.runner import ExperimentData
+from playseg_core.experiment.runner import ExperimentData, train_on_start_split
 
 
 def main() -> None:
@@ -45,24 +42,8 @@ def main() -> None:
     default = getattr(domain, "END_GROUNDING", 0)
     for grounding in heads:
         domain.END_GROUNDING = grounding  # what PS's model_config_for reads as the domain's choice
-        training = TrainingData(
-            data.start,
-            data.val,
-            data.instructions,
-            data.features,
-            data.domain,
-            read_actions=scale.segmenter_reads_actions,
-            augment=scale.segmenter_augment,
-        )
-        options = TrainOptions(
-            seed=0,
-            steps=scale.segmenter_steps,
-            num_threads=args.threads,
-            label_accuracy=scale.segmenter_label_accuracy,
-        )
         began = time.perf_counter()
-        with torch_threads(args.threads):
-            trained = get_method("ps").train(training, options)
+        trained = train_on_start_split(data, "ps", scale, args.threads)
         path = out / f"ps-grounding{grounding}.pt"
         trained.save(path, {})
         print(

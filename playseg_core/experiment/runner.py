@@ -314,17 +314,12 @@ def _check_cached_runs(out: Path, loaded: dict[str, AddedSegments]) -> dict[str,
     return more
 
 
-def train_segmenter(out: str, method: str, scale: ExperimentScale, threads: int) -> str:
-    """Train ``method`` on the start split of out/data into out/models/<method>.pt (skipped when there),
-    with the scale's segmenter settings; its one-line report. A top-level function so that a process
-    pool can run it."""
+def train_on_start_split(data: ExperimentData, method: str, scale: ExperimentScale, threads: int) -> Any:
+    """``method`` trained on ``data``'s start split with the scale's segmenter settings (its trained
+    segmenter: ``save``, ``report``)."""
     from playseg_core.baselines.common import TrainingData, TrainOptions
     from playseg_core.baselines.registry import get_method
 
-    path = Path(out) / "models" / f"{method}.pt"
-    if path.exists():
-        return f"{method}: cached in {path}"
-    data = ExperimentData.open(Path(out) / "data")
     training = TrainingData(
         data.start,
         data.val,
@@ -341,7 +336,18 @@ def train_segmenter(out: str, method: str, scale: ExperimentScale, threads: int)
         label_accuracy=scale.segmenter_label_accuracy,
     )
     with torch_threads(threads):
-        trained = get_method(method).train(training, options)
+        return get_method(method).train(training, options)
+
+
+def train_segmenter(out: str, method: str, scale: ExperimentScale, threads: int) -> str:
+    """Train ``method`` on the start split of out/data into out/models/<method>.pt (skipped when there),
+    with the scale's segmenter settings; its one-line report. A top-level function so that a process
+    pool can run it."""
+    path = Path(out) / "models" / f"{method}.pt"
+    if path.exists():
+        return f"{method}: cached in {path}"
+    data = ExperimentData.open(Path(out) / "data")
+    trained = train_on_start_split(data, method, scale, threads)
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(f".{path.name}.partial")
     trained.save(partial, {"experiment": {"start_segments": data.start_segments}})
