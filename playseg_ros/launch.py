@@ -17,6 +17,7 @@ a node still running after `shutdown_timeout_s` is terminated, then killed.
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -117,7 +118,8 @@ class Graph:
         self.spec = spec
         self.log_dir = log_dir
         self.processes: dict[str, subprocess.Popen] = {}
-        self._params_dir = Path(tempfile.mkdtemp(prefix="playseg-up-"))
+        # The nodes' parameter files; removed by `stop()`, once no node can still be reading them.
+        self.params_dir = Path(tempfile.mkdtemp(prefix="playseg-up-"))
 
     def start(self) -> None:
         env = dict(os.environ)
@@ -130,7 +132,7 @@ class Graph:
                 out = open(self.log_dir / f"{spec.name}.log", "wb")  # noqa: SIM115 (owned by the child)
             # Own process group: a terminal's Ctrl-C reaches only us, and we stop the nodes in order.
             self.processes[spec.name] = subprocess.Popen(
-                node_command(spec, self._params_dir),
+                node_command(spec, self.params_dir),
                 env=env,
                 stdout=out,
                 stderr=subprocess.STDOUT if out else None,
@@ -168,6 +170,7 @@ class Graph:
                 except subprocess.TimeoutExpired:
                     proc.kill()
                     proc.wait()
+        shutil.rmtree(self.params_dir, ignore_errors=True)
         return {name: proc.returncode for name, proc in self.processes.items()}
 
 

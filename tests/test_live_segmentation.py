@@ -218,6 +218,7 @@ def test_reference_form_segments_give_the_trainer_the_same_buffer_as_embedded_on
         collector.close()
         codes = graph.stop()
     assert set(codes.values()) == {0}, codes
+    assert not graph.params_dir.exists()  # the nodes' parameter files go with the graph
     reference_log = (tmp_path / "trainer_reference.log").read_text()
     assert "dropped" not in reference_log and "Traceback" not in reference_log
     assert len(collector.segments) == expected
