@@ -62,6 +62,8 @@ def _cmd_bag_recover(args: argparse.Namespace) -> int:
     report = recover_bag(args.path)
     for item in report:
         action = f"rebuilt, {item.dropped_bytes} trailing bytes dropped" if item.rebuilt else "finished, kept"
+        if item.kept_original:
+            action += f"; damaged past them, the original kept as {item.kept_original}"
         print(f"{item.path}: {item.messages} messages ({action})")
     return 0
 

@@ -424,3 +424,24 @@ def test_recover_names_what_it_cannot_do(tmp_path: Path) -> None:
     assert [(r.rebuilt, r.messages) for r in report] == [(False, 10)]
     with BagReader(tmp_path / "done") as reader:
         assert reader.message_count == 10 and reader.custom_data == CUSTOM
+
+
+def test_recover_loses_nothing_past_damage_and_refuses_a_file_that_is_not_mcap(tmp_path: Path) -> None:
+    bag, file = _copy(SAMPLE_PLAY, tmp_path / "damaged")
+    _garbage_in_the_middle(file)
+    _cut_at_two_thirds(file)  # unfinished, so rebuilt: the scan stops at the garbage, not at the cut
+    original = file.read_bytes()
+    (item,) = recover_bag(bag)
+    assert item.rebuilt and item.messages > 0 and item.kept_original == file.name + ".damaged"
+    assert (bag / item.kept_original).read_bytes() == original  # what lies past the garbage is kept
+    assert _rosbags_count(bag) == item.messages  # and the rebuilt file alone is the bag
+
+    bag, file = _copy(SAMPLE_PLAY, tmp_path / "not-mcap")
+    data = bytearray(file.read_bytes())
+    data[1] = ord("X")  # one byte of the magic
+    file.write_bytes(data)
+    metadata = (bag / "metadata.yaml").read_bytes()
+    with pytest.raises(BagError, match=f"file '{file.name}'.*not an MCAP file .*left as it is"):
+        recover_bag(bag)
+    assert file.read_bytes() == bytes(data) and (bag / "metadata.yaml").read_bytes() == metadata
+    assert _leftovers(bag) == []

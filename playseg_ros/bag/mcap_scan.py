@@ -100,9 +100,10 @@ class RecordScan:
     end: int = 0
     problem: str | None = None
     start: int = 0
+    damaged: bool = False  # the scan stopped at bytes that are not MCAP (not at a cut): more may follow
 
     def __iter__(self) -> Iterator[tuple[int, McapRecord]]:
-        self.end, self.problem = 0, None
+        self.end, self.problem, self.damaged = 0, None, False
         with self.path.open("rb") as stream:
             size = os.fstat(stream.fileno()).st_size
             if stream.read(len(MAGIC)) != MAGIC:
@@ -121,6 +122,7 @@ class RecordScan:
                 opcode, length = _RECORD_HEAD.unpack(head)
                 if opcode not in _OPCODES:
                     self.problem = f"unknown record (opcode {opcode:#04x}) at byte {offset}: damaged data"
+                    self.damaged = True
                     return
                 kind = Opcode(opcode).name.lower()
                 if offset + _RECORD_HEAD.size + length > size:
@@ -131,6 +133,7 @@ class RecordScan:
                     records = _parse(opcode, body)
                 except Exception as error:  # noqa: BLE001 -- damaged bytes make any parser error possible
                     self.problem = f"damaged {kind} record at byte {offset}: {type(error).__name__}: {error}"
+                    self.damaged = True
                     return
                 for record in records:
                     yield offset, record

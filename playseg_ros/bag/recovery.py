@@ -4,7 +4,10 @@ short later (an interrupted copy): every complete message is kept.
 `recover_bag` accepts ``<path>.partial`` (a writer died) and a finished-looking ``<path>`` whose .mcap
 files are truncated or whose metadata.yaml is missing or does not match its files. Finished files are
 kept; an unfinished one is rebuilt from its complete records (mcap_scan.py), so whatever offset a file
-was cut at, recovery keeps every message before the cut and never fails on the cut itself. metadata.yaml
+was cut at, recovery keeps every message before the cut and never fails on the cut itself. A file whose
+scan stopped at damaged bytes rather than at a cut may hold messages past them: its original is kept
+beside the rebuilt one (``<name>.mcap.damaged``), and a file that is not MCAP at all (no magic at its
+start) is refused, never rebuilt into an empty one. metadata.yaml
 is written last, keeping the bag's custom_data from its old metadata.yaml or, failing that, from a
 metadata record inside one of its files. A bag whose writer is still alive (its lock is held) is refused.
 """
@@ -23,7 +26,7 @@ from mcap.writer import CompressionType
 
 from playseg_ros.bag.errors import BagError
 from playseg_ros.bag.lock import BagLock
-from playseg_ros.bag.mcap_scan import RecordScan, mcap_files
+from playseg_ros.bag.mcap_scan import MAGIC, RecordScan, mcap_files
 from playseg_ros.bag.schema import (
     METADATA_FILE,
     PARTIAL_SUFFIX,
@@ -35,6 +38,7 @@ from playseg_ros.bag.schema import (
 from playseg_ros.bag.writer import CUSTOM_DATA_RECORD, McapFile, partial_path
 
 TEMP_SUFFIX = ".recovered"
+DAMAGED_SUFFIX = ".damaged"
 
 
 @dataclass
@@ -45,6 +49,7 @@ class RecoveredFile:
     messages: int
     rebuilt: bool  # False: the file was already finished and is kept as is
     dropped_bytes: int  # bytes after the last complete record (the open chunk at the crash)
+    kept_original: str | None = None  # the damaged original, kept beside the rebuilt file
 
 
 def recover_bag(path: Path | str) -> list[RecoveredFile]:
@@ -100,8 +105,8 @@ def _recover_locked(path: Path, directory: Path) -> list[RecoveredFile]:
             report.append(RecoveredFile(file.name, stats.message_count, False, 0))
             custom_data = custom_data if custom_data is not None else _custom_data_in_summary(file)
         else:
-            stats, dropped, found = _rebuild(path, file, topics, custom_data)
-            report.append(RecoveredFile(file.name, stats.message_count, True, dropped))
+            stats, dropped, found, kept = _rebuild(path, file, topics, custom_data)
+            report.append(RecoveredFile(file.name, stats.message_count, True, dropped, kept))
             custom_data = custom_data if custom_data is not None else found
         all_stats.append(stats)
     BagSummary(path, all_stats, topics, custom_data or {}).write_metadata(directory)
@@ -155,28 +160,41 @@ def _custom_data_in_summary(path: Path) -> dict[str, str] | None:
 
 def _rebuild(
     bag: Path, source: Path, topics: dict[str, TopicInfo], custom_data: dict[str, str] | None
-) -> tuple[FileStats, int, dict[str, str] | None]:
+) -> tuple[FileStats, int, dict[str, str] | None, str | None]:
     """Copy every complete message of an unfinished ``source`` into a finished file that replaces it.
 
-    Returns its statistics, the bytes dropped after the last complete record and the custom_data found
-    in its metadata records (None if none). The new file carries ``custom_data`` (what is known of the
+    Returns its statistics, the bytes dropped after the last complete record, the custom_data found in
+    its metadata records (None if none) and the name the original is kept under when damaged bytes, not
+    a cut, ended the scan (None: replaced). The new file carries ``custom_data`` (what is known of the
     bag so far; when None, what the file itself holds). The copy goes to a temporary file first: if
     writing fails (a full disk), the source is untouched and the temporary file removed.
     """
+    with source.open("rb") as stream:
+        head = stream.read(len(MAGIC))
+    if len(head) == len(MAGIC) and head != MAGIC:
+        raise BagError(
+            bag, "not an MCAP file (no MCAP magic at its start): nothing recovered, the file is left as it is",
+            file=source.name,
+        )  # fmt: skip
     target = source.with_name(source.name + TEMP_SUFFIX)
+    kept = None
     try:
-        result = _copy_complete(source, target, topics, custom_data)
+        stats, dropped, found, damaged = _copy_complete(source, target, topics, custom_data)
+        if damaged:
+            kept = source.name + DAMAGED_SUFFIX
+            source.replace(source.with_name(kept))
         target.replace(source)
     except OSError as error:
         raise BagError(bag, f"cannot write the recovered file: {error}", file=source.name) from None
     finally:
         target.unlink(missing_ok=True)
-    return result
+    return stats, dropped, found, kept
 
 
 def _copy_complete(
     source: Path, target: Path, topics: dict[str, TopicInfo], known: dict[str, str] | None
-) -> tuple[FileStats, int, dict[str, str] | None]:
+) -> tuple[FileStats, int, dict[str, str] | None, bool]:
+    """`_rebuild`'s copy; the last value says whether damaged bytes (not a cut) ended the scan."""
     schemas: dict[int, Schema] = {}
     channel_topics: dict[int, str] = {}
     found: dict[str, str] | None = None
@@ -223,7 +241,7 @@ def _copy_complete(
             out.close_unfinished()
         raise
     dropped = 0 if data_complete or scan.problem is None else source.stat().st_size - scan.end
-    return stats, dropped, found
+    return stats, dropped, found, not data_complete and scan.damaged
 
 
 def _topic_of(channel: Channel, schema: Schema | None) -> TopicInfo | None:
