@@ -43,6 +43,26 @@ DEFAULT_DOMAIN = "babyai"
 """The domain `playseg generate` plays in unless told otherwise (the sample bags' domain)."""
 
 
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1 (argparse names the option in its one-line error)."""
+    return _int_at_least(text, 1)
+
+
+def non_negative_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    return _int_at_least(text, 0)
+
+
+def _int_at_least(text: str, low: int) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < low:
+        raise argparse.ArgumentTypeError(f"must be at least {low}, got {value}")
+    return value
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from playseg_ros.demo import run_demo, train_sample_models
 
@@ -243,11 +263,13 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     train.add_argument("--out", required=True, help="checkpoint file to write (e.g. models/ps.pt)")
     # Unset options take playseg_core.ps.training.TrainConfig's defaults (the measured best setting).
     train.add_argument(
-        "--epochs", type=int, help="exactly this many epochs (default: TrainConfig's, more on small data)"
+        "--epochs",
+        type=positive_int,
+        help="exactly this many epochs (default: TrainConfig's, more on small data)",
     )
     train.add_argument("--lr", type=float, help="peak learning rate (default: TrainConfig)")
     train.add_argument(
-        "--batch-segments", type=int, help="annotated segments per batch (default: TrainConfig)"
+        "--batch-segments", type=positive_int, help="annotated segments per batch (default: TrainConfig)"
     )
     train.add_argument("--seed", type=int, default=0)
     train.add_argument("--labeller", help="also train the stand-alone labelling model into this file")
@@ -358,7 +380,9 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     evaluate.add_argument("--truth", required=True, help="the dataset that was segmented")
     evaluate.add_argument("--json", help="metrics JSON path (default PRED/metrics.json)")
     evaluate.add_argument("--plot", help="timeline PNG path (default PRED/timeline.png)")
-    evaluate.add_argument("--plot-episodes", type=int, default=6, help="episodes in the timeline (0: none)")
+    evaluate.add_argument(
+        "--plot-episodes", type=non_negative_int, default=6, help="episodes in the timeline (0: none)"
+    )
     evaluate.set_defaults(func=_cmd_evaluate)
 
 

@@ -9,11 +9,13 @@ import json
 import os
 import resource
 import time
+import zipfile
 from collections.abc import Iterator
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from playseg_core.data.dataset import INFO_FILE, SEGMENTS_FILE, check_out_apart
 from playseg_core.data.episode import Episode, Segment, SegmentClip
 from playseg_core.data.features import ACTION, Feature, Features
 from playseg_ros.play_bags import DataInfo
@@ -339,22 +341,19 @@ def checked_label_accuracy(label_accuracy: float | None) -> float:
 
 def check_output_file(path: str | Path, overwrite: bool, option: str = "--out") -> Path:
     """Before long work: ``path`` can be written (its directory is created), and an existing file is only
-    replaced with ``--overwrite``. Checkpoints are then written atomically (playseg_core/checkpoint.py)."""
+    replaced with ``--overwrite`` and only when it is a checkpoint (a torch archive): a mistyped path never
+    destroys another file. Checkpoints are then written atomically (playseg_core/checkpoint.py)."""
     path = Path(path)
     if path.is_dir():
         raise IsADirectoryError(f"{option} {path}: is a directory, expected a file")
     if path.exists() and not overwrite:
         raise FileExistsError(f"{option} {path}: exists (pass --overwrite to replace it)")
+    if path.exists() and not zipfile.is_zipfile(path):  # every checkpoint is a torch zip archive
+        raise FileExistsError(f"{option} {path}: exists and is not a checkpoint; refusing to replace it")
     path.parent.mkdir(parents=True, exist_ok=True)
     if not os.access(path.parent, os.W_OK):
         raise PermissionError(f"{option} {path}: directory {path.parent} is not writable")
     return path
-
-
-def _check_not_inside(out: Path, source: Path) -> None:
-    out, source = out.resolve(), source.resolve()
-    if out == source or source in out.parents or out in source.parents:
-        raise ValueError(f"--out {out}: overlaps the input {source}; choose another directory")
 
 
 def segment(
@@ -387,7 +386,7 @@ def segment(
     source = Path(input_path)
     if not source.exists():
         raise FileNotFoundError(f"--input {source}: no such bag or dataset")
-    _check_not_inside(Path(out), source)
+    check_out_apart(out, source)
     model = load_segmenter(method, model_path, SegmentOptions(min_len=min_len, seed=seed))
     rule = model.keep_rule(keep)
     cameras = model.features.cameras
@@ -447,11 +446,32 @@ def segment(
     return 0
 
 
+def _check_report_path(path: Path, option: str, suffixes: tuple[str, ...], datasets: tuple[str, ...]) -> None:
+    """Before any work: a report file ``path`` is a file of one of ``suffixes`` and none of the datasets'
+    own files (replacing their meta/ or data/ would make them unreadable)."""
+    if path.is_dir():
+        raise IsADirectoryError(f"{option} {path}: is a directory, expected a file")
+    if path.suffix.lower() not in suffixes:
+        raise ValueError(f"{option} {path}: expected a {' or '.join(suffixes)} file")
+    resolved = path.resolve()
+    for root in datasets:
+        own_directories = {(Path(root).resolve() / file).parent for file in (INFO_FILE, SEGMENTS_FILE)}
+        if any(directory in resolved.parents for directory in own_directories):
+            raise ValueError(
+                f"{option} {path}: lies among the files of the dataset {root}; choose another path"
+            )
+
+
 def evaluate(pred: str, truth: str, out_json: str | None, plot: str | None, num_plot: int) -> int:
     """Compare a segmented dataset with the ground truth of the dataset it came from."""
     from playseg_core.ps.metrics import evaluate as evaluate_metrics
     from playseg_core.ps.metrics import format_metrics_table
 
+    json_path = Path(out_json) if out_json else Path(pred) / "metrics.json"
+    png = Path(plot) if plot else Path(pred) / "timeline.png"
+    _check_report_path(json_path, "--json", (".json",), (pred, truth))
+    if num_plot > 0:
+        _check_report_path(png, "--plot", (".png", ".pdf", ".svg"), (pred, truth))
     predicted = _open_dataset(pred, "--pred")
     reference = _open_dataset(truth, "--truth")
     pred_by_id: dict[str, list[Segment]] = {}
@@ -479,13 +499,11 @@ def evaluate(pred: str, truth: str, out_json: str | None, plot: str | None, num_
             f"and label accuracy on the {results['covered_steps']} steps its segments cover, "
             f"{results['covered_label_accuracy']:.3f} (recall and the label accuracy above count the gaps)"
         )
-    json_path = Path(out_json) if out_json else Path(pred) / "metrics.json"
     json_path.write_text(json.dumps(results, indent=2, sort_keys=True))
     print(f"metrics: {json_path}")
     if num_plot > 0:
         from playseg_core.ps.timeline import plot_timeline
 
-        png = Path(plot) if plot else Path(pred) / "timeline.png"
         plot_timeline(png, plotted, pred_by_id)
         print(f"timeline: {png}")
     return 0

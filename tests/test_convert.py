@@ -20,6 +20,7 @@ from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from playseg_core.data.dataset import PlayDataset
+from playseg_core.data.episode import Episode
 from playseg_ros.cli import main
 from playseg_ros.convert import MappingError, convert, load_mapping
 from playseg_ros.convert.alignment import align
@@ -643,3 +644,47 @@ def test_a_type_without_definition_fails_its_bag(tmp_path: Path) -> None:
     ).reports
     assert report.status == "failed"
     assert "topic '/gripper': unknown message type 'acme_msgs/msg/Gripper'" in str(report.error)
+
+
+def test_an_out_that_holds_its_input_bags_is_refused_even_with_overwrite(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--out` a directory around the bags (a generated dataset with its bags inside): replacing it would
+    delete them."""
+    from playseg_core.data.episode import Episode, Segment
+    from playseg_ros.play_bags import write_play_bag
+
+    rng = np.random.default_rng(0)
+    episode = Episode(
+        "e0",
+        rng.integers(0, 3, size=(6, 1)).astype(np.float32),
+        {"observation.images.camera": rng.integers(0, 255, size=(7, 8, 8, 3), dtype=np.uint8)},
+        segments=[Segment(0, 6, "left")],
+    )
+    bag = tmp_path / "data" / "bags" / "play"
+    write_play_bag(bag, [episode], annotated=True)
+    before = sorted(p.name for p in bag.iterdir())
+    for out in (tmp_path / "data", bag):
+        code = main(["convert", str(bag), "--out", str(out), "--overwrite", "--quiet"])
+        err = capsys.readouterr().err.strip()
+        assert code != 0 and "\n" not in err and f"overlaps the input {bag}" in err, err
+    assert sorted(p.name for p in bag.iterdir()) == before
+
+
+def test_a_truncated_play_bag_fails_saying_so_not_asking_for_a_mapping(tmp_path: Path) -> None:
+    from playseg_ros.play_bags import write_play_bag
+
+    rng = np.random.default_rng(1)
+    episodes = [
+        Episode(f"e{k}", rng.integers(0, 3, size=(40, 1)).astype(np.float32),
+                {"observation.images.camera": rng.integers(0, 255, size=(41, 8, 8, 3), dtype=np.uint8)})
+        for k in range(3)
+    ]  # fmt: skip
+    bag = tmp_path / "play"
+    write_play_bag(bag, episodes, annotated=False)
+    file = next(bag.glob("*.mcap"))
+    file.write_bytes(file.read_bytes()[: file.stat().st_size // 2])
+    summary = convert([bag], tmp_path / "data", None, progress=False)
+    assert [r.status for r in summary.reports] == ["failed"]
+    error = str(summary.reports[0].error)
+    assert f"file '{file.name}'" in error and "truncated" in error and "mapping" not in error, error

@@ -275,7 +275,17 @@ def test_outputs_are_checked_before_training(tiny_data: Path, tmp_path: Path, ca
     existing = tmp_path / "ps.pt"
     existing.write_bytes(b"an earlier model")
     _fails(capsys, ["train", "--data", str(tiny_data), "--out", str(existing)], "ps.pt", "--overwrite")
+    argv = ["train", "--data", str(tiny_data), "--out", str(existing), "--overwrite"]
+    _fails(capsys, argv, "ps.pt", "not a checkpoint")  # --overwrite replaces checkpoints only
+    _fails(capsys, ["calibrate", "--model", str(existing), "--data", str(tiny_data)], "ps.pt")
     assert existing.read_bytes() == b"an earlier model"
+    with pytest.raises(SystemExit) as exit_code:  # argparse: its usage and one line naming the option
+        cli_main(
+            ["train", "--data", str(tiny_data), "--out", str(tmp_path / "m.pt"), "--batch-segments", "0"]
+        )
+    assert exit_code.value.code == 2 and "argument --batch-segments: must be at least 1, got 0" in (
+        capsys.readouterr().err
+    )
     locked = tmp_path / "locked"
     locked.mkdir()
     locked.chmod(0o500)
@@ -301,6 +311,12 @@ def test_segment_replaces_only_its_own_output_and_never_the_input(
     _fails(capsys, [*argv[:-2], "--out", str(tiny_data), "--overwrite"], "overlaps the input")
     assert PlayDataset.open(tiny_data).splits == ("train", "val", "play", "test")  # the input is intact
     _fails(capsys, [*argv[:-4], "--splits", "dev", "--out", str(tmp_path / "x")], "--splits", "'dev'")
+    info = (out / "meta" / "info.json").read_bytes()
+    evaluate = ["evaluate", "--pred", str(out), "--truth", str(tiny_data), "--plot-episodes", "0"]
+    _fails(capsys, [*evaluate, "--json", str(out / "meta" / "info.json")], "--json", "files of the dataset")
+    _fails(capsys, [*evaluate, "--json", str(tmp_path / "notes.txt")], "--json", "expected a .json file")
+    assert (out / "meta" / "info.json").read_bytes() == info  # the reports never replace a dataset's files
+    assert cli_main(evaluate) == 0 and (out / "metrics.json").is_file()  # the default: beside the dataset
 
 
 def test_sigterm_removes_partial_outputs(tmp_path: Path) -> None:

@@ -61,6 +61,16 @@ def is_dataset(path: str | os.PathLike[str]) -> bool:
     return isinstance(info, dict) and info.get("format") == FORMAT_NAME
 
 
+def check_out_apart(
+    out: str | os.PathLike[str], source: str | os.PathLike[str], option: str = "--out"
+) -> None:
+    """Refuse an output directory that is, holds or lies inside an input: writing (or replacing) the output
+    would destroy the input."""
+    out, source = Path(out).resolve(), Path(source).resolve()
+    if out == source or source in out.parents or out in source.parents:
+        raise ValueError(f"{option} {out}: overlaps the input {source}; choose another directory")
+
+
 def _remove_stale_staging(path: Path) -> list[Path]:
     """Remove ``.NAME.partial-PID`` siblings of ``path`` whose writing process no longer exists."""
     removed = []

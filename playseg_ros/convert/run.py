@@ -27,7 +27,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal, NotRequired, TypedDict
 
-from playseg_core.data.dataset import DatasetWriter, PlayDataset, is_dataset
+from playseg_core.data.dataset import DatasetWriter, PlayDataset, check_out_apart, is_dataset
 from playseg_core.data.episode import Episode
 from playseg_core.data.features import Features
 from playseg_ros.convert.build import convert_bag
@@ -243,6 +243,9 @@ def convert(
     bags = find_bags(inputs)
     if not bags:
         raise ValueError(f"{', '.join(map(str, inputs))}: no bags found")
+    for bag in bags:  # writing (or --overwrite replacing) the output would delete a bag inside it
+        for written in (out, export_to) if export_to is not None else (out,):
+            check_out_apart(written, bag)
     if segmentation is not None and workers > 1 and segmentation.threads is None:
         segmentation = replace(segmentation, threads=max(1, (os.cpu_count() or 1) // workers))
     if segmentation is not None:

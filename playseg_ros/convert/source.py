@@ -118,12 +118,10 @@ def topic_types(reader: AnyReader) -> dict[str, str]:
 
 
 def is_play_bag(bag: Path) -> bool:
-    """A playseg play bag (PlaySteps on /play/steps): read as it is, without a mapping."""
-    try:
-        with open_bag(bag) as reader:
-            return topic_types(reader).get(PLAY_STEPS_TOPIC) == PLAY_STEP
-    except ConvertError:
-        return False
+    """A playseg play bag (PlaySteps on /play/steps): read as it is, without a mapping. A bag that cannot be
+    opened (damaged, truncated) is a ConvertError saying why, not "no play bag"."""
+    with open_bag(bag) as reader:
+        return topic_types(reader).get(PLAY_STEPS_TOPIC) == PLAY_STEP
 
 
 @dataclass
