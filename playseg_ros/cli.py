@@ -53,6 +53,17 @@ def non_negative_int(text: str) -> int:
     return _int_at_least(text, 0)
 
 
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0.0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
 def _int_at_least(text: str, low: int) -> int:
     try:
         value = int(text)
@@ -267,7 +278,7 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
         type=positive_int,
         help="exactly this many epochs (default: TrainConfig's, more on small data)",
     )
-    train.add_argument("--lr", type=float, help="peak learning rate (default: TrainConfig)")
+    train.add_argument("--lr", type=positive_float, help="peak learning rate (default: TrainConfig)")
     train.add_argument(
         "--batch-segments", type=positive_int, help="annotated segments per batch (default: TrainConfig)"
     )

@@ -445,3 +445,30 @@ def test_recover_loses_nothing_past_damage_and_refuses_a_file_that_is_not_mcap(t
         recover_bag(bag)
     assert file.read_bytes() == bytes(data) and (bag / "metadata.yaml").read_bytes() == metadata
     assert _leftovers(bag) == []
+
+
+@pytest.mark.parametrize(
+    ("metadata", "detail"),
+    [
+        (None, "no such bag directory"),
+        ("", "holds no rosbag2_bagfile_information mapping"),
+        ("a: 1\n", "holds no rosbag2_bagfile_information mapping"),
+        ("rosbag2_bagfile_information: {}\n", "cannot read metadata.yaml: KeyError"),
+    ],
+)
+def test_a_missing_bag_or_metadata_without_its_mapping_is_named(
+    tmp_path: Path, metadata: str | None, detail: str
+) -> None:
+    bag = tmp_path / "bag"
+    if metadata is not None:
+        bag, _ = _copy(SAMPLE_PLAY, bag)
+        (bag / "metadata.yaml").write_text(metadata)
+    with pytest.raises(BagError) as caught:
+        BagReader(bag)
+    assert f"bag '{bag}'" in str(caught.value) and detail in str(caught.value), caught.value
+
+
+def test_a_bag_whose_recording_did_not_finish_points_at_recovery(tmp_path: Path) -> None:
+    (tmp_path / "bag.partial").mkdir()
+    with pytest.raises(BagError, match=r"no metadata.yaml \(an unfinished recording is at .*bag recover"):
+        BagReader(tmp_path / "bag")

@@ -548,7 +548,7 @@ def test_cli_bag_info_and_recover(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert "4 messages" in capsys.readouterr().out
     assert len(read_play_bag(tmp_path / "crashed")) == 1
     assert cli_main(["bag", "info", str(tmp_path / "missing")]) == 1
-    assert "no metadata.yaml" in capsys.readouterr().err
+    assert "no such bag directory" in capsys.readouterr().err
 
 
 def _bag_cut_inside_the_last_episode(path: Path, episodes: list[Episode], keep_steps: int) -> None:

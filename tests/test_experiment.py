@@ -187,6 +187,11 @@ def test_an_output_directory_of_another_experiment_is_refused(experiment: Path, 
     assert cli_main(argv) == 1  # tiny results must never be reported as the small scale's
     error = capsys.readouterr().err.strip()
     assert "holds another experiment (scale, spec differ); use a new --out" in error and "\n" not in error
+    a_file = experiment.parent / "notes.txt"
+    a_file.write_text("kept")
+    assert cli_main([*argv[:-1], str(a_file)]) == 1
+    error = capsys.readouterr().err.strip()
+    assert f"--out {a_file}: is a file" in error and "\n" not in error and a_file.read_text() == "kept"
 
 
 def test_a_scale_s_segmenter_settings_reach_training(experiment: Path, tmp_path: Path) -> None:

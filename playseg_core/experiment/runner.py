@@ -176,6 +176,8 @@ def run_experiment(
     scale = spec.scale(scale_name)
     conditions = check_conditions(conditions)
     out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"--out {out}: is a file, expected the experiment's directory")
     began = time.perf_counter()
     _check_same_experiment(
         out, {"domain": domain, "scale": scale_name, "spec": asdict(scale), "policy": spec.policy}

@@ -46,6 +46,8 @@ class BagReader:
 
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path)
+        if not self.path.is_dir() and not partial_path(self.path).is_dir():
+            raise BagError(self.path, "no such bag directory")
         if not (self.path / METADATA_FILE).is_file():
             hint = (
                 f" (an unfinished recording is at {partial_path(self.path)}: run `playseg bag recover`)"
@@ -54,9 +56,12 @@ class BagReader:
             )
             raise BagError(self.path, f"not a rosbag2 bag: no {METADATA_FILE}{hint}")
         try:
-            self.metadata: dict[str, Any] = yaml.safe_load((self.path / METADATA_FILE).read_text())[
-                "rosbag2_bagfile_information"
-            ]
+            loaded = yaml.safe_load((self.path / METADATA_FILE).read_text())
+            if not isinstance(loaded, dict) or not isinstance(
+                loaded.get("rosbag2_bagfile_information"), dict
+            ):
+                raise BagError(self.path, f"{METADATA_FILE} holds no rosbag2_bagfile_information mapping")
+            self.metadata: dict[str, Any] = loaded["rosbag2_bagfile_information"]
             self._files = [self.path / Path(p).name for p in self.metadata["relative_file_paths"]]
         except (OSError, yaml.YAMLError, KeyError, TypeError) as error:
             raise BagError(self.path, f"cannot read {METADATA_FILE}: {_one_line(error)}") from None
