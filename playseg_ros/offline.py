@@ -487,6 +487,12 @@ def evaluate(pred: str, truth: str, out_json: str | None, plot: str | None, num_
             plotted.append(reference.episode(index, truth=True))
     if not truth_by_id:
         raise ValueError(f"--pred {pred}: none of its episodes is in --truth {truth}")
+    unknown = sorted(set(pred_by_id) - set(truth_by_id))
+    if unknown:  # e.g. --pred and --truth swapped: the truth holds more episodes than were segmented
+        raise ValueError(
+            f"--pred {pred}: {len(unknown)} of its episodes are not in --truth {truth} (first {unknown[0]!r}); "
+            "give as --truth the dataset it was segmented from"
+        )
     results = evaluate_metrics(pred_by_id, truth_by_id, steps_by_id)
     print(format_metrics_table(results))
     segmented_by = predicted.info.get("meta", {})

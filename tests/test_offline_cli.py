@@ -317,6 +317,8 @@ def test_segment_replaces_only_its_own_output_and_never_the_input(
     _fails(capsys, [*evaluate, "--json", str(tmp_path / "notes.txt")], "--json", "expected a .json file")
     assert (out / "meta" / "info.json").read_bytes() == info  # the reports never replace a dataset's files
     assert cli_main(evaluate) == 0 and (out / "metrics.json").is_file()  # the default: beside the dataset
+    swapped = ["evaluate", "--pred", str(tiny_data), "--truth", str(out), "--plot-episodes", "0"]
+    _fails(capsys, [*swapped, "--json", str(tmp_path / "m.json")], "of its episodes are not in --truth")
 
 
 def test_sigterm_removes_partial_outputs(tmp_path: Path) -> None:
