@@ -123,7 +123,11 @@ def test_malformed_steps_are_logged_and_the_node_keeps_running(tmp_path, model_p
         gap = [episode_step_message(good, t, kind=RCLPY) for t in (0, 1, 3)]
         for msg in gap:
             msg.episode_id = "gap"
-        for msg in [bad_encoding, bad_size, nan_action, *bad_action, *gap]:
+        ends_early = [episode_step_message(good, t, kind=RCLPY) for t in range(6)]
+        for msg in ends_early:
+            msg.episode_id = "ends-early"
+        ends_early[3].episode_end, ends_early[3].action = True, []  # then steps 4 and 5 go on
+        for msg in [bad_encoding, bad_size, nan_action, *bad_action, *gap, *ends_early]:
             collector.steps_pub.publish(msg)
         for t in range(good.num_steps + 1):
             collector.steps_pub.publish(episode_step_message(good, t, kind=RCLPY))
@@ -138,8 +142,10 @@ def test_malformed_steps_are_logged_and_the_node_keeps_running(tmp_path, model_p
     assert "'bad-size' step 0: observation.data holds 10 bytes" in log
     assert "'nan-action' step 0: action contains NaN" in log
     assert "'gap' step 3: step gap, expected step 2" in log
+    assert log.count("'ends-early' goes on after its episode_end (step 4)") == 1  # once, not per step
     assert "'bad-action' step 0: segmentation failed" in log and "= 9.0: not a discrete action index" in log
-    assert {s.episode_id for s in collector.segments} == {good.episode_id}
+    assert {s.episode_id for s in collector.segments} == {good.episode_id, "ends-early"}
+    assert [s.end_step for s in collector.segments if s.episode_id == "ends-early"][-1] == 3  # its own end
 
 
 def test_a_keep_rule_the_checkpoint_has_no_threshold_for_fails_configure_in_one_line(tmp_path, model_path):

@@ -84,7 +84,7 @@ def test_recorder_sigint_finishes_bag_with_every_published_step(procs: Processes
     expected_total = expected_steps + sum(len(e.segments) for e in episodes)
     recorder, rec_log = procs.node(
         "recorder", "recorder", "--log-level", "recorder:=debug", output=out,
-        topics=["/play/steps", "/play/annotations"], flush_period_s=0.1,
+        topics=["play/steps", "/play/annotations"], flush_period_s=0.1,  # relative: resolved as the graph's
     )  # fmt: skip
     source, src_log = procs.node(
         "play_source", "play_source", rate_hz=500.0, num_episodes=3, annotate_share=1.0,
@@ -347,7 +347,9 @@ def test_trainer_services_exist_only_while_configured_and_configure_can_be_retri
 
     assert offered() == set()
     assert not transition(Transition.TRANSITION_CONFIGURE)
-    wait_for_log(log, r"configure failed: FileExistsError", 10, trainer)
+    wait_for_log(
+        log, r"configure failed: trainer: invalid parameter: buffer_dir '.*buffer': File exists", 10, trainer
+    )
     peer.spin_until(lambda: False, 0.5)
     assert offered() == set() and trainer.poll() is None
 
@@ -602,6 +604,10 @@ def test_bag_player_refuses_a_truncated_bag_naming_the_file(procs: Processes, tm
     assert re.search(
         r"file 'play_0.mcap': the file is truncated or unfinished .*playseg bag recover", log.read_text()
     )
+    write_play_bag(bag := tmp_path / "whole", _episodes(1), annotated=True)
+    player, log = procs.node("bag_player", "player_inf", bag=bag, rate=0.0, delivery_timeout_s=".inf")
+    assert player.wait(timeout=30) == 2, log.read_text()
+    assert "invalid parameter: delivery_timeout_s must be finite and >= 0" in log.read_text()
 
 
 def test_a_parameter_value_shared_by_two_parameters_is_written_twice(tmp_path: Path) -> None:

@@ -55,6 +55,11 @@ class BagPlayerNode(Node):
         )
         require(bool(self.bag), self, "bag must be set")
         require(self.rate >= 0, self, "rate must be >= 0")
+        require(
+            0 <= self.delivery_timeout_s < float("inf"), self, "delivery_timeout_s must be finite and >= 0"
+        )
+        topics = topics or []  # an empty list in a parameter file arrives as None
+        wait_topics = wait_topics or []
         self.reader = BagReader(self.bag)
         wanted = [t for t in topics if t]
         unknown = sorted(set(wanted) - set(self.reader.topics))

@@ -70,14 +70,22 @@ class RecorderNode(LifecycleNode):
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:
-            require(bool(self.output), self, "output must be set")
-            require(len(self.topics) > 0 and all(self.topics), self, "topics must list at least one topic")
+            require(bool(self.output) and bool(Path(self.output).name), self, "output must name a directory")
+            # an empty list in a parameter file arrives as None
+            require(bool(self.topics) and all(self.topics), self, "topics must list at least one topic")
+            # recorded as the graph names them: "play/steps" in this node's namespace is "/play/steps"
+            self.topics = [self._graph_name(topic) for topic in self.topics]
             require(
                 self.reliability in ("reliable", "best_effort"), self, "reliability: reliable | best_effort"
             )
             require(self.compression in ("zstd", "none"), self, "compression: zstd | none")
-            require(self.max_file_mb >= 0 and self.max_file_s >= 0, self, "max_file_* must be >= 0")
-            require(self.flush_period_s > 0, self, "flush_period_s must be > 0")
+            finite = float("inf")
+            require(
+                0 <= self.max_file_mb < finite and 0 <= self.max_file_s < finite,
+                self,
+                "max_file_mb and max_file_s must be finite and >= 0",
+            )
+            require(0 < self.flush_period_s < finite, self, "flush_period_s must be finite and > 0")
             self._own_timers = [
                 self.create_timer(0.1, self._subscribe_discovered, autostart=False),
                 self.create_timer(self.flush_period_s, self._flush, autostart=False),
@@ -94,6 +102,12 @@ class RecorderNode(LifecycleNode):
             return TransitionCallbackReturn.FAILURE
         self.get_logger().info(f"recording {', '.join(self.topics)} to {self.output}")
         return TransitionCallbackReturn.SUCCESS
+
+    def _graph_name(self, topic: str) -> str:
+        try:
+            return self.resolve_topic_name(topic)
+        except Exception as exc:  # rclpy's name validation errors are not ValueErrors
+            raise ValueError(f"{self.get_name()}: invalid parameter: topics: {topic!r}: {exc}") from None
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         for timer in self._own_timers:

@@ -98,6 +98,7 @@ class SegmenterNode(ReleasingLifecycleNode):
         self.camera = DEFAULT_CAMERA  # the feature the PlaySteps' image is: the model's camera
         self.episodes: dict[str, _OpenEpisode] = {}
         self.finished: set[str] = set()
+        self._ended_quietly: set[str] = set()  # ended by episode_end, no step after it seen yet
         self.published = 0
         self._sub = None
         self._recording = ("", "")  # reference form: (bag, fully qualified steps topic), from activate
@@ -184,7 +185,13 @@ class SegmenterNode(ReleasingLifecycleNode):
 
     def _on_step(self, msg: PlayStep) -> None:
         if msg.episode_id in self.finished and msg.step != 0:
-            return  # the rest of an ended or dropped episode: its one log line was written already
+            if msg.episode_id in self._ended_quietly:  # a dropped episode had its log line already
+                self._ended_quietly.discard(msg.episode_id)
+                self.get_logger().warning(
+                    f"{self.steps_topic}: episode {msg.episode_id!r} goes on after its episode_end (step "
+                    f"{msg.step}): its later steps are dropped (a new episode starts at step 0)"
+                )
+            return
         try:
             self._segment_step(msg)
         except Exception as exc:  # a bad step or a failure on one episode must not take the node down
@@ -203,6 +210,7 @@ class SegmenterNode(ReleasingLifecycleNode):
         if episode is None:
             # Step 0 of an id seen before starts that episode anew (a replayed bag): documented rule.
             self.finished.discard(data.episode_id)
+            self._ended_quietly.discard(data.episode_id)
             check_step_number(data.episode_id, data.step, 0)
             episode = self.episodes[data.episode_id] = _OpenEpisode(
                 data.episode_id, StreamingSegmenter(self.model, self.min_len)
@@ -216,6 +224,7 @@ class SegmenterNode(ReleasingLifecycleNode):
             decided += episode.segmenter.finish()
             del self.episodes[data.episode_id]
             self.finished.add(data.episode_id)
+            self._ended_quietly.add(data.episode_id)
         for segment in decided:
             self._publish(episode, segment)
         if decided:

@@ -134,6 +134,12 @@ class TrainerNode(ReleasingLifecycleNode):
             require(p["eval_episodes"] > 0 and p["eval_max_steps"] > 0, self, "eval_* must be > 0")
             require(p["resolve_period_s"] > 0, self, "resolve_period_s must be > 0")
             require(p["resolve_timeout_s"] >= 0, self, "resolve_timeout_s must be >= 0")
+            require(0 < p["status_period_s"] < float("inf"), self, "status_period_s must be finite and > 0")
+            for key in ("buffer_dir", "checkpoint_dir"):  # made here, so a failure names its parameter
+                try:
+                    Path(p[key]).mkdir(parents=True, exist_ok=True)
+                except OSError as exc:
+                    require(False, self, f"{key} {p[key]!r}: {exc.strerror or exc}")
             annotated = load_annotated(p["base_data"]) if p["base_data"] else None
             learner = load_policy_learner(
                 p["policy"],
@@ -164,7 +170,9 @@ class TrainerNode(ReleasingLifecycleNode):
             self.trainer = AugmentationTrainer(config, learner, base)
             self._create_entities()
         except Exception as exc:  # any configuration problem: report it, stay unconfigured (retryable)
-            self.get_logger().error(f"configure failed: {exc!r}")
+            # an OSError's repr leaves out the file it is about; its str names it
+            what = str(exc) if isinstance(exc, (OSError, ValueError)) else repr(exc)
+            self.get_logger().error(f"configure failed: {what}")
             self.release()
             return TransitionCallbackReturn.FAILURE
         if self.trainer.buffer.recovered_bytes:
