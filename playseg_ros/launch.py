@@ -17,6 +17,7 @@ a node still running after `shutdown_timeout_s` is terminated, then killed.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -37,6 +38,9 @@ NODE_KINDS: dict[str, str] = {
     "play_source": "playseg_ros.babyai.play_source",  # a domain's node: its bot's play
 }
 """Node kind in a graph config -> the module whose ``main`` runs it."""
+
+NODE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+"""What rcl accepts as a node name (a remapped `__node`)."""
 
 
 @dataclass
@@ -70,8 +74,12 @@ def load_graph(path: str | Path) -> GraphSpec:
             raise ValueError(f"{where}: each node needs 'name' and 'node'")
         if entry["node"] not in NODE_KINDS:
             raise ValueError(f"{where}: unknown node {entry['node']!r} (one of {', '.join(NODE_KINDS)})")
+        if not isinstance(entry["name"], str) or not NODE_NAME.fullmatch(entry["name"]):
+            raise ValueError(f"{where}: name {entry['name']!r}: a ROS node name is letters, digits and '_'")
         if entry["name"] in names:
             raise ValueError(f"{where}: duplicate node name {entry['name']!r}")
+        if not isinstance(entry.get("parameters") or {}, dict):
+            raise ValueError(f"{where}: parameters must be a mapping of parameter name to value")
         unknown = set(entry) - {"name", "node", "parameters", "exit_ends_graph"}
         if unknown:
             raise ValueError(f"{where}: unknown keys {sorted(unknown)}")
@@ -84,7 +92,15 @@ def load_graph(path: str | Path) -> GraphSpec:
                 bool(entry.get("exit_ends_graph")),
             )
         )
-    return GraphSpec(nodes, raw.get("ros_domain_id"), float(raw.get("shutdown_timeout_s", 15.0)))
+    domain_id = raw.get("ros_domain_id")
+    if domain_id is not None and (
+        isinstance(domain_id, bool) or not isinstance(domain_id, int) or domain_id < 0
+    ):
+        raise ValueError(f"{path}: ros_domain_id {domain_id!r}: expected a non-negative integer")
+    timeout = raw.get("shutdown_timeout_s", 15.0)
+    if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not 0 < timeout < float("inf"):
+        raise ValueError(f"{path}: shutdown_timeout_s {timeout!r}: expected a positive number of seconds")
+    return GraphSpec(nodes, domain_id, float(timeout))
 
 
 class _ParamsDumper(yaml.SafeDumper):

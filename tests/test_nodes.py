@@ -620,3 +620,26 @@ def test_a_parameter_value_shared_by_two_parameters_is_written_twice(tmp_path: P
     text = (tmp_path / "bag_player.yaml").read_text()
     assert "&" not in text and "*" not in text
     assert yaml.safe_load(text)["bag_player"]["ros__parameters"] == {"topics": topics, "wait_topics": topics}
+
+
+def test_graph_config_errors_name_the_file_and_the_entry(tmp_path: Path) -> None:
+    from playseg_ros.launch import load_graph
+
+    good = {"name": "player", "node": "bag_player", "parameters": {"bag": "x"}}
+    cases = [
+        ({"nodes": [{**good, "name": "my-player"}]}, "nodes[0]: name 'my-player': a ROS node name"),
+        ({"nodes": [{**good, "parameters": ["bag", "x"]}]}, "nodes[0]: parameters must be a mapping"),
+        ({"nodes": [good], "ros_domain_id": "seventy"}, "ros_domain_id 'seventy': expected a non-negative"),
+        ({"nodes": [good], "shutdown_timeout_s": "soon"}, "shutdown_timeout_s 'soon': expected a positive"),
+    ]
+    config = tmp_path / "graph.yaml"
+    for raw, detail in cases:
+        config.write_text(yaml.safe_dump(raw))
+        try:
+            load_graph(config)
+        except ValueError as error:
+            assert str(error).startswith(f"{config}: ") and detail in str(error), error
+        else:
+            raise AssertionError(f"accepted: {raw}")
+    config.write_text(yaml.safe_dump({"nodes": [good], "ros_domain_id": 7, "shutdown_timeout_s": 5}))
+    assert load_graph(config).ros_domain_id == 7
