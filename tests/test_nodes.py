@@ -394,11 +394,12 @@ def test_bag_player_fast_delivers_every_message_in_order(
         want = [bytes(m.data) for m in reader.messages(["/play/steps"])]
     received = _subscribe_raw(peer, "/play/steps", PlayStep, qos.PLAY_STEPS)
     player, log = procs.node(
-        "bag_player", "player", bag=bag, rate=0.0, wait_for_subscribers=1, topics=["/play/steps"]
-    )
+        "bag_player", "player", bag=bag, rate=0.0, wait_for_subscribers=1, topics=["/play/steps"], ratee=5.0
+    )  # ratee: a misspelling, ignored with a warning
     assert peer.spin_until(lambda: len(received) >= len(want) or player.poll() is not None, 60)
     peer.spin_until(lambda: len(received) >= len(want), 5)
     assert player.wait(timeout=30) == 0, log.read_text()
+    assert "parameters this node does not have, ignored: ratee" in log.read_text()
     got = [bytes(data) for _, data in received]
     assert len(got) == len(want), f"lost {len(want) - len(got)} of {len(want)}"
     # DDS pads a payload to a multiple of 4 bytes: the same CDR bytes, plus up to 3 zero bytes.
@@ -416,8 +417,8 @@ def test_bag_player_plays_a_bag_of_an_earlier_playstep_definition_in_todays(
     received: list[PlayStep] = []
     peer.node.create_subscription(PlayStep, "/play/steps", received.append, qos.PLAY_STEPS)
     player, log = procs.node(
-        "bag_player", "player", bag=bag, rate=0.0, wait_for_subscribers=1, topics=["/play/steps"]
-    )
+        "bag_player", "player", bag=bag, rate=0.0, wait_for_subscribers=1, topics=["/play/steps"], ratee=5.0
+    )  # ratee: a misspelling, ignored with a warning
     assert peer.spin_until(lambda: len(received) >= len(want) or player.poll() is not None, 60)
     peer.spin_until(lambda: len(received) >= len(want), 5)
     assert player.wait(timeout=30) == 0, log.read_text()

@@ -92,6 +92,12 @@ class BagPlayerNode(Node):
         self.exit_code = 0  # 1 when the bag could not be played to its end (run_node exits with it)
         self._closing = False
         self.done = threading.Event()
+        # Played once the node spins: a short bag played from here could end (and shut the context down)
+        # before run_node has made its executor.
+        self._start_timer = self.create_timer(0.0, self._start_playback)
+
+    def _start_playback(self) -> None:
+        self.destroy_timer(self._start_timer)
         threading.Thread(target=self._play, daemon=True).start()
 
     def _play(self) -> None:

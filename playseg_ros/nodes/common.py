@@ -93,8 +93,11 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threa
     code = 0
     try:
         node = make_node()
+        autostart = isinstance(node, LifecycleNode) and declare(
+            node, "autostart", True, "configure and activate on start-up"
+        )
+        _warn_unknown_parameters(node)
         if isinstance(node, LifecycleNode):
-            autostart = declare(node, "autostart", True, "configure and activate on start-up")
             if autostart:
                 if node.trigger_configure() != TransitionCallbackReturn.SUCCESS:
                     node.get_logger().error("configure failed")
@@ -121,6 +124,15 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threa
             node.destroy_node()
         rclpy.try_shutdown()
     return code
+
+
+def _warn_unknown_parameters(node: Node) -> None:
+    """A parameter given to the node (a parameter file, `-p`) that it does not declare is a misspelling
+    rclpy ignores without a word: say so. Every node declares its parameters when it is built."""
+    given = getattr(node, "_parameter_overrides", {})  # rclpy's, for this node only
+    unknown = sorted(name for name in given if not node.has_parameter(name))
+    if unknown:
+        node.get_logger().warning(f"parameters this node does not have, ignored: {', '.join(unknown)}")
 
 
 def _stop_executor(executor: SingleThreadedExecutor | MultiThreadedExecutor) -> None:
