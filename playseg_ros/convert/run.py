@@ -243,9 +243,10 @@ def convert(
     bags = find_bags(inputs)
     if not bags:
         raise ValueError(f"{', '.join(map(str, inputs))}: no bags found")
+    written = [out] if export_to is None else [out, export_to]
     for bag in bags:  # writing (or --overwrite replacing) the output would delete a bag inside it
-        for written in (out, export_to) if export_to is not None else (out,):
-            check_out_apart(written, bag)
+        for directory in written:
+            check_out_apart(directory, bag)
     if segmentation is not None and workers > 1 and segmentation.threads is None:
         segmentation = replace(segmentation, threads=max(1, (os.cpu_count() or 1) // workers))
     if segmentation is not None:

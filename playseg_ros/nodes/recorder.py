@@ -19,6 +19,7 @@ subscribed is recorded too.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
@@ -79,13 +80,17 @@ class RecorderNode(LifecycleNode):
                 self.reliability in ("reliable", "best_effort"), self, "reliability: reliable | best_effort"
             )
             require(self.compression in ("zstd", "none"), self, "compression: zstd | none")
-            finite = float("inf")
+            sizes = (self.max_file_mb, self.max_file_s)
             require(
-                0 <= self.max_file_mb < finite and 0 <= self.max_file_s < finite,
+                all(math.isfinite(v) and v >= 0 for v in sizes),
                 self,
                 "max_file_mb and max_file_s must be finite and >= 0",
             )
-            require(0 < self.flush_period_s < finite, self, "flush_period_s must be finite and > 0")
+            require(
+                math.isfinite(self.flush_period_s) and self.flush_period_s > 0,
+                self,
+                "flush_period_s must be finite and > 0",
+            )
             self._own_timers = [
                 self.create_timer(0.1, self._subscribe_discovered, autostart=False),
                 self.create_timer(self.flush_period_s, self._flush, autostart=False),
