@@ -12,8 +12,9 @@ the set-up, the val passes and the calibration). The budgets' times are extrapol
 steps, not measured runs.
 
 Time per step depends on the batch and the segment lengths, not on the number of annotated segments;
-the only thing the dataset's size changes is the default PS / labelling-model budget (TrainConfig:
-``epochs`` passes of ``segments_per_batch``, at least ``min_steps``), computed here for
+the only thing the dataset's size changes is the default PS / labelling-model step cap (TrainConfig:
+``cap_epochs`` passes of ``segments_per_batch``, at least ``min_steps``, at most ``cap_steps``; early
+stopping usually ends a run sooner, so the budgets are upper bounds), computed here for
 ``--annotated-segments`` (10,000: the paper's BabyAI corpus) rather than for the dataset given.
 """
 
@@ -27,11 +28,11 @@ from dataclasses import dataclass
 import torch
 from torch.optim.optimizer import register_optimizer_step_post_hook
 
-from playseg_core.baselines.common import TrainingData, TrainOptions
+from playseg_core.baselines.common import WINDOW_STEP_CAP, TrainingData, TrainOptions
 from playseg_core.baselines.labelled_pieces import train_labelling_model
 from playseg_core.baselines.registry import get_method
 from playseg_core.data.dataset import PlayDataset
-from playseg_core.ps.training import TrainConfig, epochs_to_train
+from playseg_core.ps.training import TrainConfig, step_cap
 
 
 @dataclass(frozen=True)
@@ -48,10 +49,9 @@ class _Enough(Exception):
 
 
 def default_ps_steps(annotated_segments: int) -> int:
-    """Optimizer steps of `playseg train` (TrainConfig defaults) on that many annotated segments."""
+    """The step cap of `playseg train` (TrainConfig defaults) on that many annotated segments."""
     cfg = TrainConfig()
-    per_epoch = -(-annotated_segments // cfg.segments_per_batch)
-    return epochs_to_train(cfg, per_epoch) * per_epoch
+    return step_cap(cfg, -(-annotated_segments // cfg.segments_per_batch))
 
 
 def configurations(annotated_segments: int) -> list[Config]:
@@ -60,9 +60,13 @@ def configurations(annotated_segments: int) -> list[Config]:
     return [
         Config("PS", "ps", 16, ps_steps, ps_source),
         Config("labelling model (random, changepoint)", "labeller", 16, ps_steps, ps_source),
-        Config("UnLoc, default", "unloc", 32, 2000, "default: 2,000 steps of 32"),
+        Config(
+            "UnLoc, default", "unloc", 32, WINDOW_STEP_CAP, f"default cap: {WINDOW_STEP_CAP:,} steps of 32"
+        ),
         Config("UnLoc, paper batch", "unloc", 128, 20_000, "paper: 20,000 updates of 128"),
-        Config("TriDet, default", "tridet", 32, 2000, "default: 2,000 steps of 32"),
+        Config(
+            "TriDet, default", "tridet", 32, WINDOW_STEP_CAP, f"default cap: {WINDOW_STEP_CAP:,} steps of 32"
+        ),
         Config("TriDet, paper batch", "tridet", 512, 2000, "paper: 2,000 updates of 512"),
     ]
 
@@ -78,7 +82,11 @@ def time_steps(config: Config, data: TrainingData, measure: int, warmup: int, th
 
     handle = register_optimizer_step_post_hook(hook)
     options = TrainOptions(
-        seed=0, steps=10 * (warmup + measure + 1), batch_size=config.batch, num_threads=threads
+        seed=0,
+        max_steps=10 * (warmup + measure + 1),
+        patience=0,
+        batch_size=config.batch,
+        num_threads=threads,
     )
     try:
         if config.method == "labeller":

@@ -1,10 +1,11 @@
 """The paper's segmentation baselines next to PS: training time, segmentation throughput and quality.
 
     .venv/bin/python benchmarks/bench_baselines.py --data /tmp/babyai_small --models build/baselines \\
-        --methods unloc,tridet,random,changepoint --ps-model models/ps.pt --max-seconds 540
+        --methods unloc,tridet,random,changepoint --ps-model models/ps.pt --max-minutes 9
 
 Each method of playseg_core.baselines.registry is trained on the dataset's train/val splits (budget:
-``--steps METHOD=N``, the method's default otherwise, stopped after ``--max-seconds``), saved to
+at most ``--steps METHOD=N`` optimizer steps, the method's default cap otherwise, ended earlier by early
+stopping on the val loss or after ``--max-minutes``; baselines/common.py TrainOptions), saved to
 MODELS/<method>.pt (an existing file is reused with ``--reuse``: no training time then), and segments
 the ``--split`` episodes; ``--ps-model`` adds a trained PS checkpoint. Printed per method: training
 seconds, segmentation throughput (steps/s, encoding included), the number of segments, boundary
@@ -54,8 +55,16 @@ def main() -> None:
     parser.add_argument("--methods", default="unloc,tridet,random,changepoint")
     parser.add_argument("--ps-model", help="a trained PS checkpoint to compare with")
     parser.add_argument("--split", default="test")
-    parser.add_argument("--steps", action="append", default=[], metavar="METHOD=N", help="training steps")
-    parser.add_argument("--max-seconds", type=float, help="stop each training after this long")
+    parser.add_argument(
+        "--steps", action="append", default=[], metavar="METHOD=N", help="at most N optimizer steps of METHOD"
+    )
+    parser.add_argument("--max-minutes", type=float, help="stop each training after this long")
+    parser.add_argument(
+        "--patience",
+        type=int,
+        help="evaluations without a better val loss that end a training (default: the method's; 0: never "
+        "early, the whole --steps budget, the best evaluated weights kept)",
+    )
     parser.add_argument("--reuse", action="store_true", help="load MODELS/<method>.pt where it exists")
     parser.add_argument(
         "--labeller",
@@ -91,7 +100,12 @@ def main() -> None:
         path = models / f"{name}.pt"
         seconds = None
         if not (args.reuse and path.exists()):
-            options = TrainOptions(seed=args.seed, steps=budgets.get(name), max_seconds=args.max_seconds)
+            options = TrainOptions(
+                seed=args.seed,
+                max_steps=budgets.get(name),
+                max_minutes=args.max_minutes,
+                patience=args.patience,
+            )
             if name == "changepoint" and args.labeller:
                 trained = train_changepoint(
                     data, options, signal=args.signal, labeller=load_labeller(args.labeller)

@@ -128,9 +128,7 @@ def main() -> None:
 
         dataset = PlayDataset.open(args.data)
         train_eps, val_eps = list(dataset.episodes("train")), list(dataset.episodes("val"))
-        cfg = TrainConfig(
-            epochs=args.train_epochs, min_steps=0, progress=False, log_epochs=False, num_threads=2
-        )
+        cfg = TrainConfig(epochs=args.train_epochs, progress=False, log_epochs=False, num_threads=2)
         result = train_ps(train_eps, val_eps, dataset.instructions, cfg, model_cfg)
         segments = sum(len(e.segments) for e in train_eps)
         peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -16,7 +16,8 @@ Python loops) on a shorter one; both must give the same segmentation on the shor
 a lower bound: on an episode shorter than L_max the reference's way runs fewer and shorter prefixes per
 step than it would on a long one (its cost per step grows with L_max squared).
 train: `train_ps` for ``--epochs`` epochs over the segments (16 per batch); the seconds per optimiser step
-extrapolate to the default budget (16 epochs or 3,200 steps, whichever is more). Each mode runs in its
+extrapolate to the default step cap (16 epochs or 3,200 steps, whichever is more; early stopping
+usually ends a run sooner). Each mode runs in its
 own process, so peak RSS is that process's.
 """
 
@@ -34,7 +35,7 @@ from playseg_core.data.episode import Episode, Segment
 from playseg_core.data.features import ACTION, STATE, Feature, Features
 from playseg_core.ps.model import PSModel
 from playseg_core.ps.segmentation import segment_episode
-from playseg_core.ps.training import TrainConfig, epochs_to_train, model_config_for, segment_bounds, train_ps
+from playseg_core.ps.training import TrainConfig, model_config_for, segment_bounds, step_cap, train_ps
 
 CAMERA = "observation.images.front"
 FEATURES = Features.of(
@@ -126,7 +127,7 @@ def train(args: argparse.Namespace) -> None:
         FEATURES, None, len(INSTRUCTIONS), max_len=bounds.max_len, episodes=episodes, min_len=bounds.min_len
     )
     cfg = TrainConfig(
-        epochs=args.epochs, min_steps=0, k_max=bounds.k_max, num_threads=args.threads, progress=False,
+        epochs=args.epochs, k_max=bounds.k_max, num_threads=args.threads, progress=False,
         log_epochs=False,
     )  # fmt: skip
     steps_per_epoch = -(-num_segments // cfg.segments_per_batch)
@@ -134,14 +135,14 @@ def train(args: argparse.Namespace) -> None:
     result = train_ps(episodes, val, INSTRUCTIONS, cfg, config)
     optimiser_steps = steps_per_epoch * args.epochs
     per_step = result.seconds / optimiser_steps
-    default_steps = steps_per_epoch * epochs_to_train(TrainConfig(), steps_per_epoch)
+    default_steps = step_cap(TrainConfig(), steps_per_epoch)
     print(
         f"{num_segments} segments ({sum(e.num_steps for e in episodes)} steps), L_min/L_max/k_max "
         f"{bounds.min_len}/{bounds.max_len}/{bounds.k_max}, {args.threads} thread(s)"
     )
     print(
         f"{args.epochs} epoch(s) = {optimiser_steps} optimiser steps (validation included) in {result.seconds:.0f} s "
-        f"= {per_step:.2f} s/step; the default budget ({default_steps} steps) ~ {default_steps * per_step / 60:.0f} min"
+        f"= {per_step:.2f} s/step; the default step cap ({default_steps} steps) ~ {default_steps * per_step / 60:.0f} min"
     )
     print(f"peak RSS {peak_rss_mb()} MB (data and model before training: {before} MB)")
 

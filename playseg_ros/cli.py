@@ -64,6 +64,14 @@ def positive_float(text: str) -> float:
     return value
 
 
+def add_device_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--device",
+        default="auto",
+        help="where models run: auto (CUDA when torch sees one, else the CPU), cpu, cuda or cuda:N",
+    )
+
+
 def _int_at_least(text: str, low: int) -> int:
     try:
         value = int(text)
@@ -230,13 +238,17 @@ def _cmd_train(args: argparse.Namespace) -> int:
         args.label_accuracy,
         args.end_lookahead,
         args.end_grounding,
+        {"max_steps": args.max_steps, "max_minutes": args.max_minutes, "patience": args.patience},
+        args.device,
+        args.val_share,
+        args.resume,
     )
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     from playseg_ros.offline import calibrate
 
-    return calibrate(args.model, args.data, args.out, args.label_accuracy)
+    return calibrate(args.model, args.data, args.out, args.label_accuracy, args.device)
 
 
 def _cmd_segment(args: argparse.Namespace) -> int:
@@ -253,6 +265,7 @@ def _cmd_segment(args: argparse.Namespace) -> int:
         args.method,
         args.seed,
         args.keep,
+        args.device,
     )
 
 
@@ -276,8 +289,32 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     train.add_argument(
         "--epochs",
         type=positive_int,
-        help="exactly this many epochs (default: TrainConfig's, more on small data)",
+        help="exactly this many epochs, no early stopping (default: until the val loss stops improving, at "
+        "most a step cap scaled to the data)",
     )
+    train.add_argument(
+        "--max-steps",
+        type=positive_int,
+        help="at most this many optimizer steps (default: scaled to the data)",
+    )
+    train.add_argument("--max-minutes", type=positive_float, help="stop after this many minutes of training")
+    train.add_argument(
+        "--patience",
+        type=positive_int,
+        help="stop when the held-out measure has not improved for this many evaluations (default: the method's)",
+    )
+    train.add_argument(
+        "--val-share",
+        type=float,
+        help="without an annotated val split, hold out this share of the annotated episodes (at least one) "
+        "for early stopping and calibration (default 0.2; 0: none, the model is then uncalibrated)",
+    )
+    train.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue a killed run from its training state (OUT.train-state, written every evaluation)",
+    )
+    add_device_argument(train)
     train.add_argument("--lr", type=positive_float, help="peak learning rate (default: TrainConfig)")
     train.add_argument(
         "--batch-segments", type=positive_int, help="annotated segments per batch (default: TrainConfig)"
@@ -359,6 +396,7 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     calibrate.add_argument("--data", required=True, help="dataset whose annotated val split is used")
     calibrate.add_argument("--out", help="write the calibrated checkpoint here instead")
     calibrate.add_argument("--label-accuracy", type=float, help=LABEL_ACCURACY_HELP)
+    add_device_argument(calibrate)
     calibrate.set_defaults(func=_cmd_calibrate)
     segment = sub.add_parser("segment", help="cut play into labelled segments with a trained PS model")
     segment.add_argument("--model", required=True, help="checkpoint from `playseg train` (of --method)")
@@ -385,6 +423,7 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     )
     segment.add_argument("--seed", type=int, default=0, help="seed of the random windows (not ps)")
     segment.add_argument("--keep", default="label", choices=KEEP_RULE_CHOICES, help=KEEP_HELP)
+    add_device_argument(segment)
     segment.set_defaults(func=_cmd_segment)
     evaluate = sub.add_parser("evaluate", help="metrics of segmented play against the ground truth")
     evaluate.add_argument("--pred", required=True, help="output of `playseg segment`")
@@ -419,7 +458,7 @@ def _cmd_convert(args: argparse.Namespace) -> int:
     )
     summary = convert(
         args.bags, args.out, mapping, args.workers, args.overwrite, not args.quiet, output_format=args.format,
-        segmentation=segmentation, engine=args.engine, address=args.address,
+        segmentation=segmentation, engine=args.engine, address=args.address, val_share=args.val_share,
     )  # fmt: skip
     for report in summary.reports:
         for note in report.notes:
@@ -427,10 +466,13 @@ def _cmd_convert(args: argparse.Namespace) -> int:
     for report in summary.failed:
         print(f"playseg convert: failed: {report.error}", file=sys.stderr)
     print(summary.text())
+    print(summary.val_text())
     return EXIT_FAILED if summary.failed else 0
 
 
 def _add_convert_command(sub: argparse._SubParsersAction) -> None:
+    from playseg_core.data.splits import DEFAULT_VAL_SHARE  # the standard library only
+
     convert = sub.add_parser(
         "convert",
         help="convert robot bags (rosbag2, ROS 1) through a mapping into a dataset (docs/convert.md)",
@@ -455,6 +497,15 @@ def _add_convert_command(sub: argparse._SubParsersAction) -> None:
     )
     convert.add_argument("--keep", choices=KEEP_RULE_CHOICES, help=f"with --segment: {KEEP_HELP}")
     convert.add_argument("--workers", type=int, default=1, help="bags converted in parallel (processes)")
+    convert.add_argument(
+        "--val-share",
+        type=float,
+        default=DEFAULT_VAL_SHARE,
+        metavar="S",
+        help=f"share of the annotated episodes put in the val split, in [0, 1) (default {DEFAULT_VAL_SHARE}; "
+        "0: all in train): the lowest by a hash of their id, at least one, none with fewer than 2; the same "
+        "whatever --workers; a rerun with another share re-splits the dataset",
+    )
     convert.add_argument(
         "--engine",
         default="local",

@@ -179,9 +179,7 @@ def train_tabletop_model(
         f"training the tabletop PS model on {sum(len(e.segments) for e in train)} annotated segments, "
         f"{recipe['epochs']} epochs ..."
     )
-    config = TrainConfig(
-        k_max=bounds.k_max, epochs=recipe["epochs"], min_steps=0, progress=sys.stderr.isatty()
-    )
+    config = TrainConfig(k_max=bounds.k_max, epochs=recipe["epochs"], progress=sys.stderr.isatty())
     result = train_ps(train, val, dataset.instructions, config, model_cfg)
     calibrated = calibrate_ps_model(result.model, val)
     model_path.parent.mkdir(parents=True, exist_ok=True)

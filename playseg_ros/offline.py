@@ -8,12 +8,13 @@ from __future__ import annotations
 import json
 import os
 import resource
+import sys
 import time
 import zipfile
 from collections.abc import Iterator
 from dataclasses import asdict, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from playseg_core.data.dataset import INFO_FILE, SEGMENTS_FILE, check_out_apart
 from playseg_core.data.episode import Episode, Segment, SegmentClip
@@ -111,15 +112,20 @@ def _print_calibration(calibrated: dict[str, dict]) -> None:
         )
 
 
-def calibrate(model_path: str, data: str, out: str | None, label_accuracy: float | None = None) -> int:
+def calibrate(
+    model_path: str, data: str, out: str | None, label_accuracy: float | None = None, device: str = "auto"
+) -> int:
     """Re-calibrate a PS checkpoint's end bias and label threshold (for ``label_accuracy`` on held-out
-    segments; None: ps/calibration.py's LABEL_ACCURACY_TARGET) on a dataset's annotated val split."""
+    segments; None: ps/calibration.py's LABEL_ACCURACY_TARGET) on a dataset's annotated val split, the
+    model run on ``device``."""
     from playseg_core.ps.calibration import calibrate_ps_model
     from playseg_core.ps.model import load_model, save_model
+    from playseg_core.training.device import resolve_device
 
     label_accuracy = checked_label_accuracy(label_accuracy)
-
+    resolved = resolve_device(device)
     model, extra = load_model(model_path, kinds=("ps",))
+    model.to(resolved)
     dataset = _open_dataset(data)
     check_output_file(out or model_path, overwrite=True, option="--out")  # in place unless --out
     model.cfg.check_features(dataset.features, f"model {model_path}")
@@ -127,10 +133,32 @@ def calibrate(model_path: str, data: str, out: str | None, label_accuracy: float
     if not any(episode.segments for episode in val_eps):
         raise ValueError(f"{data}: the val split has no annotated segments to calibrate on")
     calibrated = calibrate_ps_model(model, val_eps, label_accuracy)
+    model.to("cpu")
     save_model(out or model_path, model, {**extra, **calibrated, "calibrated_on": str(Path(data).resolve())})
     print(f"{out or model_path}: calibrated on {len(val_eps)} val episodes of {data}")
     _print_calibration(calibrated)
     return 0
+
+
+def _training_fingerprint(data: str, cfg: Any, model_cfg: Any, val_ids: list[str]) -> str:
+    """What a run's resume file must match: the dataset, the settings that change what is trained (not
+    the budget's bounds nor how progress is shown), the model and the held-out episodes."""
+    import hashlib
+
+    settings = {
+        key: value
+        for key, value in asdict(cfg).items()
+        if key
+        not in ("progress", "log_epochs", "state_path", "resume", "fingerprint", "max_minutes", "device")
+    }
+    text = repr((str(Path(data).resolve()), sorted(settings.items()), repr(model_cfg), val_ids))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def train_state_path(out: str | Path) -> Path:
+    """Where a training run keeps its resume state: beside its checkpoint (removed when it finishes)."""
+    out = Path(out)
+    return out.with_name(out.name + ".train-state")
 
 
 def train(
@@ -152,6 +180,10 @@ def train(
     label_accuracy: float | None = None,
     end_lookahead: int | None = None,
     end_grounding: int | None = None,
+    budget: dict[str, Any] | None = None,
+    device: str = "auto",
+    val_share: float | None = None,
+    resume: bool = False,
 ) -> int:
     """Train the PS model (and optionally the stand-alone labeller) on a dataset's train/val splits,
     or another segmentation method (``method``, playseg_core/baselines/registry.py).
@@ -159,22 +191,32 @@ def train(
     ``bounds`` (min_len, max_len, k_max; None = derived, see `segment_bounds`) and ``encoders``
     (``FEATURE=KIND`` overrides of the step encoders) and ``label_head`` (None: the domain's, else
     linear) and ``augment`` (training clips under the domain's symmetries, or rotated/mirrored frames)
-    and ``end_lookahead`` and ``end_grounding`` (None: the domain's, else 0) come from the command line.
+    and ``end_lookahead`` and ``end_grounding`` (None: the domain's, else 0) come from the command line;
+    ``budget`` (max_steps, max_minutes, patience; None = the method's default) bounds the run on
+    ``device``. Without annotated val episodes, ``val_share`` of the annotated training episodes are
+    held out for early stopping and calibration (`hold_out_for_validation`); with too few to hold any
+    out, the model is saved uncalibrated, and said so. ``resume`` continues a killed run from its state
+    file (`train_state_path`).
 
     The outputs are checked before training starts (a model is never trained only to be lost).
     """
     from playseg_core.baselines.registry import get_method
+    from playseg_core.data.splits import DEFAULT_VAL_SHARE
     from playseg_core.ps.calibration import calibrate_ps_model
     from playseg_core.ps.model import MAX_END_GROUNDING, MAX_END_LOOKAHEAD, save_model
     from playseg_core.ps.training import (
         TrainConfig,
         clip_symmetries_of,
+        hold_out_for_validation,
         model_config_for,
         segment_bounds,
         train_labeller,
         train_ps,
     )
+    from playseg_core.training.device import resolve_device
 
+    resolved = resolve_device(device)  # no CUDA where it was asked for: one line before anything is read
+    budget = {key: value for key, value in (budget or {}).items() if value is not None}
     get_method(method)  # an unknown method fails before anything is read
     if labeller and method != "ps":
         raise ValueError(f"--labeller: only with --method ps (method {method} writes what it needs to --out)")
@@ -195,7 +237,15 @@ def train(
         raise ValueError(f"--end-grounding: must be in 0..{MAX_END_GROUNDING}, got {end_grounding}")
     if encoders_from and method not in ("unloc", "tridet"):
         raise ValueError(f"--encoders-from: only with --method unloc or tridet, not {method}")
+    if resume and method != "ps":
+        raise ValueError(f"--resume: only with --method ps, not {method}")
+    if val_share is not None and not 0.0 <= val_share < 1.0:
+        raise ValueError(f"--val-share: must be in [0, 1), got {val_share}")
     dataset = _open_dataset(data)
+    if labeller and Path(labeller).resolve() == Path(out).resolve():
+        raise ValueError(
+            f"--labeller {labeller}: the same file as --out (the labeller would replace the PS model)"
+        )
     check_output_file(out, overwrite)
     if labeller:
         check_output_file(labeller, overwrite, "--labeller")
@@ -203,13 +253,26 @@ def train(
     val_eps = list(dataset.episodes("val"))
     if not any(episode.segments for episode in train_eps):
         raise ValueError(f"--data {data}: the train split has no annotated segments to learn from")
+    share = DEFAULT_VAL_SHARE if val_share is None else val_share
+    train_eps, val_eps, held = hold_out_for_validation(train_eps, val_eps, share)
+    annotated_val = [episode for episode in val_eps if episode.segments]
+    if held:
+        total = len(held) + sum(1 for episode in train_eps if episode.segments)
+        print(
+            f"no annotated val split in {data}: {len(held)} of {total} annotated episodes held out "
+            f"(--val-share {share:g}) for early stopping and calibration"
+        )
+    elif not annotated_val:
+        print(
+            f"uncalibrated: {data} has no annotated val split and too few annotated episodes to hold one "
+            "out (two or more, --val-share > 0); training runs to its step cap and the model is marked "
+            "uncalibrated"
+        )
     chosen = segment_bounds(train_eps, dataset.domain, **(bounds or {}))
     given = {"epochs": epochs, "lr": lr, "segments_per_batch": batch_segments}
     cfg = TrainConfig(
         seed=seed, k_max=chosen.k_max, **{key: value for key, value in given.items() if value is not None}
     )
-    if epochs is not None:  # asked for exactly this many epochs
-        cfg = replace(cfg, min_steps=0)
     features, read_actions = _action_features(actions, dataset.features)
     if augment and read_actions and clip_symmetries_of(dataset.domain) is None:
         raise ValueError(
@@ -218,9 +281,18 @@ def train(
         )
     if augment and not get_method(method).augments:
         raise ValueError(f"--augment: only for PS and the labelling model, not {method}")
-    cfg = replace(cfg, augment=augment, domain=dataset.domain)
+    cfg = replace(cfg, augment=augment, domain=dataset.domain, device=str(resolved), **budget)
     if method != "ps":
-        given = {"seed": seed, "epochs": epochs, "lr": lr, "batch_size": batch_segments}
+        given = {
+            "seed": seed,
+            "epochs": epochs,
+            "lr": lr,
+            "batch_size": batch_segments,
+            "device": str(resolved),
+        }
+        given |= {
+            key: value for key, value in budget.items() if key in ("max_steps", "max_minutes", "patience")
+        }
         training = (dataset, train_eps, val_eps, features, read_actions, bounds, encoders, encoders_from)
         return _train_method(method, data, out, training, given, augment)
     model_cfg = model_config_for(
@@ -250,33 +322,56 @@ def train(
     if model_cfg.end_grounding:
         ahead += f"; its end grounded on the label ({model_cfg.end_grounding} attention heads)"
     print(
-        f"model reads {read}{unread}; {model_cfg.label_head} label head{ahead}; {chosen.describe()}",
+        f"model reads {read}{unread}; {model_cfg.label_head} label head{ahead}; {chosen.describe()}; "
+        f"device {resolved}",
         flush=True,
     )
-    result = train_ps(train_eps, val_eps, dataset.instructions, cfg, model_cfg)
-    calibrated = calibrate_ps_model(result.model, val_eps, label_accuracy) if val_eps else {}
+    val_ids = sorted(episode.episode_id for episode in annotated_val)
+    state = train_state_path(out)
+    cfg = replace(
+        cfg,
+        state_path=str(state),
+        resume=resume,
+        fingerprint=_training_fingerprint(data, cfg, model_cfg, val_ids),
+    )
+    try:
+        result = train_ps(train_eps, val_eps, dataset.instructions, cfg, model_cfg)
+    except KeyboardInterrupt:
+        if state.exists():
+            print(
+                f"training state kept in {state}: the same command with --resume continues it",
+                file=sys.stderr,
+            )
+        raise
+    result.model.to(resolved)  # calibration segments the val episodes: on the training device
+    calibrated = calibrate_ps_model(result.model, annotated_val, label_accuracy) if annotated_val else {}
+    result.model.to("cpu")
     extra = {
         "train": asdict(cfg),
         "history": result.history,
         "seconds": result.seconds,
         "dataset": str(Path(data).resolve()),
+        "val_episodes": val_ids,
+        "held_out": bool(held),
         "calibration": {},
         **calibrated,
     }
     save_model(out, result.model, extra)
-    last = result.history[-1]
     print(
-        f"{out}: PS model trained in {result.seconds:.0f} s on {len(train_eps)} episodes; "
-        f"val label accuracy {last.get('val', last['train'])['label_accuracy']:.3f}; "
-        f"peak RSS {_peak_rss_mb():.0f} MB"
+        f"{out}: PS model trained on {len(train_eps)} episodes, {result.summary()}; "
+        f"val label accuracy {result.label_accuracy:.3f}; peak RSS {_peak_rss_mb():.0f} MB"
     )
     if calibrated:
         _print_calibration(calibrated)
+    else:
+        print(f"{out}: uncalibrated (no annotated val episodes): confidences are not calibrated")
     if labeller:
-        lab = train_labeller(train_eps, val_eps, dataset.instructions, cfg, model_cfg)
-        save_model(labeller, lab.model, {"train": asdict(cfg), "history": lab.history})
-        final = lab.history[-1].get("val", lab.history[-1]["train"])
-        print(f"{labeller}: labeller, val accuracy {final['label_accuracy']:.3f}, {lab.seconds:.0f} s")
+        lab_cfg = replace(
+            cfg, state_path=str(train_state_path(labeller)), fingerprint=cfg.fingerprint + "-labeller"
+        )
+        lab = train_labeller(train_eps, val_eps, dataset.instructions, lab_cfg, model_cfg)
+        save_model(labeller, lab.model, {"train": asdict(lab_cfg), "history": lab.history})
+        print(f"{labeller}: labeller, {lab.summary()}; val accuracy {lab.label_accuracy:.3f}")
     return 0
 
 
@@ -367,6 +462,7 @@ def segment(
     method: str = "ps",
     seed: int = 0,
     keep: str = "label",
+    device: str = "auto",
 ) -> int:
     """Segment every episode of the input; write a dataset of labelled segments (and a bag for bags).
 
@@ -379,7 +475,8 @@ def segment(
     from playseg_core.baselines.common import SegmentOptions
     from playseg_core.baselines.registry import load_segmenter
     from playseg_core.data.dataset import DatasetWriter
-    from playseg_core.ps.labelling import threshold_json
+    from playseg_core.ps.labelling import is_calibrated, threshold_json, uncalibrated_warning
+    from playseg_core.training.device import resolve_device
 
     if min_len is not None and min_len < 1:
         raise ValueError(f"--min-len must be >= 1, got {min_len}")
@@ -387,8 +484,13 @@ def segment(
     if not source.exists():
         raise FileNotFoundError(f"--input {source}: no such bag or dataset")
     check_out_apart(out, source)
-    model = load_segmenter(method, model_path, SegmentOptions(min_len=min_len, seed=seed))
+    resolved = resolve_device(device)
+    model = load_segmenter(
+        method, model_path, SegmentOptions(min_len=min_len, seed=seed, device=str(resolved))
+    )
     rule = model.keep_rule(keep)
+    if method == "ps" and not is_calibrated(model.checkpoint_meta):
+        print(uncalibrated_warning(f"model {model_path}"), file=sys.stderr)
     cameras = model.features.cameras
     camera = cameras[0] if len(cameras) == 1 else None
     episodes, info, kind = _input_episodes(source, splits, camera, keep_incomplete)

@@ -9,6 +9,7 @@ of a segment can be told from a whole one); consecutive segments have different 
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -205,7 +206,7 @@ def test_the_registry_names_every_method_and_refuses_unknown_ones(tmp_path: Path
 
 @pytest.fixture(scope="module")
 def trained_changepoint():
-    return get_method("changepoint").train(synthetic_data(), TrainOptions(steps=300, batch_size=16))
+    return get_method("changepoint").train(synthetic_data(), TrainOptions(max_steps=300, batch_size=16))
 
 
 def test_changepoint_pieces_find_the_synthetic_boundaries(trained_changepoint, tmp_path: Path) -> None:
@@ -228,7 +229,7 @@ def test_changepoint_pieces_find_the_synthetic_boundaries(trained_changepoint, t
 
 
 def test_random_windows_tile_with_annotated_lengths_and_labelled_well(tmp_path: Path) -> None:
-    trained = get_method("random").train(synthetic_data(), TrainOptions(steps=300, batch_size=16))
+    trained = get_method("random").train(synthetic_data(), TrainOptions(max_steps=300, batch_size=16))
     path = trained.save(tmp_path / "random.pt", {})
     segmenter = load_segmenter("random", path, SegmentOptions(seed=3))
     test = [synthetic_episode(200 + s) for s in range(6)]
@@ -270,3 +271,198 @@ def test_ps_trains_and_segments_through_the_registry(tmp_path: Path) -> None:
     assert segments[0].start == 0 and segments[-1].end == episode.num_steps
     assert all(s.length >= 2 for s in segments) and segmenter.tiles
     assert segmenter.label_threshold == trained.segmenter.label_threshold
+
+
+# ----------------------------------------------------------------------------------------------------
+# Every method trains through the one loop (training/loop.py), within the options' budget
+
+
+class _LoopSpy:
+    """Wraps training/loop.py `train_loop` where the methods call it (the window models' `fit`, PS and
+    the labelling model's `_fit`), recording each run's task name, config and result; also counts the
+    optimizer steps actually taken, whoever takes them."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        from torch.optim.optimizer import register_optimizer_step_post_hook
+
+        from playseg_core.training import loop
+
+        self.runs: list[tuple[str, object, object]] = []
+        self.optimizer_steps = 0
+
+        def spy(task, cfg):
+            result = loop.train_loop(task, cfg)
+            self.runs.append((task.name, cfg, result))
+            return result
+
+        def count(*_) -> None:
+            self.optimizer_steps += 1
+
+        monkeypatch.setattr("playseg_core.baselines.common.train_loop", spy)
+        monkeypatch.setattr("playseg_core.ps.training.train_loop", spy)
+        self._hook = register_optimizer_step_post_hook(count)
+
+    def close(self) -> None:
+        self._hook.remove()
+
+
+@pytest.fixture
+def loop_spy(monkeypatch: pytest.MonkeyPatch):
+    spy = _LoopSpy(monkeypatch)
+    yield spy
+    spy.close()
+
+
+LOOP_NAMES = {
+    "ps": "ps",
+    "unloc": "unloc",
+    "tridet": "tridet",
+    "random": "labeller",
+    "changepoint": "labeller",
+}
+
+
+@pytest.mark.parametrize("method", list(METHODS))
+def test_every_method_trains_through_the_loop_within_max_steps_and_max_minutes(method: str, loop_spy) -> None:
+    data = synthetic_data(train=6, val=2)
+    get_method(method).train(data, TrainOptions(max_steps=3, batch_size=8, device="cpu"))
+    assert loop_spy.optimizer_steps == 3  # exactly the cap: no other loop took a step
+    [(name, cfg, result)] = loop_spy.runs
+    assert name == LOOP_NAMES[method] and cfg.steps == 3 and cfg.device == torch.device("cpu")
+    assert (result.steps, result.stopped) == (3, "step cap")
+    # max_minutes ends the run after the step that runs out of time (here: the first), as the loop says
+    loop_spy.runs.clear()
+    loop_spy.optimizer_steps = 0
+    get_method(method).train(data, TrainOptions(max_steps=50, max_minutes=1e-9, batch_size=8))
+    [(name, cfg, result)] = loop_spy.runs
+    assert cfg.max_minutes == 1e-9 and (result.steps, result.stopped) == (1, "max minutes")
+    assert loop_spy.optimizer_steps == 1
+
+
+def test_the_window_models_budget_defaults_and_options(loop_spy) -> None:
+    from playseg_core.baselines.common import WINDOW_EVAL_EVERY, WINDOW_PATIENCE, WINDOW_STEP_CAP
+    from playseg_core.baselines.unloc import UnlocConfig, train_unloc
+    from playseg_core.training.device import DeviceError
+
+    data = synthetic_data(train=4, val=2)
+    options = TrainOptions(max_minutes=1e-9)  # the defaults, stopped after one step
+    trained = train_unloc(data, options, UnlocConfig(dim=16))
+    (_, cfg, result), *_ = loop_spy.runs
+    assert (cfg.steps, cfg.eval_every, cfg.patience) == (WINDOW_STEP_CAP, WINDOW_EVAL_EVERY, WINDOW_PATIENCE)
+    assert "1 of at most 2000 steps, stopped by max minutes; kept step 1" in trained.report
+    # epochs: a fixed budget (ceil(segments / batch) steps each), no early stopping
+    segments = sum(len(e.segments) for e in data.train)
+    train_unloc(data, TrainOptions(epochs=2, batch_size=16, patience=3), UnlocConfig(dim=16))
+    _, cfg, result = loop_spy.runs[-1]
+    assert (cfg.steps, cfg.patience, result.steps) == (2 * -(-segments // 16), 0, cfg.steps)
+    train_unloc(data, TrainOptions(max_steps=4, eval_every=2, patience=7), UnlocConfig(dim=16))
+    _, cfg, result = loop_spy.runs[-1]
+    assert (cfg.steps, cfg.eval_every, cfg.patience) == (4, 2, 7)
+    assert [entry["step"] for entry in result.history] == [2.0, 4.0]
+    with pytest.raises(ValueError, match="max_steps must be at least 1, got 0"):
+        TrainOptions(max_steps=0)
+    with pytest.raises(ValueError, match="patience must be 0"):
+        TrainOptions(patience=-1)
+    with pytest.raises(ValueError, match="max_minutes must be a positive number"):
+        TrainOptions(max_minutes=0)
+    if not torch.cuda.is_available():
+        with pytest.raises(DeviceError, match="no CUDA device"):
+            train_unloc(data, TrainOptions(max_steps=1, device="cuda"), UnlocConfig(dim=16))
+
+
+def test_the_ps_budget_options_reach_its_train_config() -> None:
+    from playseg_core.baselines.common import ps_training_setup
+
+    data = synthetic_data(train=4, val=2)
+    _, cfg, _ = ps_training_setup(data, TrainOptions())
+    assert (cfg.epochs, cfg.max_steps, cfg.max_minutes, cfg.device) == (None, None, None, "auto")
+    given = TrainOptions(
+        max_steps=7, max_minutes=2.5, patience=3, eval_every=5, device="cpu", batch_size=4, lr=0.01, epochs=2
+    )
+    _, cfg, _ = ps_training_setup(data, given)
+    assert (cfg.max_steps, cfg.max_minutes, cfg.patience, cfg.eval_every) == (7, 2.5, 3, 5)
+    assert (cfg.device, cfg.segments_per_batch, cfg.lr, cfg.epochs) == ("cpu", 4, 0.01, 2)
+
+
+def test_a_window_batch_is_a_function_of_its_step_alone() -> None:
+    """The loop may ask a step again (a resumed run): the s-th draw of the seed's stream, as a loop
+    drawing step after step from one generator gets."""
+    from playseg_core.baselines.common import WindowBatches, _DrawnBatches
+
+    batches = WindowBatches(lambda rng, training: rng.integers(0, 1000, size=3), lambda w: w.tolist(), None)
+    stream = np.random.default_rng(5)
+    expected = [stream.integers(0, 1000, size=3).tolist() for _ in range(8)]
+    batch_at = _DrawnBatches(5, batches)
+    assert [batch_at(s) for s in (0, 1, 2)] == expected[:3]
+    assert [batch_at(s) for s in (6, 7, 1, 2)] == [expected[6], expected[7], expected[1], expected[2]]
+
+
+def _fit_before_the_loop(task, cfg, seed: int, lr: float):
+    """The window models' training loop as it was before training/loop.py (common.py `fit`, verbatim
+    but for taking the batches from the task's `WindowBatches`): AdamW + LambdaLR warm-up/cosine, clip
+    5, the val loss of 4 fixed batches at the end."""
+    from playseg_core.training.loop import LoopResult
+
+    batches, model, steps = task.batch_at.batches, task.model, cfg.steps
+    rng = np.random.default_rng(seed)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
+    warmup = max(1, steps // 20)
+
+    def factor(step: int) -> float:
+        if step < warmup:
+            return (step + 1) / warmup
+        return 0.5 * (1 + math.cos(math.pi * (step - warmup) / max(1, steps - warmup)))
+
+    schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+    model.train()
+    for step in range(steps):
+        # the loop sets each step's rate from the task: the very same numbers as this schedule
+        assert optimizer.param_groups[0]["lr"] == task.learning_rate(step), step
+        loss = batches.loss(model, batches.build(batches.choose(rng, True)))
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
+        optimizer.step()
+        schedule.step()
+    model.eval()
+    val_rng = np.random.default_rng(12345)
+    with torch.no_grad():
+        val = [float(batches.loss(model, batches.build(batches.choose(val_rng, False)))) for _ in range(4)]
+    best = {"step": float(steps), "val_loss": float(np.mean(val)), "train_loss": 0.0}
+    return LoopResult(model, steps, steps, "step cap", steps, best, [best], 0.0, "val_loss")
+
+
+@pytest.mark.parametrize("method", ["unloc", "tridet"])
+def test_without_early_stopping_the_window_models_train_as_before_the_loop(
+    method: str, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """The same steps with early stopping off (patience 0, one evaluation at the end): the CPU weights
+    and val loss are bit for bit those of the window models' former loop (`_fit_before_the_loop`; also
+    checked once against the former code itself: the same weights after 40 steps of either model)."""
+    from playseg_core.baselines.tridet import TridetConfig, train_tridet
+    from playseg_core.baselines.unloc import UnlocConfig, train_unloc
+    from playseg_core.checkpoint import read_checkpoint
+
+    def train(options: TrainOptions, path: Path):
+        data = synthetic_data(train=6, val=2)
+        data.bounds = {"k_max": 3}
+        if method == "unloc":
+            trained = train_unloc(data, options, UnlocConfig(dim=16))
+        else:
+            cfg = TridetConfig.for_lengths(7)
+            cfg.dim = 16
+            trained = train_tridet(data, options, cfg)
+        checkpoint = read_checkpoint(trained.save(path, {}), (method,))
+        return checkpoint.state_dict, checkpoint.meta
+
+    options = TrainOptions(seed=2, max_steps=30, patience=0, eval_every=30, batch_size=8, lr=3e-3)
+    weights, meta = train(options, tmp_path / "loop.pt")
+    assert (meta["steps"], meta["stopped"], meta["best_step"]) == (30, "step cap", 30)
+    monkeypatch.setattr(
+        "playseg_core.baselines.common.train_loop",
+        lambda task, cfg: _fit_before_the_loop(task, cfg, seed=2, lr=3e-3),
+    )
+    before, meta_before = train(options, tmp_path / "before.pt")
+    assert weights.keys() == before.keys()
+    assert [key for key in weights if not torch.equal(weights[key], before[key])] == []
+    assert meta["val_loss"] == meta_before["val_loss"]

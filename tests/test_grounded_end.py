@@ -76,7 +76,7 @@ def grounded(tabletop: Path) -> PSModel:
         end_grounding=2,
     )
     assert config.end_grounding == 2 and config.end_lookahead == 2  # the domain's lookahead, and grounded
-    cfg = TrainConfig(epochs=1, min_steps=0, segments_per_batch=8, seed=0, domain=dataset.domain)
+    cfg = TrainConfig(epochs=1, segments_per_batch=8, seed=0, domain=dataset.domain)
     result = train_ps(train, list(dataset.episodes("val")), dataset.instructions, cfg, config)
     model = result.model.eval()
     assert model.grounded_end is not None

@@ -87,9 +87,7 @@ def _model_config(features: Features, episodes: list[Episode], **config) -> Mode
 def _train(features: Features, train: list[Episode], val: list[Episode], **config) -> object:
     bounds = segment_bounds(train)
     model_cfg = _model_config(features, train, **config)
-    cfg = TrainConfig(
-        min_steps=0, epochs=12, segments_per_batch=8, k_max=bounds.k_max, progress=False, log_epochs=False
-    )
+    cfg = TrainConfig(epochs=12, segments_per_batch=8, k_max=bounds.k_max, progress=False, log_epochs=False)
     return train_ps(train, val, INSTRUCTIONS, cfg, model_cfg).model
 
 

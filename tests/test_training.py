@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -21,7 +23,7 @@ from playseg_core.ps.samples import (
 from playseg_core.ps.segmentation import segment_episode
 from playseg_core.ps.training import (
     TrainConfig,
-    epochs_to_train,
+    step_cap,
     train_labeller,
     train_ps,
     training_symmetries,
@@ -133,7 +135,6 @@ def _train_small_ps(
 ):
     train, val = _small_data(ends_in_actions, starts_in_actions)
     cfg = TrainConfig(
-        min_steps=0,
         epochs=epochs,
         segments_per_batch=5,
         lr=5e-3,
@@ -165,10 +166,10 @@ def _boundary_hits(model, episodes) -> tuple[float, float, float]:
 
 def test_short_ps_training_learns_to_segment() -> None:
     result, val = _train_small_ps(dense=True, epochs=30)
-    first = result.history[0]["val"]
-    best = min((h["val"] for h in result.history), key=lambda v: v["loss"])
-    assert best["loss"] < 0.3 * first["loss"]
-    assert best["label_accuracy"] >= 0.9  # chance: 0.25
+    first = result.history[0]
+    best = min(result.history, key=lambda h: h["val_loss"])
+    assert best["val_loss"] < 0.3 * first["val_loss"]
+    assert best["val_label_accuracy"] >= 0.9  # chance: 0.25
     # The trained model segments held-out episodes: exact boundaries and labels.
     precision, recall, labels = _boundary_hits(result.model, val)
     assert precision >= 0.8 and recall >= 0.8  # an untrained model: ~0.2
@@ -199,16 +200,15 @@ def test_an_end_head_with_lookahead_learns_ends_only_the_next_action_shows() -> 
 
 def test_short_ps_training_without_dense_prefixes_still_learns() -> None:
     result, _ = _train_small_ps(dense=False, epochs=20)
-    first = result.history[0]["val"]
-    best = min((h["val"] for h in result.history), key=lambda v: v["loss"])
-    assert best["loss"] < 0.5 * first["loss"]
-    assert best["label_accuracy"] >= 0.8
+    first = result.history[0]
+    best = min(result.history, key=lambda h: h["val_loss"])
+    assert best["val_loss"] < 0.5 * first["val_loss"]
+    assert best["val_label_accuracy"] >= 0.8
 
 
 def test_short_labeller_training_learns() -> None:
     train, val = _small_data()
     cfg = TrainConfig(
-        min_steps=0,
         epochs=20,
         segments_per_batch=5,
         lr=5e-3,
@@ -219,8 +219,8 @@ def test_short_labeller_training_learns() -> None:
     )
     model_cfg = tiny_model_config(max_len=8, num_layers=1, size=16)
     result = train_labeller(train, val, INSTRUCTIONS, cfg, model_cfg)
-    assert max(h["val"]["label_accuracy"] for h in result.history) >= 0.8  # chance: 0.25
-    assert result.history[-1]["train"]["loss"] < 0.3 * result.history[0]["train"]["loss"]
+    assert max(h["val_label_accuracy"] for h in result.history) >= 0.8  # chance: 0.25
+    assert result.history[-1]["train_loss"] < 0.3 * result.history[0]["train_loss"]
 
 
 def test_augmentation_rotates_or_mirrors_each_clip_as_a_whole() -> None:
@@ -318,11 +318,13 @@ def test_dense_window_negatives_supervise_every_position_of_off_start_windows() 
             assert torch.all(dense.end_weight[row, 1:inside] == 1) and torch.all(dense.end_target[row] == 0)
 
 
-def test_small_datasets_train_for_at_least_min_steps() -> None:
-    assert epochs_to_train(TrainConfig(epochs=16, min_steps=3200), steps_per_epoch=500) == 16  # paper scale
-    assert epochs_to_train(TrainConfig(epochs=16, min_steps=3200), steps_per_epoch=100) == 32  # demo scale
-    assert epochs_to_train(TrainConfig(epochs=16, min_steps=3200), steps_per_epoch=99) == 33
-    assert epochs_to_train(TrainConfig(epochs=3, min_steps=0), steps_per_epoch=1) == 3
+def test_the_step_cap_scales_with_the_data() -> None:
+    cfg = TrainConfig()
+    assert step_cap(cfg, 500) == 16 * 500  # paper scale: 16 epochs
+    assert step_cap(cfg, 100) == 3200  # small data: at least min_steps
+    assert step_cap(replace(cfg, cap_steps=1000), 500) == 1000
+    assert step_cap(replace(cfg, epochs=3), 7) == 21  # exactly the epochs asked for
+    assert step_cap(replace(cfg, epochs=3, max_steps=5), 7) == 5  # --max-steps bounds everything
 
 
 def test_a_recorded_clip_gives_the_episode_s_rows() -> None:

@@ -18,13 +18,17 @@ instead of choosing it (the copycat problem of behaviour cloning). A domain may 
 (as it does for PS).
 
 `train` holds out a seeded share of the clips and reports the validation loss next to the loss of
-predicting the training clips' mean action (the marginal action frequencies when discrete). There is no
+predicting the training clips' mean action (the marginal action frequencies when discrete). It trains
+through the training loop (training/loop.py): on ``device`` in its mixed precision, at most ``steps``
+steps or ``max_minutes``, and by default evaluated once, after the last step; with ``eval_every`` and
+``patience`` the held-out loss keeps the best weights and stops the run early. There is no
 simulator: `evaluate` returns None. Checkpoints are playseg checkpoints of kind ``policy`` with config
 ``{"policy": "bc", ...}`` and the features the policy reads.
 """
 
 from __future__ import annotations
 
+import sys
 import time
 import zlib
 from collections.abc import Callable, Mapping, Sequence
@@ -37,7 +41,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from playseg_core.augment.policy import PolicyTrainReport, torch_threads
+from playseg_core.augment.policy import PolicyTrainReport, SequentialDraws, torch_threads
 from playseg_core.checkpoint import Checkpoint, CheckpointError, read_checkpoint, save_checkpoint
 from playseg_core.data.episode import SegmentClip
 from playseg_core.data.features import ACTION, STATE, FeatureError, Features, check_discrete_actions
@@ -49,6 +53,8 @@ from playseg_core.ps.encoders import (
     feature_statistics,
 )
 from playseg_core.ps.model import instruction_tokens, instruction_words
+from playseg_core.training.device import resolve_device
+from playseg_core.training.loop import LoopConfig, TrainingTask, train_loop
 
 POLICY_NAME = "bc"
 
@@ -62,7 +68,7 @@ SampleSymmetry = Callable[
 class BCTrainConfig:
     """Settings of the ``bc`` policy and its training (all plain values: they go into the checkpoint)."""
 
-    steps: int = 1000
+    steps: int = 1000  # the step cap (what the run takes unless it stops early)
     batch_size: int = 64
     lr: float = 1e-3
     weight_decay: float = 0.0
@@ -101,6 +107,13 @@ class BCTrainConfig:
     related_entity_loss: float = 0.0
     log_every: int = 100
     num_threads: int = 1
+    # The budget (training/loop.py): every `eval_every` steps (0: only after the last) the held-out loss
+    # is computed and the best weights kept; the run stops when it has not improved for `patience`
+    # evaluations (0: never early), at `steps`, or after `max_minutes`.
+    eval_every: int = 0
+    patience: int = 0
+    max_minutes: float | None = None
+    device: str = "auto"  # training/device.py: auto, cpu, cuda or cuda:N
 
 
 def hashed_instruction_words(instruction: str, buckets: int, word_order: bool = False) -> list[int]:
@@ -230,6 +243,11 @@ class BCPolicy(nn.Module):
             self.register_buffer("action_mean", torch.tensor(mean, dtype=torch.float32))
             self.register_buffer("action_std", torch.tensor(std, dtype=torch.float32))
 
+    @property
+    def device(self) -> torch.device:
+        """Where the weights are (training may run on a GPU; checkpoints and `act` hold CPU weights)."""
+        return next(self.parameters()).device
+
     def instruction_ids(self, instructions: Sequence[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(known-string ids (N,), flat word ids, bag offsets (N,)) of ``instructions``."""
         known = torch.tensor([self._index.get(s, 0) for s in instructions], dtype=torch.long)
@@ -306,17 +324,18 @@ class BCPolicy(nn.Module):
             for start in range(0, len(clips), 256):
                 chunk = clips[start : start + 256]
                 ends = np.stack([clip.images[feature][[0, -1]] for clip in chunk])  # (n, 2, *frame)
-                found = encoder.encode_with_entities(torch.from_numpy(ends.reshape(-1, *ends.shape[2:])))
-                positions = found[2].view(len(chunk), 2, *found[2].shape[1:])  # (n, first/last, E, 2)
+                frames = torch.from_numpy(ends.reshape(-1, *ends.shape[2:])).to(self.device)
+                found = encoder.encode_with_entities(frames)
+                positions = found[2].float().view(len(chunk), 2, *found[2].shape[1:])  # (n, first/last, E, 2)
                 shift, entity = (positions[:, 1] - positions[:, 0]).norm(dim=-1).max(dim=-1)
-                rows = torch.arange(len(chunk))
+                rows = torch.arange(len(chunk), device=positions.device)
                 gaps = (positions - positions[rows, :, entity][:, :, None]).norm(dim=-1)  # (n, 2, E)
                 gaps[rows, :, entity] = float("inf")
                 gap, nearest = gaps[:, 1].min(dim=-1)
                 came = gaps[rows, 0, nearest] - gap >= threshold
                 moves = shift >= threshold
-                targets[start : start + len(chunk), 0] = torch.where(moves, entity, -1).numpy()
-                targets[start : start + len(chunk), 1] = torch.where(moves & came, nearest, -1).numpy()
+                targets[start : start + len(chunk), 0] = torch.where(moves, entity, -1).cpu().numpy()
+                targets[start : start + len(chunk), 1] = torch.where(moves & came, nearest, -1).cpu().numpy()
             moved[index] = targets
         return moved
 
@@ -363,6 +382,27 @@ class BCPolicy(nn.Module):
         return values.reshape(len(instructions), *action.shape)
 
 
+_VALIDATION_FIGURES = (
+    "val_loss",
+    "val_accuracy",
+    "baseline_val_loss",
+    "val_moved_entity_accuracy",
+    "val_related_entity_accuracy",
+)
+"""What `BCPolicyLearner._validate` gives: the report's held-out figures."""
+
+
+@dataclass(frozen=True)
+class _Batch:
+    """One training step's samples: its number (1-based), (observations, instructions, actions), which
+    samples see only the instruction's words, and per attended camera their moved-entity targets."""
+
+    number: int
+    samples: tuple[dict[str, np.ndarray], list[str], np.ndarray]
+    drop: np.ndarray
+    moved: dict[str, np.ndarray]
+
+
 class _Steps:
     """Every (clip, step) of some clips, gathered into batches of observations, instructions, actions."""
 
@@ -395,7 +435,12 @@ class _Steps:
 
 
 def _setting(name: str, kind: type, value: Any) -> Any:
-    """``value`` as the setting's type; a flag also from the words true/false (command lines give text)."""
+    """``value`` as the setting's type; a flag also from the words true/false (command lines give text);
+    a setting that may be unset (``max_minutes``) a number, or None from None or the word none."""
+    if kind is type(None):
+        if value is None or (isinstance(value, str) and value.strip().lower() in ("", "none")):
+            return None
+        kind = float
     if kind is bool and isinstance(value, str):
         if value.lower() not in ("true", "false", "1", "0"):
             raise ValueError(f"policy {POLICY_NAME}: {name} must be true or false, got {value!r}")
@@ -447,6 +492,16 @@ class BCPolicyLearner:
         if settings.steps <= 0 or settings.batch_size <= 0 or not 0.0 <= settings.val_fraction < 1.0:
             raise ValueError(
                 f"policy {POLICY_NAME}: steps and batch_size must be > 0, val_fraction in [0, 1)"
+            )
+        if (
+            min(settings.eval_every, settings.patience) < 0
+            or settings.log_every <= 0
+            or (settings.max_minutes is not None and not settings.max_minutes > 0)
+        ):
+            raise ValueError(
+                f"policy {POLICY_NAME}: eval_every and patience must be >= 0, log_every > 0 and "
+                f"max_minutes > 0 (or unset), got {settings.eval_every}, {settings.patience}, "
+                f"{settings.log_every} and {settings.max_minutes}"
             )
         if settings.action_head not in ("regress", "bins") or settings.action_bins < 2:
             raise ValueError(
@@ -551,18 +606,24 @@ class BCPolicyLearner:
         """(mean action loss, per-sample correct flags or nothing, the moved- and related-entity losses
         weighted and summed (0 without ``moved``: by attended camera, each sample's
         `BCPolicy.moved_entities` targets), per query the flags of its best-scored entity being its
-        target (samples that have one)) of one batch."""
+        target (samples that have one)) of one batch, on the model's device."""
         observations, instructions, actions = batch
+        device = model.device
+
+        def tensor(array: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(array).to(device)
+
         known, words, offsets = model.instruction_ids(instructions)
         if drop is not None:
             known = known.masked_fill(torch.from_numpy(drop), 0)
-        inputs = {name: torch.from_numpy(array) for name, array in observations.items()}
+        known, words, offsets = known.to(device), words.to(device), offsets.to(device)
+        inputs = {name: tensor(array) for name, array in observations.items()}
         out, scores = model.forward_with_attention(inputs, known, words, offsets)
         weights = (self.settings.moved_entity_loss, self.settings.related_entity_loss)
         moved_loss, moved_hits = out.new_zeros(()), [out.new_zeros(0), out.new_zeros(0)]
         for index, targets in (moved or {}).items():
             for query, weight in enumerate(weights[: scores[index].shape[1]]):
-                target = torch.from_numpy(targets[:, query])
+                target = tensor(targets[:, query])
                 has = target >= 0
                 if weight and has.any():
                     chosen = scores[index][:, query][has]
@@ -570,15 +631,15 @@ class BCPolicyLearner:
                     hits = (chosen.argmax(-1) == target[has]).float()
                     moved_hits[query] = torch.cat([moved_hits[query], hits])
         if model.discrete:
-            target = torch.from_numpy(actions)
+            target = tensor(actions)
             loss, hits = F.cross_entropy(out, target), (out.argmax(-1) == target).float()
         elif model.bins:
-            target = model.action_bin(torch.from_numpy(actions))
+            target = model.action_bin(tensor(actions))
             logits = out.reshape(len(out), -1, model.bins)
             loss = F.cross_entropy(logits.transpose(1, 2), target)
             hits = (logits.argmax(-1) == target).float().mean(-1)
         else:
-            target = (torch.from_numpy(actions) - model.action_mean) / model.action_std
+            target = (tensor(actions) - model.action_mean) / model.action_std
             loss, hits = F.mse_loss(out, target), out.new_zeros(0)
         return loss, hits, moved_loss, moved_hits
 
@@ -607,7 +668,10 @@ class BCPolicyLearner:
             result["val_related_entity_accuracy"] = float(found[1] / targeted[1])
         if model.bins:  # per dimension: the marginal bin frequencies of the training actions
             result["val_accuracy"] = correct / len(steps)
-            bins = [model.action_bin(torch.from_numpy(s.actions)).numpy() for s in (train, steps)]
+            bins = [
+                model.action_bin(torch.from_numpy(s.actions).to(model.device)).cpu().numpy()
+                for s in (train, steps)
+            ]
             log_p = [
                 np.log(np.bincount(bins[0][:, d], minlength=model.bins) + 1.0)
                 - np.log(len(bins[0]) + model.bins)
@@ -623,68 +687,106 @@ class BCPolicyLearner:
             result["val_accuracy"] = correct / len(steps)
             result["baseline_val_loss"] = float(-log_p[steps.actions].mean())
         else:
-            z = (steps.actions - model.action_mean.numpy()) / model.action_std.numpy()
+            z = (steps.actions - model.action_mean.cpu().numpy()) / model.action_std.cpu().numpy()
             result["baseline_val_loss"] = float(np.square(z).mean())
         return result
 
     def train(
         self, clips: Sequence[SegmentClip], progress: bool = False
     ) -> tuple[BCPolicy, PolicyTrainReport]:
+        """Train a fresh policy on ``clips`` through the training loop (training/loop.py): AdamW at the
+        constant ``lr``, gradients clipped to norm 1, at most ``steps`` steps; the held-out clips' figures
+        (`_validate`) every ``eval_every`` steps and after the last decide which weights are kept and
+        whether it stops early (``patience``). Returns (the policy on the CPU, in eval mode, its report)."""
         if not clips:
             raise ValueError(f"policy {POLICY_NAME}: no clips to train on")
         s = self.settings
         started = time.perf_counter()
+        device = resolve_device(s.device)
         train_clips, val_clips = self._split(list(clips)) if len(clips) > 1 else (list(clips), [])
         features = self.features
         names = [*features.cameras, *([STATE] if features.state is not None else [])]
         discrete = features.action.num_values
         with torch_threads(s.num_threads), torch.random.fork_rng(devices=[]):
             torch.manual_seed(s.seed)
-            rng = np.random.default_rng(s.seed)
             model = self.build(train_clips)
             train_steps = _Steps(train_clips, names, discrete)
+            val_steps = _Steps(val_clips, names, discrete)
             moved = self._moved_entities(model, train_clips)
-            optimiser = torch.optim.AdamW(model.parameters(), lr=s.lr, weight_decay=s.weight_decay)
-            model.train()
-            losses: list[tuple[int, float]] = []
-            running, count = 0.0, 0
-            for step in range(1, s.steps + 1):
+
+            def skip(rng: np.random.Generator, step: int) -> None:
+                rng.integers(0, len(train_steps), size=s.batch_size)
+                rng.random(s.batch_size)
+
+            def draw(rng: np.random.Generator, step: int) -> _Batch:
+                # one generator drawn step after step, as the loop of old did: the same batches
                 which = rng.integers(0, len(train_steps), size=s.batch_size)
                 drop = rng.random(s.batch_size) < s.instruction_dropout
                 batch = train_steps.batch(which)
                 if s.augment and self.sample_symmetry is not None:
                     batch = self.sample_symmetry(*batch, rng)
                 per_sample = {k: v[train_steps.pairs[which, 0]] for k, v in (moved or {}).items()}
-                loss, _, moved_loss, _ = self._loss(model, batch, drop, per_sample)
-                optimiser.zero_grad(set_to_none=True)
-                (loss + moved_loss).backward()  # the log below: the action loss, as `val_loss`
-                nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-                optimiser.step()
-                running, count = running + loss.item(), count + 1
-                if step % s.log_every == 0 or step == s.steps:
-                    losses.append((step, running / count))
-                    if progress:
-                        print(f"policy {POLICY_NAME} step {step}/{s.steps}: loss {running / count:.4f}")
-                    running, count = 0.0, 0
-            validation = (
-                self._validate(
-                    model,
-                    _Steps(val_clips, names, discrete),
-                    train_steps,
-                    self._moved_entities(model, val_clips),
+                return _Batch(step + 1, batch, drop, per_sample)
+
+            augmenting = s.augment and self.sample_symmetry is not None
+            losses: list[tuple[int, float]] = []
+            running: list[float] = []  # the action losses since the last entry of `losses`
+
+            def log_losses(step: int) -> None:
+                losses.append((step, sum(running) / len(running)))
+                if progress:
+                    print(f"policy {POLICY_NAME} step {step}/{s.steps}: loss {losses[-1][1]:.4f}")
+                running.clear()
+
+            def loss(trained: nn.Module, batch: _Batch) -> tuple[torch.Tensor, dict[str, float]]:
+                action_loss, _, moved_loss, _ = self._loss(trained, batch.samples, batch.drop, batch.moved)
+                value = action_loss.item()  # logged: the action loss, as `val_loss`
+                running.append(value)
+                if batch.number % s.log_every == 0 or batch.number == s.steps:
+                    log_losses(batch.number)
+                return action_loss + moved_loss, {"loss": value}
+
+            def evaluate(trained: nn.Module) -> dict[str, float]:
+                return self._validate(
+                    trained, val_steps, train_steps, self._moved_entities(trained, val_clips)
                 )
-                if val_clips
-                else {}
+
+            task = TrainingTask(
+                name=f"policy {POLICY_NAME}",
+                model=model,
+                # a pure function of the step (exact when resumed), the same draws as a plain loop
+                batch_at=SequentialDraws(s.seed, draw, None if augmenting else skip),
+                loss=loss,
+                learning_rate=lambda step: s.lr,
+                optimizer=lambda m: torch.optim.AdamW(m.parameters(), lr=s.lr, weight_decay=s.weight_decay),
+                evaluate=evaluate if val_clips else None,
             )
+            result = train_loop(
+                task,
+                LoopConfig(
+                    steps=s.steps,
+                    eval_every=s.eval_every,
+                    patience=s.patience,
+                    max_minutes=s.max_minutes,
+                    grad_clip=1.0,
+                    device=device,
+                    log=(lambda line: print(line, file=sys.stderr, flush=True)) if progress else None,
+                ),
+            )
+            if running:  # stopped early, between two entries
+                log_losses(result.steps)
+        model = result.model.to("cpu")  # checkpoints and `act` hold CPU weights
         model.eval()
+        # the figures of the kept weights (the last evaluation's when none was finite)
+        figures = result.best or (result.history[-1] if result.history else {})
         report = PolicyTrainReport(
-            steps=s.steps,
+            steps=result.steps,
             seconds=time.perf_counter() - started,
             num_segments=len(clips),
             final_loss=losses[-1][1],
             losses=losses,
             num_val_segments=len(val_clips),
-            **validation,
+            **{key: value for key, value in figures.items() if key in _VALIDATION_FIGURES},
         )
         return model, report
 

@@ -9,10 +9,11 @@ learner by its name (`load_policy_learner`). A learner without a simulator retur
 from __future__ import annotations
 
 import contextlib
+import threading
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Generic, Protocol, TypeVar
 
 import numpy as np
 import torch
@@ -120,6 +121,45 @@ def _bc_policy(config: dict[str, Any], features: Features | None) -> PolicyLearn
 
 GENERIC_POLICIES: dict[str, Callable[[dict[str, Any], Features | None], PolicyLearner]] = {"bc": _bc_policy}
 """Policies for any domain's data, by name: factory (config, the data's features) -> learner."""
+
+
+T = TypeVar("T")
+
+
+class SequentialDraws(Generic[T]):
+    """Step ``s``'s batch of a run that draws every step's batch from one numpy generator seeded with
+    ``seed``, in step order, as a function of ``s`` alone (the training loop's `TrainingTask.batch_at`).
+
+    ``draw(rng, step)`` makes a step's batch from the generator. Asked for the steps in order (the loop
+    does, prefetching included: one worker, in order), each step costs one draw and the batches are those
+    of a plain ``for`` loop over one generator, so runs give the weights they always gave. Asked for a
+    later step (a resumed run starts there), the skipped steps are drawn first, with ``skip(rng, step)``
+    when given (the same generator calls without building the batch) or ``draw``; asked for an earlier
+    one, it starts again from the seed. So a resumed run gets the very batches the uninterrupted one got,
+    at the cost of replaying the draws of the steps before it.
+    """
+
+    def __init__(
+        self,
+        seed: int,
+        draw: Callable[[np.random.Generator, int], T],
+        skip: Callable[[np.random.Generator, int], object] | None = None,
+    ) -> None:
+        self._seed, self._draw, self._skip = seed, draw, skip or draw
+        self._rng = np.random.default_rng(seed)
+        self._next = 0  # the step the generator is at
+        self._lock = threading.Lock()  # a prefetching loop asks from its worker thread
+
+    def __call__(self, step: int) -> T:
+        with self._lock:
+            if step < self._next:
+                self._rng, self._next = np.random.default_rng(self._seed), 0
+            while self._next < step:
+                self._skip(self._rng, self._next)
+                self._next += 1
+            batch = self._draw(self._rng, step)
+            self._next = step + 1
+            return batch
 
 
 @contextlib.contextmanager

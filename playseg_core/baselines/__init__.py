@@ -5,7 +5,8 @@
 - random_windows.py: random windows labelled by the labelling model;
 - changepoint.py: PELT changepoints (ruptures) labelled by the labelling model;
 - registry.py: method name (ps, unloc, tridet, random, changepoint) -> train / segment;
-- common.py: what they share (options, the Segmenter interface, windows, the training loop).
+- common.py: what they share (options and budget, the Segmenter interface, windows, how the window
+  models train through the one loop, playseg_core/training/loop.py).
 
 Generic: every method reads a dataset through the step encoders chosen from its features (ps/encoders.py),
 so none knows any domain. docs/baselines.md maps them to the paper.

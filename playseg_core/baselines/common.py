@@ -1,5 +1,6 @@
 """What every segmentation method shares: the training inputs and options, the `Segmenter` interface,
-windows of step features, the training loop of the window models, and per-episode randomness.
+windows of step features, how the window models train through the one loop (training/loop.py), and
+per-episode randomness.
 
 A segmenter turns one episode into sorted, disjoint labelled `Segment`s, as PS does, so the same writer,
 bags and metrics (ps/metrics.py) serve every method. ``tiles`` says whether its segments cover the whole
@@ -11,7 +12,6 @@ from __future__ import annotations
 
 import math
 import sys
-import time
 import zlib
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -30,6 +30,8 @@ from playseg_core.ps.calibration import LABEL_ACCURACY_TARGET, check_target_accu
 from playseg_core.ps.encoders import EncoderSpec, StepEncoders, as_tensors
 from playseg_core.ps.labelling import KeepRule
 from playseg_core.ps.metrics import LabelCounts, label_accuracy
+from playseg_core.training.device import resolve_device, to_device
+from playseg_core.training.loop import LoopConfig, LoopResult, TrainingTask, train_loop
 
 
 @dataclass
@@ -67,38 +69,70 @@ class TrainingData:
 
 @dataclass
 class TrainOptions:
-    """Budget and optimiser of a training run. ``steps`` optimizer steps (None: the method's default, or
-    ``epochs`` passes over the annotated segments when given); ``max_seconds`` stops earlier."""
+    """Budget, optimiser and device of a training run, for every method (all train through
+    playseg_core/training/loop.py).
+
+    The budget: at most ``max_steps`` optimizer steps (None: the method's cap), ended earlier when the
+    held-out measure (the val loss) has not improved for ``patience`` evaluations, one every
+    ``eval_every`` steps (None: the method's defaults; patience 0: never early), or after
+    ``max_minutes``; the weights of the best evaluation are kept. ``epochs``: that many passes over the
+    annotated segments instead, without early stopping (``max_steps`` still caps them). Unset options
+    keep the method's defaults."""
 
     seed: int = 0
-    steps: int | None = None
+    max_steps: int | None = None
     epochs: int | None = None
+    max_minutes: float | None = None
+    patience: int | None = None
+    eval_every: int | None = None
     batch_size: int | None = None
     lr: float | None = None
-    max_seconds: float | None = None
+    device: str = "auto"  # training/device.py: auto, cpu, cuda, cuda:N
     num_threads: int | None = None  # torch threads while training (None: as set)
-    log_every: int = 0  # print a loss line every so many steps (0: never)
+    log: bool = False  # one line per evaluation on stderr
+    progress: bool = False  # a progress bar (step / cap, loss, val loss, ETA) on stderr
     # the held-out label accuracy a calibrated confidence threshold is chosen for (methods that calibrate)
     label_accuracy: float = LABEL_ACCURACY_TARGET
 
     def __post_init__(self) -> None:
         check_target_accuracy(self.label_accuracy, "label accuracy target")
+        for name in ("max_steps", "epochs", "eval_every", "batch_size"):
+            value = getattr(self, name)
+            if value is not None and value < 1:
+                raise ValueError(f"{name} must be at least 1, got {value}")
+        if self.patience is not None and self.patience < 0:
+            raise ValueError(f"patience must be 0 (never stop early) or more, got {self.patience}")
+        if self.max_minutes is not None and not (self.max_minutes > 0 and math.isfinite(self.max_minutes)):
+            raise ValueError(f"max_minutes must be a positive number, got {self.max_minutes}")
+        if self.lr is not None and not (self.lr > 0 and math.isfinite(self.lr)):
+            raise ValueError(f"lr must be a positive number, got {self.lr}")
 
-    def steps_for(self, num_segments: int, batch_size: int, default_steps: int) -> int:
-        if self.steps is not None:
-            return max(1, self.steps)
+    def step_cap(self, num_segments: int, batch_size: int, default_steps: int) -> int:
+        """The most optimizer steps: ``max_steps``, else ``epochs`` passes over ``num_segments`` in
+        batches of ``batch_size``, else the method's ``default_steps``."""
+        if self.max_steps is not None:
+            return self.max_steps
         if self.epochs is not None:
             return max(1, self.epochs * math.ceil(num_segments / batch_size))
         return default_steps
 
+    def patience_or(self, default: int) -> int:
+        """Evaluations without improvement that end a run: none with ``epochs`` (a fixed budget), else
+        ``patience``, else the method's ``default``."""
+        if self.epochs is not None:
+            return 0
+        return default if self.patience is None else self.patience
+
 
 @dataclass
 class SegmentOptions:
-    """Segmentation-time settings: the shortest segment kept (None: the checkpoint's) and the seed of
-    the random windows (each episode draws from its own stream, so results do not depend on order)."""
+    """Segmentation-time settings: the shortest segment kept (None: the checkpoint's), the seed of
+    the random windows (each episode draws from its own stream, so results do not depend on order) and
+    the device the window models run on (training/device.py; the other methods run on the CPU)."""
 
     min_len: int | None = None
     seed: int = 0
+    device: str = "cpu"
 
 
 class Segmenter:
@@ -144,7 +178,8 @@ class TrainedSegmenter:
 
 def ps_training_setup(data: TrainingData, options: TrainOptions) -> tuple[list[Episode], Any, Any]:
     """(annotated training episodes, TrainConfig, ModelConfig) for training a PS or labelling model on
-    ``data`` as `playseg train` would (ps/training.py defaults), with the options' budget where given."""
+    ``data`` as `playseg train` would (ps/training.py defaults: the data-scaled budget with early
+    stopping), with the options' budget, optimiser and device where given."""
     from dataclasses import replace
 
     from playseg_core.ps.training import TrainConfig, model_config_for, segment_bounds
@@ -152,16 +187,19 @@ def ps_training_setup(data: TrainingData, options: TrainOptions) -> tuple[list[E
     train_eps = data.annotated()
     bounds = segment_bounds(train_eps, data.domain, **data.bounds)
     threads = options.num_threads or torch.get_num_threads()
-    cfg = TrainConfig(seed=options.seed, k_max=bounds.k_max, num_threads=threads, progress=False)
-    cfg = replace(cfg, log_epochs=bool(options.log_every), augment=data.augment, domain=data.domain)
-    if options.epochs is not None:
-        cfg = replace(cfg, epochs=options.epochs, min_steps=0)
-    if options.steps is not None:
-        cfg = replace(cfg, epochs=1, min_steps=options.steps)
-    if options.batch_size is not None:
-        cfg = replace(cfg, segments_per_batch=options.batch_size)
-    if options.lr is not None:
-        cfg = replace(cfg, lr=options.lr)
+    cfg = TrainConfig(seed=options.seed, k_max=bounds.k_max, num_threads=threads, device=options.device)
+    cfg = replace(cfg, progress=options.progress, log_epochs=options.log)
+    cfg = replace(cfg, augment=data.augment, domain=data.domain)
+    given = {
+        "epochs": options.epochs,
+        "max_steps": options.max_steps,
+        "max_minutes": options.max_minutes,
+        "patience": options.patience,
+        "eval_every": options.eval_every,
+        "segments_per_batch": options.batch_size,
+        "lr": options.lr,
+    }
+    cfg = replace(cfg, **{key: value for key, value in given.items() if value is not None})
     model_cfg = model_config_for(
         data.features,
         data.domain,
@@ -191,46 +229,74 @@ def annotated_lengths(episodes: Iterable[Episode]) -> np.ndarray:
 # Step features of windows
 
 
+def module_device(module: nn.Module) -> torch.device:
+    """The device ``module``'s weights are on (the CPU for one without any)."""
+    for tensor in (*module.parameters(), *module.buffers()):
+        return tensor.device
+    return torch.device("cpu")
+
+
 @torch.no_grad()
 def encode_episode(encoders: StepEncoders, episode: Episode, chunk: int = 512) -> torch.Tensor:
-    """(T+1, step_dim) step features of every observation row of ``episode``."""
+    """(T+1, step_dim) step features of every observation row of ``episode``, on the encoders' device."""
     inputs = encoders.episode_inputs(episode)
     rows = episode.num_steps + 1
-    return torch.cat([encoders(as_tensors(inputs, slice(c, c + chunk))) for c in range(0, rows, chunk)])
+    device = module_device(encoders)
+    return torch.cat(
+        [encoders(to_device(as_tensors(inputs, slice(c, c + chunk)), device)) for c in range(0, rows, chunk)]
+    )
 
 
 def window_rows(
     features: torch.Tensor, windows: Sequence[tuple[int, int]]
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Rows o_start..o_end of each step window [start, end) -> (B, P, d) right-padded with zeros, and
-    (B, P-1) True at the steps inside the window (P = 1 + the longest window)."""
+    (B, P-1) True at the steps inside the window (P = 1 + the longest window); on ``features``' device."""
     width = max(end - start for start, end in windows) + 1
     batch = features.new_zeros(len(windows), width, features.shape[1])
-    valid = torch.zeros(len(windows), width - 1, dtype=torch.bool)
+    valid = torch.zeros(len(windows), width - 1, dtype=torch.bool, device=features.device)
     for row, (start, end) in enumerate(windows):
         batch[row, : end - start + 1] = features[start : end + 1]
         valid[row, : end - start] = True
     return batch, valid
 
 
-def training_window_rows(
+def window_inputs(
     encoders: StepEncoders, items: Sequence[tuple[Episode, int, int]]
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """As `window_rows` for windows of several episodes, encoded with gradients (training): only the
-    rows of the windows themselves are read and encoded."""
+) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+    """The encoders' input rows of windows [start, end) of several episodes (rows o_start..o_end each,
+    right-padded to the longest by repeating the last row: any valid input works, padded steps are
+    masked), by feature, flattened to (B * P, ...); and (B, P-1) True at the steps inside each window.
+    CPU tensors, made without the model: a training batch (`encode_windows` encodes them)."""
     width = max(end - start for _, start, end in items) + 1
     inputs: dict[str, list[np.ndarray]] = {spec.feature: [] for spec in encoders.specs}
     valid = torch.zeros(len(items), width - 1, dtype=torch.bool)
     for row, (episode, start, end) in enumerate(items):
         for name, array in encoders.episode_inputs(episode).items():
             clip = np.array(array[start : end + 1])
-            # Pad by repeating the last row (any valid input works: padded steps are masked).
             pad = np.repeat(clip[-1:], width - len(clip), axis=0)
             inputs[name].append(np.concatenate([clip, pad]))
         valid[row, : end - start] = True
-    tensors = {name: torch.from_numpy(np.concatenate(parts)) for name, parts in inputs.items()}
-    features = encoders(tensors).reshape(len(items), width, -1)
-    return features * torch.cat([torch.ones(len(items), 1, dtype=torch.bool), valid], 1)[..., None], valid
+    return {name: torch.from_numpy(np.concatenate(parts)) for name, parts in inputs.items()}, valid
+
+
+def encode_windows(
+    encoders: StepEncoders, inputs: Mapping[str, torch.Tensor], valid: torch.Tensor
+) -> torch.Tensor:
+    """`window_inputs` encoded with gradients (training) -> (B, P, d) rows, zero past each window."""
+    count, width = valid.shape[0], valid.shape[1] + 1
+    features = encoders(inputs).reshape(count, width, -1)
+    inside = torch.cat([torch.ones(count, 1, dtype=torch.bool, device=valid.device), valid], 1)
+    return features * inside[..., None]
+
+
+def training_window_rows(
+    encoders: StepEncoders, items: Sequence[tuple[Episode, int, int]]
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """As `window_rows` for windows of several episodes, encoded with gradients (training): only the
+    rows of the windows themselves are read and encoded (`window_inputs`, then `encode_windows`)."""
+    inputs, valid = window_inputs(encoders, items)
+    return encode_windows(encoders, inputs, valid), valid
 
 
 def transition_tokens(rows: torch.Tensor) -> torch.Tensor:
@@ -271,68 +337,168 @@ def covered_label_accuracy(pred: Sequence[Segment], truth: Sequence[Segment], nu
 
 
 # ----------------------------------------------------------------------------------------------------
-# The training loop of the window models (UnLoc, TriDet)
+# Training of the window models (UnLoc, TriDet) through the one loop (training/loop.py)
+
+WINDOW_STEP_CAP = 2000
+"""The window models' default step cap (optimizer steps of 32 windows); early stopping ends most runs
+well before it."""
+WINDOW_EVAL_EVERY = 25
+"""Steps between the held-out evaluations of a window model (each is `VAL_BATCHES` forward passes)."""
+WINDOW_PATIENCE = 4
+"""Evaluations without a better val loss that end a window model's run."""
+VAL_BATCHES = 4
+"""Fixed val batches (of the training batch size) whose mean loss is the held-out measure."""
+VAL_SEED = 12345
+
+
+@dataclass
+class WindowBatches:
+    """How a window model learns: ``choose(rng, training)`` draws one batch's windows (all of its
+    randomness; from the training pool, or with ``training`` False from the val pool), ``build(windows)``
+    makes their tensors on the CPU (no model needed: batches can be made ahead, on another thread), and
+    ``loss(model, batch)`` is the batch's loss (the batch on the model's device)."""
+
+    choose: Callable[[np.random.Generator, bool], Any]
+    build: Callable[[Any], Any]
+    loss: Callable[[nn.Module, Any], torch.Tensor]
+
+
+class _DrawnBatches:
+    """``batch_at(step)`` of the loop: the step-th draw of one stream, ``np.random.default_rng(seed)``,
+    so a function of the step alone (what a resumed run and batches made ahead need), and the same
+    batches as a loop drawing from that stream step after step. The loop asks the steps in order; an
+    earlier step restarts the stream, a later one draws the windows of the steps between (not their
+    tensors)."""
+
+    def __init__(self, seed: int, batches: WindowBatches) -> None:
+        self.seed, self.batches = seed, batches
+        self._restart()
+
+    def _restart(self) -> None:
+        self.rng, self.next = np.random.default_rng(self.seed), 0
+
+    def __call__(self, step: int) -> Any:
+        if step < self.next:
+            self._restart()
+        while self.next < step:
+            self.batches.choose(self.rng, True)
+            self.next += 1
+        windows = self.batches.choose(self.rng, True)
+        self.next += 1
+        return self.batches.build(windows)
+
+
+def window_learning_rate(step: int, peak: float, steps: int) -> float:
+    """The window models' schedule: a linear warm-up over the first 5% of ``steps`` (at least one), then
+    a cosine to zero at ``steps``, as they always trained (a LambdaLR of this factor: the loop's
+    `cosine_learning_rate` rounds the warm-up and the products differently, in the last bits)."""
+    warmup = max(1, steps // 20)
+    if step < warmup:
+        factor = (step + 1) / warmup
+    else:
+        factor = 0.5 * (1 + math.cos(math.pi * (step - warmup) / max(1, steps - warmup)))
+    return peak * factor
 
 
 @dataclass
 class FitReport:
-    steps: int
-    seconds: float
-    train_loss: float  # mean over the last 50 steps
-    val_loss: float | None
-    history: list[dict[str, float]]
+    """A window model's run: the loop's result (steps, why it stopped, the kept evaluation, history)."""
+
+    loop: LoopResult
+
+    @property
+    def steps(self) -> int:
+        return self.loop.steps
+
+    @property
+    def seconds(self) -> float:
+        return self.loop.seconds
+
+    @property
+    def kept(self) -> dict[str, float]:
+        """The evaluation whose weights were kept (the last one when none was better)."""
+        return self.loop.best or (self.loop.history[-1] if self.loop.history else {})
+
+    @property
+    def val_loss(self) -> float | None:
+        return self.kept.get("val_loss")
+
+    @property
+    def train_loss(self) -> float | None:
+        """Mean training loss of the steps before the kept evaluation (since the one before it)."""
+        return self.kept.get("train_loss")
+
+    def meta(self) -> dict[str, Any]:
+        """What a checkpoint records of the run."""
+        return {
+            "steps": self.steps,
+            "step_cap": self.loop.cap,
+            "stopped": self.loop.stopped,
+            "best_step": self.loop.best_step,
+            "fit_seconds": self.seconds,
+            "train_loss": self.train_loss,
+            "val_loss": self.val_loss,
+            "history": self.loop.history,
+        }
+
+    def summary(self) -> str:
+        """Steps against the cap, why it stopped, the kept step and its val loss, seconds."""
+        return self.loop.summary()
 
 
 def fit(
     model: nn.Module,
-    loss_of_batch: Callable[[np.random.Generator, bool], torch.Tensor],
+    batches: WindowBatches,
     options: TrainOptions,
     steps: int,
     lr: float,
     name: str,
-    val_batches: int = 0,
+    val_batches: int = VAL_BATCHES,
+    eval_every: int = WINDOW_EVAL_EVERY,
+    patience: int = WINDOW_PATIENCE,
 ) -> FitReport:
-    """AdamW with warm-up and cosine decay for ``steps`` steps (or until ``max_seconds``). ``loss_of_batch
-    (rng, training)`` draws a batch and returns its loss; with ``training`` False, from the val split.
-    The val loss (``val_batches`` fixed batches) is measured at the end."""
+    """Train a window model through the loop (training/loop.py): AdamW with warm-up and cosine decay
+    over ``steps`` (the cap: `window_learning_rate`), gradients clipped at 5; step s's batch is the s-th
+    draw from ``options.seed`` (`_DrawnBatches`); every ``options.eval_every`` (else ``eval_every``)
+    steps the mean loss of ``val_batches`` fixed val batches decides the best weights, which are kept,
+    and early stopping after ``options``' patience (else ``patience``; none with ``options.epochs``);
+    ``options.max_minutes`` ends it too. On ``options.device`` (bf16 autocast on CUDA); the model comes
+    back on the CPU, in eval mode."""
     if options.num_threads:
         torch.set_num_threads(options.num_threads)
-    rng = np.random.default_rng(options.seed)
-    optimizer = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
-    warmup = max(1, steps // 20)
+    device = resolve_device(options.device)
+    val_rng = np.random.default_rng(VAL_SEED)  # the same val batches every run and every evaluation
+    held_out = [to_device(batches.build(batches.choose(val_rng, False)), device) for _ in range(val_batches)]
 
-    def factor(step: int) -> float:  # linear warm-up over 5% of the steps, then a cosine to zero
-        if step < warmup:
-            return (step + 1) / warmup
-        return 0.5 * (1 + math.cos(math.pi * (step - warmup) / max(1, steps - warmup)))
+    def evaluate(trained: nn.Module) -> dict[str, float]:
+        return {"val_loss": float(np.mean([float(batches.loss(trained, batch)) for batch in held_out]))}
 
-    schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
-    began, losses, history = time.perf_counter(), [], []
-    model.train()
-    done = 0
-    for step in range(1, steps + 1):
-        loss = loss_of_batch(rng, True)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        nn.utils.clip_grad_norm_(model.parameters(), 5.0)
-        optimizer.step()
-        schedule.step()
-        losses.append(float(loss.detach()))
-        done = step
-        if options.log_every and step % options.log_every == 0:
-            mean = float(np.mean(losses[-options.log_every :]))
-            history.append({"step": step, "loss": mean})
-            print(f"[{name}] step {step}/{steps}: loss {mean:.4f}", file=sys.stderr, flush=True)
-        if options.max_seconds is not None and time.perf_counter() - began > options.max_seconds:
-            break
-    seconds = time.perf_counter() - began
-    model.eval()
-    val_loss = None
-    if val_batches:
-        val_rng = np.random.default_rng(12345)  # the same val batches every run
-        with torch.no_grad():
-            val_loss = float(np.mean([float(loss_of_batch(val_rng, False)) for _ in range(val_batches)]))
-    return FitReport(done, seconds, float(np.mean(losses[-50:])), val_loss, history)
+    def loss(trained: nn.Module, batch: Any) -> tuple[torch.Tensor, dict[str, float]]:
+        value = batches.loss(trained, batch)
+        return value, {"loss": float(value.detach())}
+
+    task = TrainingTask(
+        name=name,
+        model=model,
+        batch_at=_DrawnBatches(options.seed, batches),
+        loss=loss,
+        learning_rate=lambda step: window_learning_rate(step, lr, steps),
+        optimizer=lambda m: torch.optim.AdamW(m.parameters(), lr=lr, weight_decay=1e-4),
+        evaluate=evaluate if held_out else None,
+    )
+    loop_cfg = LoopConfig(
+        steps=steps,
+        eval_every=options.eval_every or eval_every,
+        patience=options.patience_or(patience) if held_out else 0,
+        max_minutes=options.max_minutes,
+        grad_clip=5.0,
+        device=device,
+        progress=options.progress,
+        log=(lambda line: print(line, file=sys.stderr, flush=True)) if options.log else None,
+    )
+    result = train_loop(task, loop_cfg)
+    result.model.to("cpu")  # checkpoints and segmenters hold CPU weights
+    return FitReport(result)
 
 
 def masked_cross_entropy(logits: torch.Tensor, target: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:

@@ -22,14 +22,21 @@ from playseg_core.ps.model import LabelModel, PSModel, load_model, save_model
 def train_labelling_model(
     data: TrainingData, options: TrainOptions
 ) -> tuple[LabelModel, dict[str, Any], float]:
-    """The stand-alone labelling model (ps/training.py train_labeller) on ``data``; -> (model, meta, seconds)."""
+    """The stand-alone labelling model (ps/training.py train_labeller, through the one loop with its
+    budget and early stopping) on ``data``; -> (model, meta, seconds)."""
     from playseg_core.ps.training import train_labeller
 
     train_eps, cfg, model_cfg = ps_training_setup(data, options)
     began = time.perf_counter()
     result = train_labeller(train_eps, data.val, data.instructions, cfg, model_cfg)
-    final = result.history[-1].get("val", result.history[-1]["train"])
-    meta = {"train": asdict(cfg), "history": result.history, "val_label_accuracy": final["label_accuracy"]}
+    meta = {
+        "train": asdict(cfg),
+        "history": result.history,
+        "seconds": result.seconds,
+        "fit": result.summary(),
+        # of the kept weights: on val, or on the training batches without a val split
+        "val_label_accuracy": result.label_accuracy,
+    }
     return result.model, meta, time.perf_counter() - began
 
 

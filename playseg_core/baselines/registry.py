@@ -1,7 +1,7 @@
 """The selection point: a segmentation method's name -> how to train it and how to segment with it.
 
     method = get_method("tridet")
-    trained = method.train(data, TrainOptions(steps=500))   # TrainedSegmenter; .save(path, meta)
+    trained = method.train(data, TrainOptions(max_steps=500))   # TrainedSegmenter; .save(path, meta)
     segmenter = method.load(path, SegmentOptions(seed=0))   # Segmenter; .segment(episode) -> [Segment]
 
 `playseg train --method` and `playseg segment --method` dispatch through `METHODS`; so do the benchmark
@@ -39,7 +39,9 @@ class PlaySegmenter(Segmenter):
     tiles = True
 
     def __init__(self, model: PSModel, meta: dict[str, Any], options: SegmentOptions) -> None:
-        self.model = model.eval()
+        from playseg_core.training.device import resolve_device
+
+        self.model = model.to(resolve_device(options.device)).eval()
         self.instructions = model.instructions
         self.features = model.cfg.features
         self.feature_names = model.cfg.feature_names
@@ -53,8 +55,8 @@ class PlaySegmenter(Segmenter):
 
 
 def train_play_segmentation(data: TrainingData, options: TrainOptions) -> TrainedSegmenter:
-    """The PS model as `playseg train` trains it (TrainConfig defaults; the options' budget if given),
-    calibrated on the val split."""
+    """The PS model as `playseg train` trains it (TrainConfig defaults: the data-scaled budget with early
+    stopping; the options' budget and device where given), calibrated on the val split."""
     from playseg_core.ps.calibration import calibrate_ps_model
     from playseg_core.ps.training import train_ps
 
@@ -70,7 +72,8 @@ def train_play_segmentation(data: TrainingData, options: TrainOptions) -> Traine
         return save_model(path, result.model, {**meta, **extra})
 
     segmenter = PlaySegmenter(result.model, meta, SegmentOptions())
-    return TrainedSegmenter(segmenter, save, seconds, f"PS model trained in {result.seconds:.0f} s")
+    text = f"PS model: {result.summary()}, val label accuracy {result.label_accuracy:.3f}"
+    return TrainedSegmenter(segmenter, save, seconds, text)
 
 
 def load_play_segmenter(path: str | Path, options: SegmentOptions) -> PlaySegmenter:

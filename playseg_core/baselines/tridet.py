@@ -31,26 +31,30 @@ import torch.nn.functional as F
 from torch import nn
 
 from playseg_core.baselines.common import (
+    WINDOW_STEP_CAP,
     Segmenter,
     SegmentOptions,
     TrainedSegmenter,
     TrainingData,
     TrainOptions,
+    WindowBatches,
     annotated_lengths,
     encode_episode,
+    encode_windows,
     episode_rng,
     fit,
     fixed_windows,
     freeze_pretrained_encoders,
     step_encoders_for,
-    training_window_rows,
     transition_tokens,
+    window_inputs,
     window_rows,
 )
 from playseg_core.checkpoint import Checkpoint, CheckpointError, read_checkpoint, save_checkpoint
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.data.features import Features
 from playseg_core.ps.encoders import EncoderSpec, StepEncoders
+from playseg_core.training.device import resolve_device
 
 KIND = "tridet"
 SHORT_WINDOW = 32  # the paper's window for short-segment data (segments of up to ~25 steps)
@@ -121,18 +125,25 @@ class LevelOutput:
     end_logits: torch.Tensor  # (B, N, bins+1): distance of the end to the cell's right edge
 
     def expected(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B, N) expected start and end, in steps from the window start."""
-        bins = torch.arange(self.start_logits.shape[-1], dtype=self.start_logits.dtype)
-        start_bins = (torch.softmax(self.start_logits, -1) * bins).sum(-1)
-        end_bins = (torch.softmax(self.end_logits, -1) * bins).sum(-1)
-        cells = torch.arange(self.valid.shape[1], dtype=bins.dtype)
+        """(B, N) expected start and end, in steps from the window start (float32, also under autocast)."""
+        start_logits, end_logits = self.start_logits.float(), self.end_logits.float()
+        bins = torch.arange(start_logits.shape[-1], dtype=start_logits.dtype, device=start_logits.device)
+        start_bins = (torch.softmax(start_logits, -1) * bins).sum(-1)
+        end_bins = (torch.softmax(end_logits, -1) * bins).sum(-1)
+        cells = torch.arange(self.valid.shape[1], dtype=bins.dtype, device=bins.device)
         return (cells - start_bins) * self.stride, (cells + 1 + end_bins) * self.stride
+
+    def cpu(self) -> LevelOutput:
+        """The level with its tensors on the CPU (one transfer, not one per window's detection)."""
+        tensors = (self.valid, self.class_logits, self.start_logits, self.end_logits)
+        return LevelOutput(self.stride, *(tensor.cpu() for tensor in tensors))
 
 
 def _shifted(response: torch.Tensor, bins: int, direction: int) -> torch.Tensor:
     """(B, N) boundary responses -> (B, N, bins+1): [i, b] = response[i + direction * b], -inf outside."""
     batch, cells = response.shape
-    index = torch.arange(cells)[:, None] + direction * torch.arange(bins + 1)[None, :]
+    steps = torch.arange(bins + 1, device=response.device)
+    index = torch.arange(cells, device=response.device)[:, None] + direction * steps[None, :]
     inside = (index >= 0) & (index < cells)
     gathered = response[:, index.clamp(0, cells - 1)]
     return gathered.masked_fill(~inside, float("-inf"))
@@ -223,47 +234,54 @@ def tridet_loss(
     model: TridetModel, levels: list[LevelOutput], spans: Sequence[Sequence[tuple[int, int, int]]]
 ) -> torch.Tensor:
     """Focal loss of the class scores over all cells + boundary losses at the positives; ``spans[row]``
-    holds window ``row``'s segments as (start, end, class) in steps from the window start."""
+    holds window ``row``'s segments as (start, end, class) in steps from the window start. The positives
+    are found on the CPU (they depend on the spans alone); the losses are computed in float32 on the
+    levels' device."""
     cfg = model.cfg
     focal_sum, positives = 0.0, 0
     boundary_losses = []
     for level_index, level in enumerate(levels):
-        target = torch.zeros_like(level.class_logits)
-        rows, cells, starts, ends = [], [], [], []
+        device, num_cells = level.class_logits.device, level.valid.shape[1]
+        centres = (torch.arange(num_cells) + 0.5) * level.stride
+        rows, cells, labels, starts, ends = [], [], [], [], []
         for row, start, end, label in ((r, *span) for r, window in enumerate(spans) for span in window):
             if cfg.level_of(end - start) != level_index:
                 continue
-            centres = (torch.arange(level.valid.shape[1]) + 0.5) * level.stride
-            inside = torch.nonzero((centres >= start) & (centres < end)).squeeze(1)
-            if inside.numel() == 0:  # a short segment between two centres: the cell of its middle
-                inside = torch.tensor([min(int((start + end) / 2 / level.stride), level.valid.shape[1] - 1)])
-            target[row, inside, label] = 1.0
+            inside = torch.nonzero((centres >= start) & (centres < end)).squeeze(1).tolist()
+            if not inside:  # a short segment between two centres: the cell of its middle
+                inside = [min(int((start + end) / 2 / level.stride), num_cells - 1)]
             rows += [row] * len(inside)
-            cells += inside.tolist()
+            cells += inside
+            labels += [label] * len(inside)
             starts += [start] * len(inside)
             ends += [end] * len(inside)
-        logits = level.class_logits[level.valid]
-        focal = sigmoid_focal_loss(logits, target[level.valid])
+        class_logits = level.class_logits.float()
+        target = torch.zeros_like(class_logits)
+        if rows:
+            row_t = torch.tensor(rows, device=device)
+            cell_t = torch.tensor(cells, device=device)
+            target[row_t, cell_t, torch.tensor(labels, device=device)] = 1.0
+        focal = sigmoid_focal_loss(class_logits[level.valid], target[level.valid])
         focal_sum = focal_sum + focal
         positives += len(rows)
         if rows:
-            row_t, cell_t = torch.tensor(rows), torch.tensor(cells)
-            start_t, end_t = (
-                torch.tensor(starts, dtype=torch.float32),
-                torch.tensor(ends, dtype=torch.float32),
-            )
+            start_t = torch.tensor(starts, dtype=torch.float32, device=device)
+            end_t = torch.tensor(ends, dtype=torch.float32, device=device)
             stride, bins = level.stride, cfg.num_bins
             start_bins = (cell_t - start_t / stride).clamp(0, bins)
             end_bins = (end_t / stride - cell_t - 1).clamp(0, bins)
-            dfl = _two_hot_loss(level.start_logits[row_t, cell_t], start_bins) + _two_hot_loss(
-                level.end_logits[row_t, cell_t], end_bins
+            dfl = _two_hot_loss(level.start_logits[row_t, cell_t].float(), start_bins) + _two_hot_loss(
+                level.end_logits[row_t, cell_t].float(), end_bins
             )
             pred_start, pred_end = (x[row_t, cell_t] for x in level.expected())
             overlap = (torch.minimum(pred_end, end_t) - torch.maximum(pred_start, start_t)).clamp(min=0)
             union = torch.maximum(pred_end, end_t) - torch.minimum(pred_start, start_t)
             iou = overlap / union.clamp(min=1e-6)
             boundary_losses.append(dfl + (1 - iou).mean())
-    boundary = torch.stack(boundary_losses).mean() if boundary_losses else torch.zeros(())
+    if boundary_losses:
+        boundary = torch.stack(boundary_losses).mean()
+    else:
+        boundary = torch.zeros((), device=levels[0].class_logits.device)
     return focal_sum / max(1, positives) + boundary
 
 
@@ -318,34 +336,35 @@ def train_tridet(
     items[False] = [(e, s) for e in data.val for s in e.segments if fits(s)] or items[True]
     batch_size = options.batch_size or 32
 
-    def loss_of_batch(rng: np.random.Generator, training: bool) -> torch.Tensor:
+    def choose(rng: np.random.Generator, training: bool) -> list[tuple[Episode, Segment, int, int]]:
         pool = items[training]
         chosen = [pool[i] for i in rng.integers(0, len(pool), size=batch_size)]
-        windows = [(e, *_training_window(e, s, cfg.window, rng)) for e, s in chosen]
-        rows, valid = _padded(*training_window_rows(model.encoders, windows), cfg.window)
+        return [(e, s, *_training_window(e, s, cfg.window, rng)) for e, s in chosen]
+
+    def build(windows: list[tuple[Episode, Segment, int, int]]) -> dict[str, Any]:
+        inputs, valid = window_inputs(model.encoders, [(e, start, end) for e, _, start, end in windows])
         spans = [
             [
                 (seg.start - start, seg.end - start, classes[seg.instruction])
                 for seg in (episode.segments if cfg.supervise_all else [drawn])
                 if start <= seg.start and seg.end <= end
             ]
-            for (_, drawn), (episode, start, end) in zip(chosen, windows, strict=True)
+            for episode, drawn, start, end in windows
         ]
-        return tridet_loss(model, model(rows, valid), spans)
+        return {"inputs": inputs, "valid": valid, "spans": spans}
 
-    steps = options.steps_for(len(items[True]), batch_size, default_steps=2000)
-    report = fit(model, loss_of_batch, options, steps, options.lr or 1e-3, "tridet", val_batches=4)
-    meta = {"train": asdict(options), "steps": report.steps, "fit_seconds": report.seconds}
-    meta["encoders_from"] = data.encoders_from
-    meta |= {"train_loss": report.train_loss, "val_loss": report.val_loss, "history": report.history}
+    def loss(trained: nn.Module, batch: dict[str, Any]) -> torch.Tensor:
+        rows = encode_windows(trained.encoders, batch["inputs"], batch["valid"])
+        return tridet_loss(trained, trained(*_padded(rows, batch["valid"], cfg.window)), batch["spans"])
+
+    steps = options.step_cap(len(items[True]), batch_size, default_steps=WINDOW_STEP_CAP)
+    report = fit(model, WindowBatches(choose, build, loss), options, steps, options.lr or 1e-3, "tridet")
+    meta = {"train": asdict(options), **report.meta(), "encoders_from": data.encoders_from}
 
     def save(path: Path, extra: dict[str, Any]) -> Path:
         return save_tridet(path, model, {**meta, **extra})
 
-    text = (
-        f"TriDet-style model (window {cfg.window}, {cfg.levels} levels): {report.steps} steps in "
-        f"{report.seconds:.0f} s, val loss {report.val_loss:.3f}"
-    )
+    text = f"TriDet-style model (window {cfg.window}, {cfg.levels} levels): {report.summary()}"
     return TrainedSegmenter(TridetSegmenter(model), save, time.perf_counter() - began, text)
 
 
@@ -359,7 +378,7 @@ class TridetSegmenter(Segmenter):
 
     def __init__(self, model: TridetModel, options: SegmentOptions | None = None) -> None:
         options = options or SegmentOptions()
-        self.model = model.eval()
+        self.model = model.to(resolve_device(options.device)).eval()
         self.instructions = model.instructions
         self.features = model.features
         self.feature_names = [spec.feature for spec in model.encoders.specs]
@@ -376,7 +395,7 @@ class TridetSegmenter(Segmenter):
         segments = []
         for lo in range(0, len(windows), 64):
             chunk = windows[lo : lo + 64]
-            levels = self.model(*_padded(*window_rows(features, chunk), window))
+            levels = [level.cpu() for level in self.model(*_padded(*window_rows(features, chunk), window))]
             for row, (start, end) in enumerate(chunk):
                 found = top1_detection(levels, row, end - start, self.min_len)
                 if found is not None:

@@ -26,26 +26,30 @@ import torch
 from torch import nn
 
 from playseg_core.baselines.common import (
+    WINDOW_STEP_CAP,
     Segmenter,
     SegmentOptions,
     TrainedSegmenter,
     TrainingData,
     TrainOptions,
+    WindowBatches,
     annotated_lengths,
     encode_episode,
+    encode_windows,
     episode_rng,
     fit,
     freeze_pretrained_encoders,
     masked_cross_entropy,
     step_encoders_for,
-    training_window_rows,
     transition_tokens,
+    window_inputs,
     window_rows,
 )
 from playseg_core.checkpoint import Checkpoint, CheckpointError, read_checkpoint, save_checkpoint
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.data.features import Features
 from playseg_core.ps.encoders import EncoderSpec, StepEncoders
+from playseg_core.training.device import resolve_device
 
 KIND = "unloc"
 BACKGROUND_WORD = "<background>"
@@ -133,7 +137,7 @@ class UnlocModel(nn.Module):
             ],
             dim=2,
         ).reshape(batch * count, length + 1, dim)
-        padding = torch.cat([~valid, torch.zeros(batch, 1, dtype=torch.bool)], 1)
+        padding = torch.cat([~valid, torch.zeros(batch, 1, dtype=torch.bool, device=valid.device)], 1)
         padding = padding[:, None].expand(batch, count, length + 1).reshape(batch * count, length + 1)
         hidden = self.attention(tokens, src_key_padding_mask=padding)
         scores = self.score(hidden[:, :length]).reshape(batch, count, length)
@@ -196,31 +200,33 @@ def train_unloc(
     items[False] = [(e, s) for e in data.val for s in e.segments if s.length <= longest] or items[True]
     batch_size = options.batch_size or 32
 
-    def loss_of_batch(rng: np.random.Generator, training: bool) -> torch.Tensor:
+    def choose(rng: np.random.Generator, training: bool) -> list[tuple[Episode, Segment, int, int]]:
         pool = items[training]
         chosen = [pool[i] for i in rng.integers(0, len(pool), size=batch_size)]
-        windows = [(e, *_training_window(e, s, cfg.pad_max, rng)) for e, s in chosen]
-        rows, valid = training_window_rows(model.encoders, windows)
-        target = torch.full(valid.shape, model.background, dtype=torch.long)
-        for row, ((_, seg), (_, start, _)) in enumerate(zip(chosen, windows, strict=True)):
-            target[row, seg.start - start : seg.end - start] = classes[seg.instruction]
-        return masked_cross_entropy(model.step_logits(rows, valid), target, valid)
+        return [(e, s, *_training_window(e, s, cfg.pad_max, rng)) for e, s in chosen]
 
-    steps = options.steps_for(len(items[True]), batch_size, default_steps=2000)
-    report = fit(model, loss_of_batch, options, steps, options.lr or 1e-3, "unloc", val_batches=4)
-    meta = {"train": asdict(options), "steps": report.steps, "fit_seconds": report.seconds}
-    meta["encoders_from"] = data.encoders_from
-    meta |= {"train_loss": report.train_loss, "val_loss": report.val_loss, "history": report.history}
+    def build(windows: list[tuple[Episode, Segment, int, int]]) -> dict[str, Any]:
+        inputs, valid = window_inputs(model.encoders, [(e, start, end) for e, _, start, end in windows])
+        target = torch.full(valid.shape, model.background, dtype=torch.long)
+        for row, (_, seg, start, _) in enumerate(windows):
+            target[row, seg.start - start : seg.end - start] = classes[seg.instruction]
+        return {"inputs": inputs, "valid": valid, "target": target}
+
+    def loss(trained: nn.Module, batch: dict[str, Any]) -> torch.Tensor:
+        rows = encode_windows(trained.encoders, batch["inputs"], batch["valid"])
+        logits = trained.step_logits(rows, batch["valid"])
+        return masked_cross_entropy(logits, batch["target"], batch["valid"])
+
+    steps = options.step_cap(len(items[True]), batch_size, default_steps=WINDOW_STEP_CAP)
+    report = fit(model, WindowBatches(choose, build, loss), options, steps, options.lr or 1e-3, "unloc")
+    meta = {"train": asdict(options), **report.meta(), "encoders_from": data.encoders_from}
     segmenter = UnlocSegmenter(model)
 
     def save(path: Path, extra: dict[str, Any]) -> Path:
         return save_unloc(path, model, {**meta, **extra})
 
     seconds = time.perf_counter() - began
-    text = (
-        f"UnLoc-style model: {report.steps} steps in {report.seconds:.0f} s, val loss {report.val_loss:.3f}"
-    )
-    return TrainedSegmenter(segmenter, save, seconds, text)
+    return TrainedSegmenter(segmenter, save, seconds, f"UnLoc-style model: {report.summary()}")
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -233,7 +239,7 @@ class UnlocSegmenter(Segmenter):
 
     def __init__(self, model: UnlocModel, options: SegmentOptions | None = None) -> None:
         options = options or SegmentOptions()
-        self.model = model.eval()
+        self.model = model.to(resolve_device(options.device)).eval()
         self.instructions = model.instructions
         self.features = model.features
         self.feature_names = [spec.feature for spec in model.encoders.specs]
@@ -269,7 +275,7 @@ class UnlocSegmenter(Segmenter):
         for lo in range(0, len(windows), 64):  # bounded memory on long episodes
             chunk = windows[lo : lo + 64]
             rows, valid = window_rows(features, chunk)
-            probs = torch.softmax(self.model.step_logits(rows, valid).double(), dim=-1)
+            probs = torch.softmax(self.model.step_logits(rows, valid).double(), dim=-1).cpu()
             for row, (start, end) in enumerate(chunk):
                 window_probs = probs[row, : end - start]
                 cropped = crop_background(

@@ -6,7 +6,9 @@ so no episode is in two splits.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import hashlib
+import math
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 SPLITS: tuple[str, ...] = ("train", "val", "play", "test")
@@ -87,3 +89,35 @@ def assign_splits(segment_counts: Sequence[int], targets: SplitTargets) -> list[
     """Split of each episode given its segment count (None: not needed to meet the targets)."""
     assigner = SplitAssigner(targets)
     return [assigner.assign(count) for count in segment_counts]
+
+
+DEFAULT_VAL_SHARE = 0.2
+"""Share of the annotated episodes held out for validation when a dataset has no ``val`` split."""
+
+
+def episode_rank(episode_id: str) -> int:
+    """A stable pseudo-random rank of an episode id (the same on every machine and every run), so the
+    episodes held out do not depend on the order they were read in."""
+    return int.from_bytes(hashlib.blake2b(episode_id.encode(), digest_size=8).digest(), "big")
+
+
+def held_out_ids(episode_ids: Iterable[str], share: float = DEFAULT_VAL_SHARE) -> set[str]:
+    """The annotated episodes to hold out for validation: ``share`` of them (rounded up, at least one),
+    the lowest by `episode_rank`; none when fewer than two (one episode cannot be both trained on and
+    held out) or ``share`` is 0."""
+    if not 0.0 <= share < 1.0:
+        raise ValueError(f"val share must be in [0, 1), got {share}")
+    ids = sorted(set(episode_ids), key=lambda episode_id: (episode_rank(episode_id), episode_id))
+    if len(ids) < 2 or share == 0.0:
+        return set()
+    count = min(len(ids) - 1, max(1, math.ceil(share * len(ids))))
+    return set(ids[:count])
+
+
+def annotated_splits(episode_ids: Iterable[str], share: float = DEFAULT_VAL_SHARE) -> dict[str, str]:
+    """``train`` or ``val`` for each annotated episode id: `held_out_ids` go to ``val``, the rest to
+    ``train``. A function of the set of ids alone (not their order), so a dataset written in parts
+    splits the same however its episodes were gathered."""
+    ids = set(episode_ids)
+    held = held_out_ids(ids, share)
+    return {episode_id: "val" if episode_id in held else "train" for episode_id in ids}

@@ -68,7 +68,9 @@ class ExperimentScale:
     start_share: float
     policy: dict[str, Any]  # the policy learner's settings (steps, batch_size, ...); the seed is the run's
     eval_episodes: int
-    segmenter_steps: int | None = None  # optimizer steps of each segmentation method (None: its default)
+    # the step cap of each segmentation method (None: its default budget); early stopping on the val
+    # split may end a run sooner (baselines/common.py TrainOptions)
+    segmenter_steps: int | None = None
     description: str = ""
     # How PS and the labelling model read the start split (TrainingData): whether they read the previous
     # action, and whether they train on the domain's symmetries (its CLIP_SYMMETRIES; without them, rotated/
@@ -333,7 +335,7 @@ def train_on_start_split(data: ExperimentData, method: str, scale: ExperimentSca
     )
     options = TrainOptions(
         seed=0,
-        steps=scale.segmenter_steps,
+        max_steps=scale.segmenter_steps,
         num_threads=threads,
         label_accuracy=scale.segmenter_label_accuracy,
     )

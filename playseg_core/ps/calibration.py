@@ -74,7 +74,9 @@ def calibrate_end_bias(
     for episode in episodes:
         if episode.num_steps == 0 or not episode.segments:
             continue
-        raw_logits.append((model.end_logits(model.encode_episode(episode)) - model.end_bias).double().numpy())
+        raw_logits.append(
+            (model.end_logits(model.encode_episode(episode)) - model.end_bias).double().cpu().numpy()
+        )
         true_ends.append([seg.end for seg in episode.segments])
     if not raw_logits:
         raise ValueError("calibrate_end_bias needs annotated episodes; none of the given ones has segments")

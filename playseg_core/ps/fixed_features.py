@@ -75,8 +75,15 @@ class FixedFeatureCache:
             if symmetry:
                 recorded = symmetries.turn_clip(recorded, symmetry)
             for feature, encoder in self.fixed.items():
-                parts[feature].append(encoder(torch.from_numpy(np.array(recorded[feature]))))
+                rows = torch.from_numpy(np.array(recorded[feature])).to(_device_of(encoder))
+                parts[feature].append(encoder(rows).cpu())  # batches carry CPU rows to any device
         return {feature: torch.cat(chunks) for feature, chunks in parts.items()}
+
+
+def _device_of(module: torch.nn.Module) -> torch.device:
+    for tensor in (*module.parameters(), *module.buffers()):
+        return tensor.device
+    return torch.device("cpu")
 
 
 __all__ = ["ENCODE_ROWS", "FixedFeatureCache"]

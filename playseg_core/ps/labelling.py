@@ -103,7 +103,23 @@ class KeepRule:
         record = KEEP_RULES[kind][0]
         if kind == "own_cuts" and "threshold" not in meta.get(record, {}):
             raise ValueError(
-                f"{source}: records no own-cut calibration (PS checkpoints calibrated since 2026-12-04 do; "
+                f"{source}: records no own-cut calibration (a PS checkpoint calibrated on a val split does; "
                 "`playseg calibrate` adds it to an older one); keep by 'label' instead"
             )
         return cls(kind, float(meta.get(record, {}).get("threshold", 0.0))) if record else rule
+
+
+def is_calibrated(meta: Mapping[str, Any]) -> bool:
+    """Whether a PS checkpoint's ``meta`` records a label calibration (a threshold chosen on held-out
+    annotated segments); a model trained without any has confidences that mean nothing yet."""
+    return "threshold" in (meta.get("calibration") or {})
+
+
+def uncalibrated_warning(source: str) -> str:
+    """What `segment`, `convert --segment` and the segmenter node say, once, of a PS checkpoint that
+    `is_calibrated` is not."""
+    return (
+        f"{source}: not calibrated (trained without held-out annotated episodes): its confidences are "
+        "not calibrated and the label rule keeps every segment; `playseg calibrate --model ... --data ...` "
+        "with annotated val episodes calibrates it"
+    )

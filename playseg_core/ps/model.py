@@ -26,6 +26,7 @@ from playseg_core.checkpoint import Checkpoint, CheckpointError, read_checkpoint
 from playseg_core.data.episode import Episode
 from playseg_core.data.features import Features
 from playseg_core.ps.encoders import EncoderSpec, StepEncoders, as_tensors
+from playseg_core.training.device import to_device
 
 
 @dataclass
@@ -375,8 +376,16 @@ class StepModel(nn.Module):
             pixels = sum(int(np.prod(inputs[name].shape[1:3])) for name in self.encoders.cameras)
             chunk = max(1, ENCODE_PIXELS // max(1, pixels))
         return torch.cat(
-            [self.encode_steps(as_tensors(inputs, slice(c, c + chunk))) for c in range(0, rows, chunk)]
+            [
+                self.encode_steps(to_device(as_tensors(inputs, slice(c, c + chunk)), self.device))
+                for c in range(0, rows, chunk)
+            ]
         )
+
+    @property
+    def device(self) -> torch.device:
+        """Where the model's weights are (inputs are moved there)."""
+        return next(self.parameters()).device
 
     def observation_part(self, features: torch.Tensor) -> torch.Tensor:
         """The observation encoders' columns of step features (without the previous action's)."""
@@ -477,7 +486,7 @@ class PSModel(StepModel):
             hi = min(num_steps, lo + chunk)
             # Rows lo .. hi + width - 1: every window starting in [lo, hi) lies inside (zero-padded at the end).
             windows = episode_windows(features[lo : hi + width], width)[: hi - lo]
-            hidden = self.trunk(windows, torch.arange(lo, hi) == 0)
+            hidden = self.trunk(windows, torch.arange(lo, hi, device=features.device) == 0)
             logits = self.raw_end_logits(hidden, windows)
             parts.append(logits[:, 1:] + self.end_bias)  # position 0: empty segment
         return torch.cat(parts) if parts else features.new_zeros(0, self.max_len)
@@ -495,9 +504,10 @@ class PSModel(StepModel):
             windows = features.new_zeros(len(batch), width, features.shape[1])
             for row, (start, end) in enumerate(batch):
                 windows[row, : end - start + 1] = features[start : end + 1]
-            hidden = self.trunk(windows, torch.tensor([start == 0 for start, _ in batch]))
-            ends = torch.tensor([end - start for start, end in batch])
-            rows.append(self.label_head(hidden[torch.arange(len(batch)), ends]))
+            device = features.device
+            hidden = self.trunk(windows, torch.tensor([start == 0 for start, _ in batch], device=device))
+            ends = torch.tensor([end - start for start, end in batch], device=device)
+            rows.append(self.label_head(hidden[torch.arange(len(batch), device=device), ends]))
         return torch.cat(rows) if rows else features.new_zeros(0, self.cfg.num_classes)
 
     def end_column(self, features_window: torch.Tensor, starts_episode: bool) -> torch.Tensor:
@@ -509,19 +519,23 @@ class PSModel(StepModel):
         episode's last observation, pass zero rows as the lookahead (as `end_logits` pads).
         """
         n = features_window.shape[0] - self.lookahead  # rows o_{t-n+1} .. o_e
-        column = torch.full((self.max_len,), float("-inf"), dtype=features_window.dtype)
+        device = features_window.device
+        column = torch.full((self.max_len,), float("-inf"), dtype=features_window.dtype, device=device)
         if n < 2:
             return column
         # Window for start e-k-1 holds the last k+2+lookahead rows; right-pad with zeros (causal: no effect).
-        lengths = torch.arange(2, n + 1)
+        lengths = torch.arange(2, n + 1, device=device)
         windows = torch.zeros(
-            n - 1, n + self.lookahead, features_window.shape[1], dtype=features_window.dtype
+            n - 1, n + self.lookahead, features_window.shape[1], dtype=features_window.dtype, device=device
         )
         for row, length in enumerate(lengths.tolist()):
             windows[row, : length + self.lookahead] = features_window[n - length :]
         starts_episode = (lengths == n) & starts_episode
         hidden = self.trunk(windows, starts_episode)
-        logits = self.raw_end_logits(hidden, windows)[torch.arange(n - 1), lengths - 1] + self.end_bias
+        logits = (
+            self.raw_end_logits(hidden, windows)[torch.arange(n - 1, device=device), lengths - 1]
+            + self.end_bias
+        )
         column[: n - 1] = logits
         return column
 
@@ -529,7 +543,9 @@ class PSModel(StepModel):
         """(T+1, step_dim) features, segment [start, end) -> (num_classes,) label logits at its end."""
         if not 0 < end - start <= self.max_len:
             raise ValueError(f"segment [{start}, {end}) must have 1..{self.max_len} steps")
-        hidden = self.trunk(features[start : end + 1].unsqueeze(0), torch.tensor([start == 0]))
+        hidden = self.trunk(
+            features[start : end + 1].unsqueeze(0), torch.tensor([start == 0], device=features.device)
+        )
         return self.label_head(hidden[0, -1])
 
 
@@ -561,7 +577,12 @@ class LabelModel(StepModel):
         if not 0 < end - start <= self.max_len:
             raise ValueError(f"segment [{start}, {end}) must have 1..{self.max_len} steps")
         window = features[start : end + 1].unsqueeze(0)
-        return self.logits_from_windows(window, torch.tensor([end - start]), torch.tensor([start == 0]))[0]
+        device = features.device
+        lengths, starts = (
+            torch.tensor([end - start], device=device),
+            torch.tensor([start == 0], device=device),
+        )
+        return self.logits_from_windows(window, lengths, starts)[0]
 
 
 # ----------------------------------------------------------------------------------------------------

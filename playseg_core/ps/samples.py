@@ -100,7 +100,7 @@ class Batch:
     @property
     def needed_len(self) -> torch.Tensor:
         """(S,) positions each window needs: 1 + the last supervised position."""
-        positions = torch.arange(self.end_weight.shape[1])
+        positions = torch.arange(self.end_weight.shape[1], device=self.end_weight.device)
         return (positions * (self.end_weight > 0)).amax(1) + 1
 
 

@@ -33,7 +33,7 @@ def segment_episode(model: PSModel, episode: Episode, min_len: int = 1) -> list[
     if episode.num_steps == 0:
         return []
     features = model.encode_episode(episode)
-    end_logits = model.end_logits(features).double().numpy()
+    end_logits = model.end_logits(features).double().cpu().numpy()
     max_len = min(model.max_len, episode.num_steps)
     min_len = min(min_len, max_len)  # an episode shorter than L_min is one segment
     decoded = decode_segments(end_logits[:, :max_len], min_len=min_len, max_len=max_len)

@@ -20,6 +20,7 @@ from playseg_core.ps.decoding import OnlineDecoder, decode_segments
 from playseg_core.ps.encoders import as_tensors
 from playseg_core.ps.model import PSModel
 from playseg_core.ps.segmentation import labelled_segment
+from playseg_core.training.device import to_device
 
 
 class StreamingSegmenter:
@@ -61,7 +62,7 @@ class StreamingSegmenter:
             self._next_action_inputs = self.model.encoders.previous_action_inputs(
                 action, f"action of {where}"
             )
-        feature = self.model.encode_steps(as_tensors(inputs))[0]
+        feature = self.model.encode_steps(to_device(as_tensors(inputs), self.model.device))[0]
         self._features.append(feature)
         if self.num_observations < 2 + self.model.lookahead:
             return []
@@ -72,7 +73,7 @@ class StreamingSegmenter:
         rows appended past the episode's end)."""
         window = torch.stack(features[-(self.model.max_len + 1 + self.model.lookahead) :])
         starts_episode = self._offset == 0 and len(features) == len(window)
-        return self.model.end_column(window, starts_episode).double().numpy()
+        return self.model.end_column(window, starts_episode).double().cpu().numpy()
 
     @torch.no_grad()
     def finish(self) -> list[Segment]:
@@ -96,7 +97,7 @@ class StreamingSegmenter:
         """An episode shorter than L_min is one segment, as `segment_episode` cuts it (nothing was
         committed, so every row from o_0 is kept)."""
         features = torch.stack(self._features)
-        end_logits = self.model.end_logits(features).double().numpy()[:, :num_steps]
+        end_logits = self.model.end_logits(features).double().cpu().numpy()[:, :num_steps]
         log_score = decode_segments(end_logits, min_len=num_steps, max_len=num_steps).log_score
         self.decoder.finished = True
         label_logits = self.model.label_logits(features, 0, num_steps)
@@ -110,7 +111,7 @@ class StreamingSegmenter:
         for start, end in decided:
             window = torch.stack(self._features[start - self._offset : end + 1 - self._offset])
             # As PSModel.label_logits, on the kept window (its start flag is the episode's, not the window's).
-            hidden = self.model.trunk(window[None], torch.tensor([start == 0]))
+            hidden = self.model.trunk(window[None], torch.tensor([start == 0], device=window.device))
             label_logits = self.model.label_head(hidden[0, -1])
             segments.append(labelled_segment(self.model, start, end, label_logits, scores[(start, end)]))
         if decided:  # steps before the last decided end are never needed again

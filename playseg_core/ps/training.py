@@ -6,19 +6,18 @@ one-cycle schedule; the best epoch on the annotated val split is kept.
 
 from __future__ import annotations
 
-import copy
 import sys
-import time
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from tqdm import tqdm
 
 from playseg_core.data.episode import Episode
 from playseg_core.data.features import Features
+from playseg_core.data.splits import DEFAULT_VAL_SHARE, held_out_ids
 from playseg_core.domains import load_domain
 from playseg_core.ps.encoders import StepEncoders, choose_encoders, feature_statistics
 from playseg_core.ps.fixed_features import FixedFeatureCache
@@ -30,15 +29,24 @@ from playseg_core.ps.samples import (
     label_index,
     make_batch,
 )
+from playseg_core.training.device import resolve_device, to_device
+from playseg_core.training.loop import LoopConfig, LoopResult, TrainingTask, cosine_learning_rate, train_loop
 
 
 @dataclass
 class TrainConfig:
     seed: int = 0
-    epochs: int = 16
-    # Small datasets train for more epochs, up to at least this many optimizer steps: a fixed epoch count
-    # gives too few steps to learn the labels on small data (measured: docs/segmentation.md "Training").
+    # The budget (training/loop.py): at most `step_cap` optimizer steps, stopped earlier when the val
+    # loss has not improved for `patience` evaluations (one every `evaluation_interval` steps).
+    epochs: int | None = None  # exactly this many epochs, no early stopping
+    max_steps: int | None = None  # the step cap instead of the data-scaled one
+    max_minutes: float | None = None
+    cap_epochs: int = 16  # the data-scaled cap: this many epochs ...
+    # ... but at least this many steps: small data learns the labels late (docs/segmentation.md "Training")
     min_steps: int = 3200
+    cap_steps: int = 50_000
+    patience: int = 8  # evaluations without a better val loss
+    eval_every: int | None = None
     segments_per_batch: int = 16  # drawn from all annotated episodes; small batches = more steps
     lr: float = 3e-3
     weight_decay: float = 1e-4
@@ -51,8 +59,12 @@ class TrainConfig:
     frame_label_weight: float = 1.0  # auxiliary label loss on the end observation's encoding
     end_pos_weight: float = 4.0  # weight of the end head's positives in the BCE (ends are rare)
     num_threads: int = 2
-    progress: bool = True  # tqdm bars
-    log_epochs: bool = True  # one line per epoch and split
+    device: str = "auto"  # training/device.py
+    progress: bool = True  # a progress bar: step / cap, loss, val loss, ETA
+    log_epochs: bool = True  # one line per evaluation
+    state_path: str | None = None  # the resume file (written every evaluation; removed when done)
+    resume: bool = False  # continue from state_path
+    fingerprint: str = ""  # identifies the run for resuming (data and settings)
 
 
 @dataclass(frozen=True)
@@ -175,7 +187,7 @@ def ps_loss(model: PSModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tenso
     end_sum = features.new_zeros(())
     label_hidden = features.new_zeros(len(batch.labels), model.cfg.trunk.hidden_dim)
     end_correct = 0
-    needed = torch.minimum(batch.needed_len, torch.tensor(num_pos))
+    needed = batch.needed_len.clamp(max=num_pos)
     for members, length in _length_groups(needed):
         length = min(length, num_pos)
         # The end head also reads `lookahead` positions past each supervised one.
@@ -199,12 +211,14 @@ def ps_loss(model: PSModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tenso
                 end_sum = end_sum + (bce * weight[known]).sum()
         end_correct += int((((logits > 0).float() == target) & (weight > 0)).sum())
         # Label head: hidden state at the end of each positive whose window is in this group.
-        slot = torch.full((num_windows,), -1, dtype=torch.long)
-        slot[members] = torch.arange(len(members))
+        slot = torch.full((num_windows,), -1, dtype=torch.long, device=features.device)
+        slot[members] = torch.arange(len(members), device=features.device)
         here = slot[batch.label_window] >= 0
         if here.any():
             chosen = hidden[slot[batch.label_window[here]], batch.label_position[here]]
-            label_hidden = label_hidden.index_put((torch.nonzero(here).squeeze(1),), chosen)
+            label_hidden = label_hidden.index_put(
+                (torch.nonzero(here).squeeze(1),), chosen.to(label_hidden.dtype)
+            )
     end_count = int((batch.end_weight > 0).sum())
     end_loss = end_sum / max(1, end_count)
     label_logits = model.label_head(label_hidden)
@@ -248,36 +262,6 @@ def labeller_loss(model: LabelModel, batch: Batch, cfg: TrainConfig) -> tuple[to
     return loss, BatchStats(float(loss.detach()), 0.0, float(loss.detach()), 0, 0, correct, n)
 
 
-# ----------------------------------------------------------------------------------------------------
-# Training loops
-
-
-@dataclass
-class EpochReport:
-    epoch: int
-    loss: float
-    end_accuracy: float
-    label_accuracy: float
-
-    def line(self, prefix: str) -> str:
-        return (
-            f"{prefix} epoch {self.epoch}: loss {self.loss:.4f} end acc {self.end_accuracy:.4f} "
-            f"label acc {self.label_accuracy:.4f}"
-        )
-
-
-def _summarise(epoch: int, stats: list[BatchStats]) -> EpochReport:
-    end_count = sum(s.end_count for s in stats)
-    label_count = sum(s.label_count for s in stats)
-    weights = [max(s.end_count, s.label_count) for s in stats]
-    return EpochReport(
-        epoch=epoch,
-        loss=sum(s.loss * w for s, w in zip(stats, weights, strict=True)) / max(1, sum(weights)),
-        end_accuracy=sum(s.end_correct for s in stats) / max(1, end_count),
-        label_accuracy=sum(s.label_correct for s in stats) / max(1, label_count),
-    )
-
-
 def clip_symmetries_of(domain: str | None) -> ClipSymmetries | None:
     """The ``CLIP_SYMMETRIES`` of ``domain`` (playseg_core/domains), or None: `augment` then turns camera
     frames only."""
@@ -304,111 +288,191 @@ def _annotated(episodes: Sequence[Episode]) -> list[Episode]:
     return [ep for ep in episodes if ep.segments]
 
 
-def _run_epoch(loss_fn, model, episodes, classes, cfg, rng, optimizer, epoch, desc, fixed) -> EpochReport:
-    """One pass over `episodes` in batches; trains when an optimizer is given, else evaluates. ``fixed``:
-    the outputs of the encoders that learn nothing, kept between epochs."""
-    training = optimizer is not None
-    model.train(training)
-    items = [(ep, seg) for ep in episodes for seg in ep.segments]
-    order = rng.permutation(len(items)) if training else np.arange(len(items))
-    size = cfg.segments_per_batch
-    symmetries = training_symmetries(cfg, model.encoders) if training else None
-    batches = [order[i : i + size] for i in range(0, len(order), size)]
-    stats: list[BatchStats] = []
-    bar = tqdm(batches, desc=desc, file=sys.stderr, disable=not cfg.progress, leave=False)
-    for chosen in bar:
-        batch = make_batch(
-            [items[i] for i in chosen],
-            classes,
-            model.encoders,
-            model.max_len,
-            cfg.k_max,
-            rng,
-            negatives=isinstance(model, PSModel),
-            dense_prefix_negatives=cfg.dense_prefix_negatives,
-            dense_window_negatives=cfg.dense_window_negatives,
-            symmetries=symmetries,
-            fixed=fixed,
-            lookahead=model.lookahead,
-        )
-        if batch.labels.numel() == 0:
-            continue
-        with torch.set_grad_enabled(training):
-            loss, batch_stats = loss_fn(model, batch)
-        if training:
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
-            optimizer.step()
-        stats.append(batch_stats)
-        bar.set_postfix(loss=f"{batch_stats.loss:.3f}")
-    return _summarise(epoch, stats)
+def hold_out_for_validation(
+    train: Sequence[Episode], val: Sequence[Episode], share: float = DEFAULT_VAL_SHARE
+) -> tuple[list[Episode], list[Episode], list[str]]:
+    """(train, val, held out): ``val``'s annotated episodes when it has any; else ``share`` of the
+    annotated training episodes (data/splits.py `held_out_ids`: deterministic, at least one) moved to
+    val, their ids third. Nothing is held out of fewer than two annotated episodes: val is then empty,
+    and the model can be neither early-stopped nor calibrated."""
+    if _annotated(val):
+        return list(train), list(val), []
+    held = held_out_ids([ep.episode_id for ep in _annotated(train)], share)
+    kept = [ep for ep in train if ep.episode_id not in held]
+    moved = [ep for ep in train if ep.episode_id in held]
+    return kept, moved, sorted(held)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Training: PS and the labelling model through the one loop (playseg_core/training/loop.py)
 
 
 @dataclass
 class TrainResult:
     model: torch.nn.Module
-    history: list[dict]  # per epoch: train and val reports
+    history: list[dict]  # per evaluation: step, lr, train and val figures
     seconds: float
+    loop: LoopResult | None = None
+
+    @property
+    def figures(self) -> dict[str, float]:
+        """The kept weights' evaluation (val figures when there was a val split), else the last one."""
+        if self.loop is not None and self.loop.best:
+            return self.loop.best
+        return self.history[-1] if self.history else {}
+
+    @property
+    def label_accuracy(self) -> float:
+        """Val label accuracy of the kept weights, or the training one without a val split."""
+        figures = self.figures
+        return float(figures.get("val_label_accuracy", figures.get("train_label_accuracy", float("nan"))))
+
+    def summary(self) -> str:
+        return self.loop.summary() if self.loop is not None else f"{self.seconds:.0f} s"
 
 
-def epochs_to_train(cfg: TrainConfig, steps_per_epoch: int) -> int:
-    """`cfg.epochs`, or more when that many epochs would stay below `cfg.min_steps` optimizer steps."""
-    return max(cfg.epochs, -(-cfg.min_steps // max(1, steps_per_epoch)))
+VAL_MEASURE = "val_error"
+"""What early stopping and the best weights go by: the end head's held-out BCE plus the held-out label
+error rate. Not the val loss: its label cross-entropy grows with the model's confidence on the labels
+it gets wrong, long after the boundaries and the label accuracy stopped improving or while they still
+improve, so on small data it kept the weights of the first evaluation."""
+
+
+def steps_per_epoch(episodes: Sequence[Episode], cfg: TrainConfig) -> int:
+    return max(1, -(-sum(len(ep.segments) for ep in _annotated(episodes)) // cfg.segments_per_batch))
+
+
+def step_cap(cfg: TrainConfig, epoch_steps: int) -> int:
+    """The most optimizer steps a run takes: ``max_steps`` when given, exactly ``epochs`` epochs when
+    given, else the data-scaled budget (`cap_epochs` epochs, at least `min_steps`, at most
+    `cap_steps`)."""
+    if cfg.max_steps is not None:
+        return cfg.max_steps
+    if cfg.epochs is not None:
+        return cfg.epochs * epoch_steps
+    return min(cfg.cap_steps, max(cfg.min_steps, cfg.cap_epochs * epoch_steps))
+
+
+def evaluation_interval(cfg: TrainConfig, epoch_steps: int) -> int:
+    """Steps between evaluations: ``eval_every``, else an epoch, kept within 25..500 steps (a tiny epoch
+    would spend the run evaluating, a huge one would stop late)."""
+    if cfg.eval_every is not None:
+        return cfg.eval_every
+    return min(500, max(25, epoch_steps))
+
+
+def _batch_for(model, items, chosen, classes, cfg: TrainConfig, rng, fixed, training: bool) -> Batch:
+    return make_batch(
+        [items[i] for i in chosen],
+        classes,
+        model.encoders,
+        model.max_len,
+        cfg.k_max,
+        rng,
+        negatives=isinstance(model, PSModel),
+        dense_prefix_negatives=cfg.dense_prefix_negatives,
+        dense_window_negatives=cfg.dense_window_negatives,
+        symmetries=training_symmetries(cfg, model.encoders) if training else None,
+        fixed=fixed,
+        lookahead=model.lookahead,
+    )
+
+
+def _figures(stats: BatchStats) -> dict[str, float]:
+    figures = {"loss": stats.loss, "label_accuracy": stats.label_correct / max(1, stats.label_count)}
+    if stats.end_count:
+        figures["end_accuracy"] = stats.end_correct / stats.end_count
+    return figures
 
 
 def _fit(model, loss_fn, train_eps, val_eps, instructions, cfg: TrainConfig, name: str) -> TrainResult:
+    """Train ``model`` on the annotated segments of ``train_eps``: each epoch a fresh order of them in
+    batches of ``segments_per_batch`` (step s's batch, negatives and symmetries drawn from the seed and s
+    alone); every `evaluation_interval` steps the loss on ``val_eps`` (fixed negatives) decides the best
+    weights and early stopping."""
     torch.set_num_threads(cfg.num_threads)
     torch.manual_seed(cfg.seed)
-    rng = np.random.default_rng(cfg.seed)
     classes = label_index(instructions)
     train_eps, val_eps = _annotated(train_eps), _annotated(val_eps)
     if not train_eps:
         raise ValueError("no annotated training episodes (episodes with segments)")
-    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    num_segments = sum(len(ep.segments) for ep in train_eps)
-    steps_per_epoch = -(-num_segments // cfg.segments_per_batch)
-    epochs = epochs_to_train(cfg, steps_per_epoch)
-    schedule = torch.optim.lr_scheduler.OneCycleLR(
-        optimizer, max_lr=cfg.lr, total_steps=epochs * steps_per_epoch, pct_start=0.05
-    )
-
-    class _Stepper:  # the schedule advances once per optimizer step
-        def zero_grad(self, set_to_none: bool = True) -> None:
-            optimizer.zero_grad(set_to_none=set_to_none)
-
-        def step(self) -> None:
-            optimizer.step()
-            schedule.step()
-
-    history: list[dict] = []
-    best_key, best_state = None, None
-    began = time.perf_counter()
+    device = resolve_device(cfg.device)
+    items = [(ep, seg) for ep in train_eps for seg in ep.segments]
+    val_items = [(ep, seg) for ep in val_eps for seg in ep.segments]
+    epoch_steps = steps_per_epoch(train_eps, cfg)
+    cap = step_cap(cfg, epoch_steps)
+    size = cfg.segments_per_batch
     fixed = FixedFeatureCache(model.encoders)
     fixed = fixed if fixed.features else None
-    for epoch in range(1, epochs + 1):
-        train_report = _run_epoch(
-            loss_fn, model, train_eps, classes, cfg, rng, _Stepper(), epoch, f"{name} {epoch}", fixed
+
+    def batch_at(step: int) -> Batch:
+        epoch, index = divmod(step, epoch_steps)
+        order = np.random.default_rng([cfg.seed, epoch]).permutation(len(items))
+        chosen = order[index * size : (index + 1) * size]
+        return _batch_for(
+            model, items, chosen, classes, cfg, np.random.default_rng([cfg.seed, epoch, index]), fixed, True
         )
-        entry = {"train": asdict(train_report)}
-        if val_eps:
-            # Fixed negatives for validation: the same rng seed every epoch.
-            val_report = _run_epoch(
-                loss_fn, model, val_eps, classes, cfg, np.random.default_rng(12345), None, epoch, "val", fixed
+
+    def evaluate(trained: torch.nn.Module) -> dict[str, float]:
+        rng = np.random.default_rng(12345)  # the same negatives at every evaluation
+        totals: dict[str, float] = {}
+        weights = 0
+        for start in range(0, len(val_items), size):
+            batch = _batch_for(
+                trained,
+                val_items,
+                range(start, min(start + size, len(val_items))),
+                classes,
+                cfg,
+                rng,
+                fixed,
+                False,
             )
-            entry["val"] = asdict(val_report)
-            key = val_report.loss
-            if best_key is None or key < best_key:
-                best_key, best_state = key, copy.deepcopy(model.state_dict())
-            if cfg.log_epochs:
-                print(val_report.line(f"[{name}] val"), file=sys.stderr, flush=True)
-        if cfg.log_epochs:
-            print(train_report.line(f"[{name}] train"), file=sys.stderr, flush=True)
-        history.append(entry)
-    if best_state is not None:
-        model.load_state_dict(best_state)
-    model.eval()
-    return TrainResult(model, history, time.perf_counter() - began)
+            _, stats = loss_fn(trained, to_device(batch, device))
+            weight = max(stats.end_count, stats.label_count)
+            totals["loss"] = totals.get("loss", 0.0) + stats.loss * weight
+            totals["end_loss"] = totals.get("end_loss", 0.0) + stats.end_loss * stats.end_count
+            for key in ("end_correct", "end_count", "label_correct", "label_count"):
+                totals[key] = totals.get(key, 0.0) + getattr(stats, key)
+            weights += weight
+        figures = {"val_loss": totals["loss"] / max(1, weights)}
+        figures["val_label_accuracy"] = totals["label_correct"] / max(1.0, totals["label_count"])
+        if totals["end_count"]:
+            figures["val_end_accuracy"] = totals["end_correct"] / totals["end_count"]
+            figures["val_end_loss"] = totals["end_loss"] / totals["end_count"]
+        figures[VAL_MEASURE] = figures.get("val_end_loss", 0.0) + 1.0 - figures["val_label_accuracy"]
+        return figures
+
+    def loss(trained: torch.nn.Module, batch: Batch) -> tuple[torch.Tensor, dict[str, float]]:
+        value, stats = loss_fn(trained, batch)
+        return value, _figures(stats)
+
+    task = TrainingTask(
+        name=name,
+        model=model,
+        batch_at=batch_at,
+        loss=loss,
+        learning_rate=lambda step: cosine_learning_rate(step, cfg.lr, cap),
+        optimizer=lambda m: torch.optim.AdamW(m.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay),
+        evaluate=evaluate if val_items else None,
+        measure=VAL_MEASURE,
+    )
+    loop_cfg = LoopConfig(
+        steps=cap,
+        eval_every=evaluation_interval(cfg, epoch_steps),
+        patience=cfg.patience if cfg.epochs is None and val_items else 0,
+        max_minutes=cfg.max_minutes,
+        grad_clip=5.0,
+        device=device,
+        progress=cfg.progress,
+        log=(lambda line: print(line, file=sys.stderr, flush=True)) if cfg.log_epochs else None,
+        state_path=Path(cfg.state_path) if cfg.state_path else None,
+        resume=cfg.resume,
+        fingerprint=cfg.fingerprint,
+    )
+    result = train_loop(task, loop_cfg)
+    model = result.model.to("cpu")  # checkpoints and callers hold CPU weights
+    return TrainResult(model, result.history, result.seconds, replace(result, model=model))
 
 
 def train_ps(
@@ -418,7 +482,7 @@ def train_ps(
     cfg: TrainConfig,
     model_cfg: ModelConfig,
 ) -> TrainResult:
-    """Train a PS model (end head + label head) on the annotated segments; keeps the best val epoch."""
+    """Train a PS model (end head + label head) on the annotated segments; keeps the best val weights."""
     torch.manual_seed(cfg.seed)
     model = PSModel(model_cfg, list(instructions))
     return _fit(model, lambda m, b: ps_loss(m, b, cfg), train_episodes, val_episodes, instructions, cfg, "ps")

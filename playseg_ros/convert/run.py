@@ -11,6 +11,12 @@ that fails is reported in one line and skipped; the others convert and are merge
 non-zero. Episodes with annotations land in the ``train`` split (with their segments), the others in
 ``play`` (with ``--segment MODEL``, with the model's segments: segmenting.py). ``--format lerobot`` keeps that dataset as ``.<OUT>.playseg`` and exports it to ``OUT`` as a
 LeRobot v3.0 dataset (lerobot.py).
+
+Validation split: parts hold their annotated episodes in ``train``; the merge, which sees every episode of
+``OUT`` (earlier runs' and new ones), moves ``val_share`` of them to ``val`` by
+`playseg_core.data.splits.held_out_ids` over their final ids, so the split depends on the set of annotated
+episodes only (not on workers, engine or order). ``OUT``'s meta records the share; a rerun with another
+share merges again (rewrites ``OUT`` with the new split) even when no bag is new.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ from typing import Any, Literal, NotRequired, TypedDict
 from playseg_core.data.dataset import DatasetWriter, PlayDataset, check_out_apart, is_dataset
 from playseg_core.data.episode import Episode
 from playseg_core.data.features import Features
+from playseg_core.data.splits import ANNOTATED_SPLITS, DEFAULT_VAL_SHARE, annotated_splits
 from playseg_ros.convert.build import convert_bag
 from playseg_ros.convert.errors import ConvertError
 from playseg_ros.convert.mapping import ConvertMapping
@@ -56,6 +63,7 @@ class ConvertMetaJson(TypedDict):
     mapping_digest: str | None
     mapping: NotRequired[str | None]
     segmentation: NotRequired[dict[str, Any] | None]  # SegmentationSpec.describe() and the label threshold
+    val_share: NotRequired[float]  # the share of annotated episodes in ``val`` (absent: written before it)
     bags: dict[str, BagRecordJson]  # by the bag's absolute path
 
 
@@ -89,6 +97,10 @@ class ConvertSummary:
     out: Path
     reports: list[BagReport]
     seconds: float = 0.0
+    val_share: float = DEFAULT_VAL_SHARE
+    annotated: int = 0  # annotated episodes in the dataset (train + val)
+    val: int = 0  # of them, in ``val``
+    resplit_from: float | None = None  # the share an earlier run split with, when this run re-split
 
     def count(self, status: str) -> int:
         return sum(r.status == status for r in self.reports)
@@ -114,6 +126,12 @@ class ConvertSummary:
             + f", {totals['dropped_steps']} dropped steps"
         )
 
+    def val_text(self) -> str:
+        """How many annotated episodes are held out for validation, e.g. "val: 2 of 10 annotated episodes
+        (--val-share 0.2)"."""
+        was = f"; re-split, was {self.resplit_from:g}" if self.resplit_from is not None else ""
+        return f"val: {self.val} of {self.annotated} annotated episodes (--val-share {self.val_share:g}{was})"
+
 
 def playseg_copy(lerobot_out: Path) -> Path:
     """Where the playseg dataset behind a LeRobot export is kept (what a rerun resumes from)."""
@@ -135,6 +153,8 @@ def convert_meta(dataset: PlayDataset) -> ConvertMetaJson | None:
 
 
 def split_of(episode: Episode) -> str:
+    """An episode's split in its bag's part: annotated ones in ``train`` (the merge moves a share of them to
+    ``val``), the others in ``play``."""
     return "train" if episode.segments else "play"
 
 
@@ -216,11 +236,14 @@ def convert(
     segmentation: SegmentationSpec | None = None,
     engine: Engine = "local",
     address: str | None = None,
+    val_share: float = DEFAULT_VAL_SHARE,
 ) -> ConvertSummary:
     """Convert the bags named by ``inputs`` into the playseg dataset ``out`` (see the module docstring).
 
     With ``segmentation`` the unannotated episodes are segmented by its model (segmenting.py). ``engine``
     "ray" runs the bags as Ray tasks (ray_engine.py; ``address`` joins a cluster), with the same output.
+    ``val_share`` of the annotated episodes go to ``val`` (`held_out_ids`: none with fewer than two; 0: all
+    in ``train``); a rerun with another share re-splits the whole dataset.
 
     With ``output_format="lerobot"`` the playseg dataset is kept next to ``out`` as ``.<OUT>.playseg``
     (what a rerun resumes from) and exported to ``out`` as a LeRobot v3.0 dataset (lerobot.py) whenever
@@ -234,6 +257,8 @@ def convert(
         raise ValueError("--address is the Ray cluster to join: give --engine ray")
     if output_format not in OUTPUT_FORMATS:
         raise ValueError(f"--format {output_format!r}: expected one of {', '.join(OUTPUT_FORMATS)}")
+    if not 0.0 <= val_share < 1.0:  # also NaN
+        raise ValueError(f"--val-share must be in [0, 1), got {val_share}")
     from playseg_ros.convert.lerobot import export_lerobot, is_lerobot_dataset  # PyAV, pyarrow: only here
 
     export_to = Path(out).resolve() if output_format == "lerobot" else None
@@ -250,11 +275,16 @@ def convert(
     if segmentation is not None and workers > 1 and segmentation.threads is None:
         segmentation = replace(segmentation, threads=max(1, (os.cpu_count() or 1) // workers))
     if segmentation is not None:
-        from playseg_ros.convert.segmenting import keep_rule
+        from playseg_ros.convert.segmenting import calibration_warning, keep_rule
 
         keep_rule(segmentation)  # a checkpoint without the rule's calibration fails before any bag is read
+        warning = calibration_warning(segmentation)
+        if warning:
+            print(warning, file=sys.stderr)
     previous = _previous_dataset(out, mapping, overwrite, segmentation)
     done = {} if previous is None else convert_meta(previous)["bags"]  # type: ignore[index]
+    earlier_share = None if previous is None else convert_meta(previous).get("val_share")  # type: ignore[union-attr]
+    resplit = previous is not None and earlier_share != val_share
     reports: dict[Path, BagReport] = {}
     tasks: list[BagTask] = []
     for bag in bags:
@@ -273,8 +303,8 @@ def convert(
             on_report(report)
     ordered = [reports[bag] for bag in bags]
     merged = [r for r in ordered if r.status in ("converted", "finished")]
-    if merged:
-        _merge(out, previous, [(r, part_path(out, r.bag)) for r in merged], mapping, segmentation)
+    if merged or resplit:
+        _merge(out, previous, [(r, part_path(out, r.bag)) for r in merged], mapping, segmentation, val_share)
     if parts_dir(out).is_dir() and not any(parts_dir(out).iterdir()):
         parts_dir(out).rmdir()  # every part merged: nothing left to resume from
     if (
@@ -282,8 +312,15 @@ def convert(
         and is_dataset(out)
         and (any(r.status != "failed" for r in merged) or not export_to.exists())
     ):
-        export_lerobot(PlayDataset.open(out), export_to, overwrite=True)
-    return ConvertSummary(export_to or out, ordered, time.perf_counter() - started)
+        export_lerobot(PlayDataset.open(out), export_to, overwrite=True)  # every split: val changes nothing
+    summary = ConvertSummary(export_to or out, ordered, time.perf_counter() - started, val_share)
+    if is_dataset(out):
+        splits = [r.split for r in PlayDataset.open(out).records]
+        summary.annotated = sum(split in ANNOTATED_SPLITS for split in splits)
+        summary.val = splits.count("val")
+        if resplit and earlier_share is not None:
+            summary.resplit_from = float(earlier_share)
+    return summary
 
 
 def _previous_dataset(
@@ -398,9 +435,13 @@ def _merge(
     parts: list[tuple[BagReport, Path]],
     mapping: ConvertMapping | None,
     segmentation: SegmentationSpec | None = None,
+    val_share: float = DEFAULT_VAL_SHARE,
 ) -> None:
     """Write ``out`` from the previous dataset's bags (those not converted again) and the new parts; a part
-    whose features differ from the dataset's fails its bag (reported), the rest are merged."""
+    whose features differ from the dataset's fails its bag (reported), the rest are merged. The annotated
+    episodes (``train`` or ``val`` in their source) are split again over all of them: `annotated_splits`
+    of their final ids with ``val_share``. With ``previous`` and no part, ``out`` is rewritten as it is,
+    split with ``val_share``."""
     sources: list[tuple[PlayDataset, BagReport | None]] = []
     features: Features | None = previous.features if previous is not None else None
     for report, path in parts:
@@ -416,8 +457,8 @@ def _merge(
             shutil.rmtree(path, ignore_errors=True)
             continue
         sources.append((part, report))
-    if not sources:
-        return
+    if not sources and (previous is None or convert_meta(previous).get("val_share") == val_share):  # type: ignore[union-attr]
+        return  # nothing to add, nothing to split again
     renewed = {str(report.bag) for _, report in sources if report is not None}
     bags: dict[str, BagRecordJson] = {}
     if previous is not None:
@@ -430,6 +471,7 @@ def _merge(
             "mapping_digest": mapping.digest if mapping else None,
             "mapping": str(mapping.path) if mapping else None,
             "segmentation": _segmentation_meta(segmentation),
+            "val_share": val_share,
             "bags": bags,
         }  # fmt: skip
     }
@@ -437,17 +479,25 @@ def _merge(
         assert report is not None
         bags[str(report.bag)] = {"fingerprint": part.info["meta"][CONVERT_META]["fingerprint"],
                                  "episodes": len(part.records), "name": report.bag.name}  # fmt: skip
+    # every episode's final id first: the annotated ones are split by the whole set of their ids
+    plan: list[tuple[PlayDataset, int, str]] = []  # source, index in it, id in ``out``
     used: set[str] = set()
+    if previous is not None:
+        for index, record in enumerate(previous.records):
+            if record.extra.get("bag") not in renewed:
+                plan.append((previous, index, record.episode_id))
+                used.add(record.episode_id)
+    for part, _ in sources:
+        for index, record in enumerate(part.records):
+            plan.append((part, index, _unique_id(record.episode_id, str(record.extra.get("bag")), used)))
+    annotated = [eid for source, index, eid in plan if source.records[index].split in ANNOTATED_SPLITS]
+    splits = annotated_splits(annotated, val_share)
     with DatasetWriter(out, sorted(instructions), meta=meta, overwrite=True, features=features) as writer:
-        if previous is not None:
-            for index, record in enumerate(previous.records):
-                if record.extra.get("bag") not in renewed:
-                    writer.add(previous.episode(index, truth=True), record.split, record.extra)
-                    used.add(record.episode_id)
-        for part, _ in sources:
-            for index, record in enumerate(part.records):
-                episode = _unique_id(part.episode(index, truth=True), str(record.extra.get("bag")), used)
-                writer.add(episode, record.split, record.extra)
+        for source, index, episode_id in plan:
+            record, episode = source.records[index], source.episode(index, truth=True)
+            if episode.episode_id != episode_id:
+                episode = replace(episode, episode_id=episode_id)
+            writer.add(episode, splits.get(episode_id, record.split), record.extra)
     for _, report in sources:
         assert report is not None
         shutil.rmtree(part_path(out, report.bag), ignore_errors=True)
@@ -468,17 +518,14 @@ def _segmentation_meta(segmentation: SegmentationSpec | None) -> dict[str, Any] 
     }
 
 
-def _unique_id(episode: Episode, bag: str, used: set[str]) -> Episode:
+def _unique_id(episode_id: str, bag: str, used: set[str]) -> str:
     """Episode ids are ``<bag name>:<k>``; two bags of one name (in different directories) are told apart
     by a digest of their path."""
-    if episode.episode_id in used:
-        name, _, k = episode.episode_id.rpartition(":")
-        digest = hashlib.sha256(bag.encode()).hexdigest()[:6]
-        episode = Episode(
-            f"{name}~{digest}:{k}", episode.actions, episode.images, episode.state, episode.segments
-        )
-    used.add(episode.episode_id)
-    return episode
+    if episode_id in used:
+        name, _, k = episode_id.rpartition(":")
+        episode_id = f"{name}~{hashlib.sha256(bag.encode()).hexdigest()[:6]}:{k}"
+    used.add(episode_id)
+    return episode_id
 
 
 def _difference(ours: Features | None, theirs: Features) -> str:

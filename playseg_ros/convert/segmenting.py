@@ -139,3 +139,13 @@ def keep_rule(spec: SegmentationSpec) -> KeepRule:
     """The keep rule of ``spec`` with its model's calibrated threshold; ValueError naming the checkpoint
     when it has none for the rule."""
     return load_segmenter(spec).keep_rule(spec.keep)
+
+
+def calibration_warning(spec: SegmentationSpec) -> str | None:
+    """The line to print once when ``spec``'s model is a PS checkpoint that records no calibration."""
+    from playseg_core.ps.labelling import is_calibrated, uncalibrated_warning
+
+    segmenter = load_segmenter(spec)
+    if spec.method != "ps" or is_calibrated(segmenter.checkpoint_meta):
+        return None
+    return uncalibrated_warning(f"--segment {spec.model}")

@@ -25,9 +25,10 @@ from playseg_msgs.msg import LabelledSegment, PlayStep
 from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 
 from playseg_core.data.features import DEFAULT_CAMERA
-from playseg_core.ps.labelling import KEEP_RULES, KeepRule
+from playseg_core.ps.labelling import KEEP_RULES, KeepRule, is_calibrated, uncalibrated_warning
 from playseg_core.ps.model import load_model
 from playseg_core.ps.streaming import StreamingSegmenter
+from playseg_core.training.device import resolve_device
 from playseg_ros import qos
 from playseg_ros.messages import (
     RCLPY,
@@ -83,6 +84,9 @@ class SegmenterNode(ReleasingLifecycleNode):
         self.threads = declare(
             self, "torch_threads", 1, "torch CPU threads (more threads than cores is slow)"
         )
+        self.device = declare(
+            self, "device", "auto", "where the model runs: auto (CUDA when torch sees one), cpu, cuda, cuda:N"
+        )
         self.segment_form = declare(
             self,
             "segment_form",
@@ -124,10 +128,14 @@ class SegmenterNode(ReleasingLifecycleNode):
             self.recording_bag = os.path.abspath(self.recording_bag) if self.recording_bag else ""
             torch.set_num_threads(self.threads)
             require(self.keep in KEEP_RULES, self, f"keep: {' | '.join(KEEP_RULES)}")
+            device = resolve_device(self.device)
             self.model, meta = load_model(self.model_path, kinds=("ps",))
+            self.model.to(device)
             self.keep_rule = KeepRule.of_checkpoint(
                 self.keep, meta, f"{self.get_name()}: model {self.model_path}"
             )
+            if not is_calibrated(meta):
+                self.get_logger().warning(uncalibrated_warning(f"model {self.model_path}"))
             self.min_len = self.min_len or self.model.cfg.min_len
             features = self.model.cfg.features
             cameras = features.cameras
@@ -145,7 +153,7 @@ class SegmenterNode(ReleasingLifecycleNode):
         self.model_id = self.model_id or self.model_path.rsplit("/", 1)[-1]
         form = f"reference to {self.recording_bag}" if self.reference else "embedded"
         self.get_logger().info(
-            f"model {self.model_path} (L_max {self.model.max_len}); {self.steps_topic} -> {self.segments_topic} "
+            f"model {self.model_path} (L_max {self.model.max_len}, on {self.model.device}); {self.steps_topic} -> {self.segments_topic} "
             f"({form} segments; kept: {self.keep_rule.describe()})"
         )
         return TransitionCallbackReturn.SUCCESS

@@ -38,6 +38,7 @@ from playseg_core.augment.retraining import (
     annotated_clips,
     export_buffer_dataset,
 )
+from playseg_core.training.device import resolve_device
 from playseg_ros import qos
 from playseg_ros.messages import clip_from_labelled
 from playseg_ros.nodes.common import ReleasingLifecycleNode, declare, require, run_node
@@ -85,6 +86,12 @@ class TrainerNode(ReleasingLifecycleNode):
             "train_steps": declare(self, "train_steps", 2000, "optimiser steps per retraining"),
             "batch_size": declare(self, "batch_size", 256, "imitation batch size"),
             "policy_channels": declare(self, "policy_channels", 64, "width of the policy network"),
+            "device": declare(
+                self,
+                "device",
+                "auto",
+                "where the policy trains: auto (CUDA when torch sees one), cpu, cuda, cuda:N",
+            ),
             "seed": declare(self, "seed", 0, "training seed"),
             "eval_episodes": declare(self, "eval_episodes", 512, "fixed seeded evaluation episodes"),
             "eval_max_steps": declare(self, "eval_max_steps", 25, "success must come within this many steps"),
@@ -149,6 +156,9 @@ class TrainerNode(ReleasingLifecycleNode):
                     "seed": p["seed"],
                     "channels": p["policy_channels"],
                     "eval_max_steps": p["eval_max_steps"],
+                    "device": str(
+                        resolve_device(p["device"])
+                    ),  # no CUDA where asked: configure fails, one line
                 },
                 features=annotated.info.features if annotated is not None else None,  # a generic policy's
             )

@@ -1,7 +1,8 @@
 """Imitation training of the BabyAI policy on (instruction, states, actions) segments.
 
 Every sample is one random timestep t of one uniformly drawn segment, (state_t, instruction) -> action_t,
-cross-entropy, Adam with a linear warm-up and a cosine decay of the learning rate (`learning_rate_at`).
+cross-entropy, Adam with a linear warm-up and a cosine decay of the learning rate (`learning_rate_at`),
+trained through the training loop (training/loop.py: the device, its mixed precision, ``max_minutes``).
 Seeded: the same seed and data give the same weights. (Evaluation: evaluation.py.)
 
 Why the decay: at a constant rate the weights end wherever the last noisy minibatches left them.
@@ -18,10 +19,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from torch import nn
 from torch.nn import functional as F
-from tqdm import tqdm
 
-from playseg_core.augment.policy import torch_threads
+from playseg_core.augment.policy import SequentialDraws, torch_threads
 from playseg_core.domains.babyai.policy import (
     AGENT_TYPE,
     NUM_ACTIONS,
@@ -29,6 +30,8 @@ from playseg_core.domains.babyai.policy import (
     PolicyNet,
     encode_instructions,
 )
+from playseg_core.training.device import resolve_device
+from playseg_core.training.loop import LoopConfig, TrainingTask, train_loop
 
 # (instruction, states (L+1, 8, 8, 3) uint8, actions (L,) or (L, 1) discrete action indices)
 Demonstration = tuple[str, np.ndarray, np.ndarray]
@@ -40,7 +43,7 @@ Demonstration = tuple[str, np.ndarray, np.ndarray]
 
 @dataclass
 class PolicyTrainConfig:
-    steps: int = 2000
+    steps: int = 2000  # the step cap (no held-out data, so no early stopping: all of them unless timed out)
     batch_size: int = 256
     learning_rate: float = 2e-3  # peak, after the warm-up
     warmup_steps: int = 50
@@ -51,6 +54,8 @@ class PolicyTrainConfig:
     log_every: int = 100
     num_threads: int = 1  # torch CPU threads; more than the free cores makes a shared machine crawl
     mirror_augmentation: bool = True  # mirror half the samples (an exact symmetry of the task)
+    max_minutes: float | None = None  # stop after this long (the schedule still spans `steps`)
+    device: str = "auto"  # training/device.py: auto, cpu, cuda or cuda:N
     policy: PolicyConfig = field(default_factory=PolicyConfig)
 
 
@@ -147,23 +152,27 @@ def train_policy(
         return _train_policy(segments, config, progress)
 
 
+@dataclass(frozen=True)
+class _Batch:
+    """One training step's samples: its number (1-based), states, instructions' words, target actions."""
+
+    number: int
+    states: torch.Tensor  # (B, H, W, 3) uint8
+    word_ids: torch.Tensor  # (B, W)
+    word_lengths: torch.Tensor  # (B,)
+    targets: torch.Tensor  # (B,) int64
+
+
 def _train_policy(
     segments: Sequence[Demonstration], config: PolicyTrainConfig, progress: bool
 ) -> tuple[PolicyNet, TrainStats]:
+    device = resolve_device(config.device)
     data = flatten_segments(segments, config.policy.max_words)
     torch.manual_seed(config.seed)
-    rng = np.random.default_rng(config.seed)
     model = PolicyNet(config.policy)
-    optimizer = torch.optim.Adam(
-        model.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay
-    )
-    model.train()
-    losses: list[tuple[int, float]] = []
-    interval_loss, interval_correct, interval_count = 0.0, 0, 0
-    final_accuracy = float("nan")
     started = time.perf_counter()
-    bar = tqdm(range(1, config.steps + 1), desc="policy", disable=not progress, mininterval=1.0)
-    for step in bar:
+
+    def draw(rng: np.random.Generator, step: int) -> _Batch:
         # One random timestep of one uniformly drawn segment per sample.
         segment = rng.integers(0, len(data.lengths), config.batch_size)
         timestep = (rng.random(config.batch_size) * data.lengths[segment]).astype(np.int64)
@@ -173,28 +182,60 @@ def _train_policy(
         if config.mirror_augmentation:
             mirror = torch.from_numpy(rng.random(config.batch_size) < 0.5)
             states[mirror], targets[mirror] = mirror_samples(states[mirror], targets[mirror])
-        logits = model(states, data.word_ids[instruction], data.word_lengths[instruction])
-        loss = F.cross_entropy(logits, targets)
+        return _Batch(step + 1, states, data.word_ids[instruction], data.word_lengths[instruction], targets)
 
-        for group in optimizer.param_groups:
-            group["lr"] = learning_rate_at(step, config)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
-        optimizer.step()
+    def skip(rng: np.random.Generator, step: int) -> None:  # the draws of `draw`, without the batch
+        rng.integers(0, len(data.lengths), config.batch_size)
+        rng.random(config.batch_size)
+        if config.mirror_augmentation:
+            rng.random(config.batch_size)
 
-        interval_loss += loss.item() * len(targets)
-        interval_correct += int((logits.argmax(dim=-1) == targets).sum())
-        interval_count += len(targets)
-        if step % config.log_every == 0 or step == config.steps:
-            mean_loss = interval_loss / interval_count
-            losses.append((step, mean_loss))
-            final_accuracy = interval_correct / interval_count
-            bar.set_postfix(loss=f"{mean_loss:.3f}", acc=f"{final_accuracy:.3f}")
-            interval_loss, interval_correct, interval_count = 0.0, 0, 0
+    losses: list[tuple[int, float]] = []
+    interval = [0.0, 0, 0]  # loss summed over samples, correct predictions, samples: since the last entry
+    final_accuracy = float("nan")
+
+    def loss(trained: nn.Module, batch: _Batch) -> tuple[torch.Tensor, dict[str, float]]:
+        nonlocal final_accuracy
+        logits = trained(batch.states, batch.word_ids, batch.word_lengths)
+        value = F.cross_entropy(logits, batch.targets)
+        mean = value.item()
+        interval[0] += mean * len(batch.targets)
+        interval[1] += int((logits.argmax(dim=-1) == batch.targets).sum())
+        interval[2] += len(batch.targets)
+        if batch.number % config.log_every == 0 or batch.number == config.steps:
+            losses.append((batch.number, interval[0] / interval[2]))
+            final_accuracy = interval[1] / interval[2]
+            interval[:] = [0.0, 0, 0]
+        return value, {"loss": mean}
+
+    task = TrainingTask(
+        name="policy",
+        model=model,
+        # a pure function of the step (exact when resumed), the same draws as a plain loop over one rng
+        batch_at=SequentialDraws(config.seed, draw, skip),
+        loss=loss,
+        learning_rate=lambda step: learning_rate_at(step + 1, config),  # the loop counts from 0
+        optimizer=lambda m: torch.optim.Adam(
+            m.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay
+        ),
+    )
+    result = train_loop(
+        task,
+        LoopConfig(
+            steps=config.steps,
+            max_minutes=config.max_minutes,
+            grad_clip=config.grad_clip,
+            device=device,
+            progress=progress,
+        ),
+    )
+    if interval[2]:  # stopped by the clock between two entries
+        losses.append((result.steps, interval[0] / interval[2]))
+        final_accuracy = interval[1] / interval[2]
+    model = result.model.to("cpu")  # checkpoints and `act` hold CPU weights
     model.eval()
     stats = TrainStats(
-        steps=config.steps,
+        steps=result.steps,
         seconds=time.perf_counter() - started,
         num_segments=len(data.lengths),
         num_samples=int(data.lengths.sum()),

@@ -1,0 +1,124 @@
+"""`playseg train`'s budget, device, held-out calibration and resume, end to end on a tiny BabyAI dataset."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from playseg_core.checkpoint import read_checkpoint
+from playseg_core.data.dataset import DatasetWriter, PlayDataset
+from playseg_ros.cli import main as cli_main
+from playseg_ros.offline import train_state_path
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("train-cli") / "tiny"
+    assert cli_main(["generate", "--preset", "tiny", "--seed", "3", "--out", str(out), "--quiet"]) == 0
+    return out
+
+
+def _without_val(source: Path, out: Path, annotated: int | None = None) -> Path:
+    """``source`` with no val split (and only ``annotated`` annotated training episodes), as `convert`
+    writes a dataset whose annotated episodes are all in train."""
+    dataset = PlayDataset.open(source)
+    with DatasetWriter(out, dataset.instructions, features=dataset.features, domain=dataset.domain) as writer:
+        for number, episode in enumerate(dataset.episodes("train")):
+            if annotated is None or number < annotated:
+                writer.add(episode, "train")
+        for episode in dataset.episodes("play", truth=True):
+            writer.add(episode, "play")
+    return out
+
+
+def test_without_a_val_split_it_holds_out_annotated_episodes_and_calibrates(
+    tiny_data: Path, tmp_path: Path, capsys
+) -> None:
+    data = _without_val(tiny_data, tmp_path / "no-val")
+    model = tmp_path / "ps.pt"
+    assert cli_main(["train", "--data", str(data), "--out", str(model), "--max-steps", "30"]) == 0
+    out = capsys.readouterr().out
+    assert "2 of 8 annotated episodes held out (--val-share 0.2)" in out
+    assert "30 of at most 30 steps" in out and "label threshold" in out
+    meta = read_checkpoint(model).meta
+    assert meta["held_out"] is True and len(meta["val_episodes"]) == 2
+    assert "threshold" in meta["calibration"]
+    # the same episodes every time: a second run holds out the same two
+    assert cli_main(["train", "--data", str(data), "--out", str(tmp_path / "b.pt"), "--max-steps", "1"]) == 0
+    assert read_checkpoint(tmp_path / "b.pt").meta["val_episodes"] == meta["val_episodes"]
+
+
+def test_too_few_episodes_to_hold_out_marks_the_model_uncalibrated_and_segment_warns(
+    tiny_data: Path, tmp_path: Path, capsys
+) -> None:
+    data = _without_val(tiny_data, tmp_path / "one", annotated=1)
+    model = tmp_path / "ps.pt"
+    assert cli_main(["train", "--data", str(data), "--out", str(model), "--max-steps", "5"]) == 0
+    out = capsys.readouterr().out
+    assert "uncalibrated:" in out and "marked uncalibrated" in out
+    assert "threshold" not in read_checkpoint(model).meta["calibration"]
+    argv = [
+        "segment",
+        "--model",
+        str(model),
+        "--input",
+        str(data),
+        "--out",
+        str(tmp_path / "seg"),
+        "--splits",
+        "play",
+    ]
+    assert cli_main(argv) == 0
+    err = capsys.readouterr().err
+    assert err.count("not calibrated (trained without held-out annotated episodes)") == 1
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message of a machine without CUDA")
+def test_asking_for_cuda_without_one_is_one_line(tiny_data: Path, tmp_path: Path, capsys) -> None:
+    argv = ["train", "--data", str(tiny_data), "--out", str(tmp_path / "ps.pt"), "--device", "cuda"]
+    assert cli_main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["playseg train: device 'cuda': torch sees no CUDA device here (use --device cpu or auto)"]
+    assert not (tmp_path / "ps.pt").exists()
+
+
+def test_labeller_and_model_cannot_be_one_file(tiny_data: Path, tmp_path: Path, capsys) -> None:
+    model = tmp_path / "ps.pt"
+    assert cli_main(["train", "--data", str(tiny_data), "--out", str(model), "--labeller", str(model)]) == 1
+    assert "the same file as --out" in capsys.readouterr().err
+
+
+def _train_argv(data: Path, out: Path) -> list[str]:
+    return [sys.executable, "-m", "playseg_ros.cli", "train", "--data", str(data), "--out", str(out),
+            "--max-steps", "50", "--patience", "100"]  # fmt: skip
+
+
+def test_a_run_killed_by_sigterm_resumes_to_what_the_whole_run_gives(tiny_data: Path, tmp_path: Path) -> None:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    whole = tmp_path / "whole.pt"
+    subprocess.run(_train_argv(tiny_data, whole), check=True, env=env, capture_output=True)
+    killed = tmp_path / "killed.pt"
+    state = train_state_path(killed)
+    process = subprocess.Popen(_train_argv(tiny_data, killed), env=env, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+    while not state.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)  # the state is written at the first evaluation (step 25)
+    process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 130, err
+    assert state.exists() and not killed.exists()
+    assert "--resume continues it" in err
+    resumed = subprocess.run(
+        [*_train_argv(tiny_data, killed), "--resume"], env=env, capture_output=True, text=True
+    )
+    assert resumed.returncode == 0, resumed.stderr
+    assert "resumed at step" in resumed.stderr and not state.exists()
+    a, b = read_checkpoint(whole).state_dict, read_checkpoint(killed).state_dict
+    assert a.keys() == b.keys() and all(torch.equal(a[key], b[key]) for key in a)
