@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 # (tests/conftest.py).
 DEMO_ENV := ROS_DOMAIN_ID=$(or $(ROS_DOMAIN_ID),77) ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 
-.PHONY: setup demo test lint format bags models bench clean lerobot-check
+.PHONY: setup demo test fuzz lint format bags models bench clean lerobot-check
 
 setup:
 	@bash scripts/setup_env.sh
@@ -17,6 +17,10 @@ demo: setup
 
 test: setup
 	$(PY) -m pytest -q tests
+
+# The fuzz tests (pytest -m fuzz) with many more examples each: minutes instead of seconds.
+fuzz: setup
+	HYPOTHESIS_PROFILE=fuzz $(PY) -m pytest -q -m fuzz tests
 
 # The LeRobot export read by the real `lerobot` (LeRobotDataset, offline) and compared frame by frame
 # with its source (docs/convert.md, LeRobot v3.0). lerobot needs Python 3.12 and torch < 2.12: its own

@@ -16,7 +16,16 @@ from collections.abc import Iterator  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
+from hypothesis import HealthCheck, settings  # noqa: E402
 from node_procs import Processes, RosPeer  # noqa: E402
+
+# Fuzz tests (marked `fuzz`) draw few examples in `make test` and many in `make fuzz`
+# (HYPOTHESIS_PROFILE=fuzz); neither has a deadline, as timings on a loaded CI machine vary.
+settings.register_profile("default", max_examples=40, deadline=None)
+settings.register_profile(
+    "fuzz", max_examples=2000, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
 
 
 @pytest.fixture
