@@ -452,7 +452,7 @@ def _cmd_convert(args: argparse.Namespace) -> int:
         raise ValueError("--method and --keep are about the --segment model; give --segment MODEL")
     mapping = load_mapping(args.mapping) if args.mapping else None
     segmentation = (
-        SegmentationSpec.of(args.segment, args.method or "ps", keep=args.keep or "label")
+        SegmentationSpec.of(args.segment, args.method or "ps", keep=args.keep or "label", device=args.device)
         if args.segment
         else None
     )
@@ -496,6 +496,7 @@ def _add_convert_command(sub: argparse._SubParsersAction) -> None:
         "--method", choices=SEGMENTATION_METHODS, help="the --segment checkpoint's method (default: ps)"
     )
     convert.add_argument("--keep", choices=KEEP_RULE_CHOICES, help=f"with --segment: {KEEP_HELP}")
+    add_device_argument(convert)
     convert.add_argument("--workers", type=int, default=1, help="bags converted in parallel (processes)")
     convert.add_argument(
         "--val-share",
@@ -528,7 +529,7 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
 
     conditions = [c for c in args.conditions.split(",") if c] if args.conditions else None
     kwargs = {"conditions": conditions} if conditions else {}
-    run_experiment(args.domain, args.scale, args.seeds, args.out, args.workers, **kwargs)
+    run_experiment(args.domain, args.scale, args.seeds, args.out, args.workers, device=args.device, **kwargs)
     return 0
 
 
@@ -552,6 +553,7 @@ def _add_experiment_command(sub: argparse._SubParsersAction) -> None:
         "what ps keeps, each instruction capped at its share of the start split; ps_own_cuts = PS's cuts "
         "kept by a threshold calibrated on its own val cuts; ps_own_cuts_balanced = those, capped)",
     )
+    add_device_argument(experiment)
     experiment.set_defaults(func=_cmd_experiment)
 
 

@@ -81,12 +81,27 @@ def test_too_few_episodes_to_hold_out_marks_the_model_uncalibrated_and_segment_w
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message of a machine without CUDA")
-def test_asking_for_cuda_without_one_is_one_line(tiny_data: Path, tmp_path: Path, capsys) -> None:
-    argv = ["train", "--data", str(tiny_data), "--out", str(tmp_path / "ps.pt"), "--device", "cuda"]
-    assert cli_main(argv) == 1
+@pytest.mark.parametrize("command", ["train", "calibrate", "segment", "convert", "experiment"])
+def test_asking_for_cuda_without_one_is_one_line(
+    command: str, tiny_data: Path, tmp_path: Path, capsys
+) -> None:
+    model, out = tmp_path / "ps.pt", tmp_path / "out"
+    if command != "train":  # the commands that run a model get one (its first steps are enough here)
+        assert cli_main(["train", "--data", str(tiny_data), "--out", str(model), "--max-steps", "1"]) == 0
+        capsys.readouterr()
+    argv = {
+        "train": ["train", "--data", str(tiny_data), "--out", str(model)],
+        "calibrate": ["calibrate", "--model", str(model), "--data", str(tiny_data), "--out", str(out)],
+        "segment": ["segment", "--model", str(model), "--input", str(tiny_data), "--out", str(out)],
+        "convert": ["convert", str(tiny_data), "--out", str(out), "--segment", str(model)],
+        "experiment": ["experiment", "babyai", "--scale", "tiny", "--out", str(out)],
+    }[command]
+    assert cli_main([*argv, "--device", "cuda"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["playseg train: device 'cuda': torch sees no CUDA device here (use --device cpu or auto)"]
-    assert not (tmp_path / "ps.pt").exists()
+    assert err == [
+        f"playseg {command}: device 'cuda': torch sees no CUDA device here (use --device cpu or auto)"
+    ]
+    assert not out.exists() and (command != "train" or not model.exists())
 
 
 def test_labeller_and_model_cannot_be_one_file(tiny_data: Path, tmp_path: Path, capsys) -> None:

@@ -152,6 +152,7 @@ class RunSettings:
     policy_config: dict[str, Any]
     eval_episodes: int
     threads: int
+    device: str = "auto"  # training/device.py
 
     @property
     def result_path(self) -> Path:
@@ -167,10 +168,15 @@ def run_experiment(
     workers: int = 1,
     conditions: Sequence[str] = CONDITIONS,
     log: Callable[[str], None] = print,
+    device: str = "auto",
 ) -> list[dict[str, Any]]:
-    """Every condition x seed of the experiment (cached stages skipped); returns the run rows and writes
-    the report."""
+    """Every condition x seed of the experiment (cached stages skipped), segmenters and policies trained
+    and run on ``device`` (training/device.py; not part of the cache key); returns the run rows and
+    writes the report."""
     from playseg_core.experiment.report import write_report
+    from playseg_core.training.device import resolve_device
+
+    resolve_device(device)  # DeviceError (one line) before any work
 
     if seeds < 1 or workers < 1:
         raise ValueError(f"--seeds and --workers must be >= 1, got {seeds} and {workers}")
@@ -191,11 +197,13 @@ def run_experiment(
         f"data {data_dir}: start split {len(data.start)} episodes ({data.start_segments} segments), "
         f"play {len(data.play)} episodes ({sum(len(e.segments) for e in data.play)} ground-truth segments)"
     )
-    _train_segmenters(out, segmenter_methods(conditions), scale, workers, log)
-    added = {condition: _ensure_added(out, condition, data, scale, log) for condition in conditions}
+    _train_segmenters(out, segmenter_methods(conditions), scale, workers, log, device)
+    added = {condition: _ensure_added(out, condition, data, scale, log, device) for condition in conditions}
     added |= _check_cached_runs(out, added)  # every cached run, asked for this time or only reported
     runs = [
-        RunSettings(str(out), condition, seed, spec.policy, scale.policy, scale.eval_episodes, RUN_THREADS)
+        RunSettings(
+            str(out), condition, seed, spec.policy, scale.policy, scale.eval_episodes, RUN_THREADS, device
+        )
         for seed in range(seeds)  # every condition's seed 0 first: an interrupted run has whole rows
         for condition in conditions
     ]
@@ -318,7 +326,9 @@ def _check_cached_runs(out: Path, loaded: dict[str, AddedSegments]) -> dict[str,
     return more
 
 
-def train_on_start_split(data: ExperimentData, method: str, scale: ExperimentScale, threads: int) -> Any:
+def train_on_start_split(
+    data: ExperimentData, method: str, scale: ExperimentScale, threads: int, device: str = "auto"
+) -> Any:
     """``method`` trained on ``data``'s start split with the scale's segmenter settings (its trained
     segmenter: ``save``, ``report``)."""
     from playseg_core.baselines.common import TrainingData, TrainOptions
@@ -338,12 +348,13 @@ def train_on_start_split(data: ExperimentData, method: str, scale: ExperimentSca
         max_steps=scale.segmenter_steps,
         num_threads=threads,
         label_accuracy=scale.segmenter_label_accuracy,
+        device=device,
     )
     with torch_threads(threads):
         return get_method(method).train(training, options)
 
 
-def train_segmenter(out: str, method: str, scale: ExperimentScale, threads: int) -> str:
+def train_segmenter(out: str, method: str, scale: ExperimentScale, threads: int, device: str = "auto") -> str:
     """Train ``method`` on the start split of out/data into out/models/<method>.pt (skipped when there),
     with the scale's segmenter settings; its one-line report. A top-level function so that a process
     pool can run it."""
@@ -351,7 +362,7 @@ def train_segmenter(out: str, method: str, scale: ExperimentScale, threads: int)
     if path.exists():
         return f"{method}: cached in {path}"
     data = ExperimentData.open(Path(out) / "data")
-    trained = train_on_start_split(data, method, scale, threads)
+    trained = train_on_start_split(data, method, scale, threads, device)
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(f".{path.name}.partial")
     trained.save(partial, {"experiment": {"start_segments": data.start_segments}})
@@ -359,14 +370,16 @@ def train_segmenter(out: str, method: str, scale: ExperimentScale, threads: int)
     return f"{trained.report} -> {path}"
 
 
-def _train_segmenters(out: Path, methods: list[str], scale: ExperimentScale, workers: int, log) -> None:
+def _train_segmenters(
+    out: Path, methods: list[str], scale: ExperimentScale, workers: int, log, device: str
+) -> None:
     """Every missing segmenter, in parallel when there are workers for it; one torch thread each, so a
     model does not depend on the number of workers."""
     missing = [m for m in methods if not (out / "models" / f"{m}.pt").exists()]
     if not missing:
         return
     log(f"training {', '.join(missing)} on the start split ({min(workers, len(missing))} at a time) ...")
-    jobs = [(str(out), m, scale, RUN_THREADS) for m in missing]
+    jobs = [(str(out), m, scale, RUN_THREADS, device) for m in missing]
     if workers > 1 and len(missing) > 1:
         with ProcessPoolExecutor(min(workers, len(missing)), mp_context=get_context("spawn")) as pool:
             reports = list(pool.map(train_segmenter, *zip(*jobs, strict=True)))
@@ -376,18 +389,20 @@ def _train_segmenters(out: Path, methods: list[str], scale: ExperimentScale, wor
         log(f"  {report}")
 
 
-def ensure_segmenter(out: Path, method: str, data: ExperimentData, scale: ExperimentScale, log) -> Any:
+def ensure_segmenter(
+    out: Path, method: str, data: ExperimentData, scale: ExperimentScale, log, device: str = "auto"
+) -> Any:
     """The segmentation method trained on the start split (cached in out/models), loaded back."""
     from playseg_core.baselines.common import SegmentOptions
     from playseg_core.baselines.registry import load_segmenter
 
     if not (out / "models" / f"{method}.pt").exists():
-        log(f"  {train_segmenter(str(out), method, scale, RUN_THREADS)}")
-    return load_segmenter(method, out / "models" / f"{method}.pt", SegmentOptions(seed=0))
+        log(f"  {train_segmenter(str(out), method, scale, RUN_THREADS, device)}")
+    return load_segmenter(method, out / "models" / f"{method}.pt", SegmentOptions(seed=0, device=device))
 
 
 def _ensure_added(
-    out: Path, condition: str, data: ExperimentData, scale: ExperimentScale, log
+    out: Path, condition: str, data: ExperimentData, scale: ExperimentScale, log, device: str = "auto"
 ) -> AddedSegments:
     path = out / "added" / f"{condition}.json"
     if path.exists():
@@ -395,13 +410,13 @@ def _ensure_added(
     if condition.startswith("gt_"):
         added = ground_truth_added(condition, data.play, data.start_segments)
     elif condition in BALANCED:
-        base = _ensure_added(out, BALANCED[condition], data, scale, log)
+        base = _ensure_added(out, BALANCED[condition], data, scale, log, device)
         added = balance_labels(base, condition, data.start)
         log(f"  {condition}: {added.count} of {base.count} segments kept, each instruction capped")
     elif condition == "oracle_relabel":
         from playseg_core.baselines.labelled_pieces import label_pieces
 
-        labeller = ensure_segmenter(out, "random", data, scale, log).model  # random windows' labeller
+        labeller = ensure_segmenter(out, "random", data, scale, log, device).model  # random windows' labeller
         added = AddedSegments(
             condition,
             {
@@ -414,7 +429,7 @@ def _ensure_added(
         )
     else:
         method = segmenter_method(condition)
-        segmenter = ensure_segmenter(out, method, data, scale, log)
+        segmenter = ensure_segmenter(out, method, data, scale, log, device)
         found = _found_segments(out, method, segmenter, data, log)
         if condition in OWN_CUTS:
             from playseg_core.ps.calibration import calibrate_on_own_cuts
@@ -483,7 +498,7 @@ def run_policy(settings: RunSettings) -> dict[str, Any]:
     added_path = out / "added" / f"{settings.condition}.json"
     added = AddedSegments.load(added_path)
     clips = training_clips(data, added)
-    config = {**settings.policy_config, "seed": settings.seed}
+    config = {**settings.policy_config, "seed": settings.seed, "device": settings.device}
     learner = load_policy_learner(settings.policy, config, features=data.features)
     began = time.perf_counter()
     with torch_threads(settings.threads):

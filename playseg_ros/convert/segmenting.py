@@ -42,19 +42,27 @@ class SegmentationSpec:
     digest: str
     keep: str = "label"
     threads: int | None = None  # torch threads per worker (None: torch's default); not in the digest
+    device: str = "auto"  # where the model runs (training/device.py); not in the digest
 
     @classmethod
     def of(
-        cls, model: str | Path, method: str = "ps", seed: int = 0, keep: str = "label"
+        cls,
+        model: str | Path,
+        method: str = "ps",
+        seed: int = 0,
+        keep: str = "label",
+        device: str = "auto",
     ) -> SegmentationSpec:
         """The spec of checkpoint ``model``; FileNotFoundError / ValueError (one line) before any bag is
-        read when the file, the method or the keep rule is wrong (the rule's threshold is checked when
-        the model is loaded: `keep_rule`)."""
+        read when the file, the method, the keep rule or the device is wrong (the rule's threshold is
+        checked when the model is loaded: `keep_rule`)."""
         from playseg_core.baselines.registry import get_method  # torch: only when segmenting
         from playseg_core.checkpoint import file_digest
         from playseg_core.ps.labelling import KeepRule
+        from playseg_core.training.device import resolve_device
 
         get_method(method)
+        resolve_device(device)
         try:
             KeepRule(keep)
         except ValueError as error:
@@ -64,7 +72,7 @@ class SegmentationSpec:
             raise FileNotFoundError(f"--segment {model}: no such checkpoint file")
         # The default rule leaves the digest as it was before rules existed: those datasets resume.
         suffix = f"|{method}|{seed}" + ("" if keep == "label" else f"|{keep}")
-        return cls(path, method, seed, file_digest(path, suffix.encode()), keep)
+        return cls(path, method, seed, file_digest(path, suffix.encode()), keep, device=device)
 
     def describe(self) -> dict[str, object]:
         """What a dataset's meta.convert records about the segmentation."""
@@ -81,7 +89,7 @@ def _loaded(spec: SegmentationSpec) -> Segmenter:
     if spec.threads is not None:  # several workers on few cores: one thread each, not cores x workers
         torch.set_num_threads(spec.threads)
 
-    return load_method(spec.method, spec.model, SegmentOptions(seed=spec.seed))
+    return load_method(spec.method, spec.model, SegmentOptions(seed=spec.seed, device=spec.device))
 
 
 def load_segmenter(spec: SegmentationSpec) -> Segmenter:
