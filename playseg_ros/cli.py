@@ -10,6 +10,7 @@ outputs (the writers' ``with`` blocks abort) and exit with `EXIT_INTERRUPTED`.
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import time
@@ -100,10 +101,14 @@ def _cmd_bag_recover(args: argparse.Namespace) -> int:
 
     report = recover_bag(args.path)
     for item in report:
-        action = f"rebuilt, {item.dropped_bytes} trailing bytes dropped" if item.rebuilt else "finished, kept"
-        if item.kept_original:
-            action += f"; damaged past them, the original kept as {item.kept_original}"
-        print(f"{item.path}: {item.messages} messages ({action})")
+        print(item.summary())
+    # a loss beyond the open chunk of a crash: said on stderr too (metadata.yaml keeps a note of it);
+    # exit 0 all the same, as everything that could be kept is (docs/bags.md)
+    for item in (i for i in report if i.lossy):
+        print(
+            f"playseg: warning: {item.path}: {item.loss()}; {'; '.join(item.damage)}".rstrip("; "),
+            file=sys.stderr,
+        )
     return 0
 
 
@@ -216,7 +221,27 @@ def _add_up_command(sub: argparse._SubParsersAction) -> None:
     up.set_defaults(func=_cmd_up)
 
 
+def _train_process(argv: list[str]) -> int:
+    """One process of `playseg train --nproc N`: the same command; process 0 alone prints."""
+    if os.environ.get("RANK", "0") != "0":
+        sys.stdout = sys.stderr = open(os.devnull, "w")  # noqa: SIM115 - for the life of the process
+    return main(argv)
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
+    from playseg_core.training import distributed
+
+    if args.nproc > 1 and distributed.requested_world() == 1:
+        return distributed.launch(args.nproc, _train_process, args.argv)
+    if os.environ.get("RANK", "0") != "0":  # launched by torchrun: process 0 prints
+        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - for the life of the process
+    try:
+        return _train_from(args)
+    finally:
+        distributed.leave()
+
+
+def _train_from(args: argparse.Namespace) -> int:
     from playseg_ros.offline import train
 
     return train(
@@ -315,6 +340,13 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
         help="continue a killed run from its training state (OUT.train-state, written every evaluation)",
     )
     add_device_argument(train)
+    train.add_argument(
+        "--nproc",
+        type=positive_int,
+        default=1,
+        help="data-parallel training in N local processes (gloo on the CPU, NCCL on CUDA, one card each); "
+        "torchrun can launch the command instead",
+    )
     train.add_argument("--lr", type=positive_float, help="peak learning rate (default: TrainConfig)")
     train.add_argument(
         "--batch-segments", type=positive_int, help="annotated segments per batch (default: TrainConfig)"
@@ -594,6 +626,7 @@ def _one_line(error: BaseException) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
     command = " ".join(filter(None, ["playseg", args.command, getattr(args, "bag_command", None)]))
     previous = signal.signal(signal.SIGTERM, _terminate) if args.command != "up" else None
     try:

@@ -202,7 +202,6 @@ def train(
     """
     from playseg_core.baselines.registry import get_method
     from playseg_core.data.splits import DEFAULT_VAL_SHARE
-    from playseg_core.ps.calibration import calibrate_ps_model
     from playseg_core.ps.model import MAX_END_GROUNDING, MAX_END_LOOKAHEAD, save_model
     from playseg_core.ps.training import (
         TrainConfig,
@@ -213,6 +212,7 @@ def train(
         train_labeller,
         train_ps,
     )
+    from playseg_core.training import distributed
     from playseg_core.training.device import resolve_device
 
     resolved = resolve_device(device)  # no CUDA where it was asked for: one line before anything is read
@@ -281,6 +281,12 @@ def train(
         )
     if augment and not get_method(method).augments:
         raise ValueError(f"--augment: only for PS and the labelling model, not {method}")
+    # In a process group (--nproc, torchrun) each process trains on its own device, and on the CPU on
+    # its share of the cores; process 0 writes the outputs.
+    resolved = distributed.join(resolved)
+    processes = distributed.world()[0]
+    if processes > 1 and resolved.type == "cpu":
+        budget = {"num_threads": max(1, (os.cpu_count() or 1) // processes), **budget}
     cfg = replace(cfg, augment=augment, domain=dataset.domain, device=str(resolved), **budget)
     if method != "ps":
         given = {
@@ -291,7 +297,9 @@ def train(
             "device": str(resolved),
         }
         given |= {
-            key: value for key, value in budget.items() if key in ("max_steps", "max_minutes", "patience")
+            key: value
+            for key, value in budget.items()
+            if key in ("max_steps", "max_minutes", "patience", "num_threads")
         }
         training = (dataset, train_eps, val_eps, features, read_actions, bounds, encoders, encoders_from)
         return _train_method(method, data, out, training, given, augment)
@@ -343,7 +351,40 @@ def train(
                 file=sys.stderr,
             )
         raise
-    result.model.to(resolved)  # calibration segments the val episodes: on the training device
+    if distributed.is_main():
+        _save_ps_model(out, result, cfg, resolved, annotated_val, label_accuracy, data, val_ids, held)
+        print(
+            f"{out}: PS model trained on {len(train_eps)} episodes, {result.summary()}; "
+            f"val label accuracy {result.label_accuracy:.3f}; peak RSS {_peak_rss_mb():.0f} MB"
+        )
+    if labeller:  # every process of a group trains it too
+        lab_cfg = replace(
+            cfg, state_path=str(train_state_path(labeller)), fingerprint=cfg.fingerprint + "-labeller"
+        )
+        lab = train_labeller(train_eps, val_eps, dataset.instructions, lab_cfg, model_cfg)
+        if distributed.is_main():
+            save_model(labeller, lab.model, {"train": asdict(lab_cfg), "history": lab.history})
+            print(f"{labeller}: labeller, {lab.summary()}; val accuracy {lab.label_accuracy:.3f}")
+    return 0
+
+
+def _save_ps_model(
+    out: str,
+    result: Any,
+    cfg: Any,
+    device: Any,
+    annotated_val: list[Episode],
+    label_accuracy: float,
+    data: str,
+    val_ids: list[str],
+    held: list,
+) -> None:
+    """Calibrate the trained PS model on the annotated val episodes (none: uncalibrated, said so) and
+    write it with its training record."""
+    from playseg_core.ps.calibration import calibrate_ps_model
+    from playseg_core.ps.model import save_model
+
+    result.model.to(device)  # calibration segments the val episodes: on the training device
     calibrated = calibrate_ps_model(result.model, annotated_val, label_accuracy) if annotated_val else {}
     result.model.to("cpu")
     extra = {
@@ -357,28 +398,17 @@ def train(
         **calibrated,
     }
     save_model(out, result.model, extra)
-    print(
-        f"{out}: PS model trained on {len(train_eps)} episodes, {result.summary()}; "
-        f"val label accuracy {result.label_accuracy:.3f}; peak RSS {_peak_rss_mb():.0f} MB"
-    )
     if calibrated:
         _print_calibration(calibrated)
     else:
         print(f"{out}: uncalibrated (no annotated val episodes): confidences are not calibrated")
-    if labeller:
-        lab_cfg = replace(
-            cfg, state_path=str(train_state_path(labeller)), fingerprint=cfg.fingerprint + "-labeller"
-        )
-        lab = train_labeller(train_eps, val_eps, dataset.instructions, lab_cfg, model_cfg)
-        save_model(labeller, lab.model, {"train": asdict(lab_cfg), "history": lab.history})
-        print(f"{labeller}: labeller, {lab.summary()}; val accuracy {lab.label_accuracy:.3f}")
-    return 0
 
 
 def _train_method(method: str, data: str, out: str, training: tuple, given: dict, augment: bool) -> int:
     """`playseg train --method` for a method other than PS: the same data, options and output."""
     from playseg_core.baselines.common import TrainingData, TrainOptions
     from playseg_core.baselines.registry import train_segmenter
+    from playseg_core.training import distributed
 
     dataset, train_eps, val_eps, features, read_actions, bounds, encoders, encoders_from = training
     overrides = _encoder_overrides(encoders or [])
@@ -387,6 +417,8 @@ def _train_method(method: str, data: str, out: str, training: tuple, given: dict
         dict(bounds or {}), encoders_from, augment,
     )  # fmt: skip
     trained = train_segmenter(method, inputs, TrainOptions(**given))  # unset options: the method's defaults
+    if not distributed.is_main():
+        return 0
     trained.save(Path(out), {"method": method, "dataset": str(Path(data).resolve())})
     print(f"{out}: {trained.report}; peak RSS {_peak_rss_mb():.0f} MB")
     return 0

@@ -144,3 +144,26 @@ def test_a_run_killed_by_sigterm_resumes_to_the_whole_runs_result(tiny_data: Pat
         assert ours == pytest.approx(theirs, rel=1e-3)
     a, b = whole_run.state_dict, killed_run.state_dict
     assert a.keys() == b.keys() and all(torch.allclose(a[key], b[key], rtol=1e-3, atol=1e-4) for key in a)
+
+
+def test_nproc_2_trains_data_parallel_and_process_0_alone_writes(tiny_data: Path, tmp_path: Path) -> None:
+    model, labeller = tmp_path / "ps.pt", tmp_path / "labeller.pt"
+    argv = [*_train_argv(tiny_data, model), "--nproc", "2", "--labeller", str(labeller)]
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert (
+        done.stdout.count("PS model trained") == 1 and "50 of at most 50 steps (2 processes)" in done.stdout
+    )
+    assert "labeller, 50 of at most 50 steps (2 processes)" in done.stdout
+    meta = read_checkpoint(model).meta
+    assert [entry["step"] for entry in meta["history"]] == [26.0, 50.0]  # the first evaluation past 25
+    assert "threshold" in meta["calibration"] and labeller.exists()
+    assert not train_state_path(model).exists()
+    bad = subprocess.run([*argv[:-2], "--lr", "-1"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2  # argparse refuses before any process starts
+    missing = [*_train_argv(tmp_path / "none", tmp_path / "x.pt"), "--nproc", "2"]
+    failed = subprocess.run(missing, capture_output=True, text=True, timeout=300)
+    assert failed.returncode == 1
+    assert failed.stderr.strip().splitlines() == [
+        f"playseg train: --data {tmp_path / 'none'}: no such directory"
+    ]

@@ -23,7 +23,9 @@ from playseg_core.training.loop import (
 torch.set_num_threads(1)
 
 
-def _toy_task(measure_at=None, interrupt_at: int | None = None, seed: int = 0) -> TrainingTask:
+def _toy_task(
+    measure_at=None, interrupt_at: int | None = None, seed: int = 0, total: int = 60
+) -> TrainingTask:
     """A linear regression whose batch is a function of the step; ``measure_at(step)`` scripts the
     held-out measure (else the real held-out loss); ``interrupt_at``: KeyboardInterrupt at that step."""
     torch.manual_seed(seed)
@@ -55,7 +57,7 @@ def _toy_task(measure_at=None, interrupt_at: int | None = None, seed: int = 0) -
         model=model,
         batch_at=batch_at,
         loss=loss,
-        learning_rate=lambda step: cosine_learning_rate(step, 0.05, 60),
+        learning_rate=lambda step: cosine_learning_rate(step, 0.05, total),
         optimizer=lambda m: torch.optim.AdamW(m.parameters(), lr=0.05),
         evaluate=evaluate,
     )
@@ -174,3 +176,40 @@ def test_a_cap_below_one_step_is_refused() -> None:
     with pytest.raises(ValueError, match="at least one step"):
         train_loop(_toy_task(), LoopConfig(steps=0))
     assert math.isfinite(cosine_learning_rate(0, 1.0, 1))
+
+
+def _train_toy_in_group(out: str) -> int:
+    """One process of a data-parallel toy run (distributed.launch): joins the gloo group, trains, and
+    process 0 writes its result."""
+    from playseg_core.training import distributed
+
+    torch.set_num_threads(1)
+    distributed.join(torch.device("cpu"))
+    result = train_loop(_toy_task(total=400), LoopConfig(steps=400, eval_every=50))
+    processes, rank = distributed.world()
+    if rank == 0:
+        torch.save(
+            {
+                "processes": processes,
+                "history": result.history,
+                "summary": result.summary(),
+                "best": result.best,
+            },
+            out,
+        )
+    return 0
+
+
+def test_two_gloo_processes_train_to_the_quality_of_one(tmp_path: Path) -> None:
+    from playseg_core.training import distributed
+
+    one = train_loop(_toy_task(total=400), LoopConfig(steps=400, eval_every=50))
+    out = tmp_path / "two.pt"
+    assert distributed.launch(2, _train_toy_in_group, str(out)) == 0
+    two = torch.load(out, weights_only=True)
+    assert two["processes"] == 2 and "(2 processes)" in two["summary"]
+    # the same batches seen in half the optimizer steps (each step averages two processes' gradients):
+    # evaluations at the same points of the data, the held-out loss as low as one process gets it
+    assert [entry["step"] for entry in two["history"]] == [50.0 * n for n in range(1, 9)]
+    assert two["best"]["val_loss"] < 0.1 * two["history"][0]["val_loss"]
+    assert two["best"]["val_loss"] <= 2 * one.best["val_loss"] + 1e-3

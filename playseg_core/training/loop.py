@@ -10,7 +10,10 @@ optionally a held-out evaluation) and the loop does the rest, the same way for e
 - the state (model, optimiser, step, RNG, best weights) is written every evaluation to a resume file, so
   a killed run continues where it was (`LoopConfig.resume`), giving what the uninterrupted run gives;
 - batches are moved to the device, the forward pass runs in its mixed precision (device.py), and on a
-  GPU the next batch is prepared on a second thread while the current one trains.
+  GPU the next batch is prepared on a second thread while the current one trains;
+- in a process group (distributed.py) the loss runs through DistributedDataParallel and each process
+  takes its own batches; steps then count batches, so the cap, the evaluations and the learning rate
+  follow the data seen whatever the number of processes.
 
 A step's batch must be a function of the step number alone (`TrainingTask.batch_at`): that is what makes
 resuming exact and preparing batches ahead safe.
@@ -33,6 +36,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from playseg_core.training import distributed
 from playseg_core.training.device import mixed_precision, to_device
 
 RESUME_FORMAT = "playseg-training-state"
@@ -91,7 +95,7 @@ class LoopConfig:
 @dataclass
 class LoopResult:
     model: nn.Module
-    steps: int  # optimizer steps taken
+    steps: int  # batches trained on per process group: optimizer steps x processes
     cap: int  # the step cap
     stopped: str  # why it stopped: "plateau", "step cap", "max minutes"
     best_step: int | None  # the step whose weights were kept (None: no evaluation, the last)
@@ -99,6 +103,7 @@ class LoopResult:
     history: list[dict[str, float]]  # one entry per evaluation: step, lr, train loss, held-out figures
     seconds: float
     measure: str
+    processes: int = 1
 
     def summary(self) -> str:
         """One line: steps against the cap, why it stopped, and which weights were kept."""
@@ -107,8 +112,10 @@ class LoopResult:
             if self.best_step is not None and self.measure in self.best
             else ""
         )
+        parallel = f" ({self.processes} processes)" if self.processes > 1 else ""
         return (
-            f"{self.steps} of at most {self.cap} steps, stopped by {self.stopped}{kept}, {self.seconds:.0f} s"
+            f"{self.steps} of at most {self.cap} steps{parallel}, stopped by {self.stopped}{kept}, "
+            f"{self.seconds:.0f} s"
         )
 
 
@@ -201,8 +208,9 @@ def _load_state(path: Path, cfg: LoopConfig, model: nn.Module, optimizer: torch.
 
 
 @contextmanager
-def _batches(task: TrainingTask, cfg: LoopConfig, first: int) -> Iterator[Callable[[int], Any]]:
-    """``get(step)`` -> the step's batch on the device; with prefetching, step+1's is being made meanwhile."""
+def _batches(task: TrainingTask, cfg: LoopConfig, first: int, stride: int) -> Iterator[Callable[[int], Any]]:
+    """``get(step)`` -> the step's batch on the device; with prefetching, the next one (step+stride) is
+    being made meanwhile."""
     prefetch = cfg.device.type == "cuda" if cfg.prefetch is None else cfg.prefetch
     if not prefetch:
         yield lambda step: to_device(task.batch_at(step), cfg.device)
@@ -214,7 +222,7 @@ def _batches(task: TrainingTask, cfg: LoopConfig, first: int) -> Iterator[Callab
         future = pending.pop(step, None) or pool.submit(task.batch_at, step)
         batch = future.result()
         pending.clear()
-        pending[step + 1] = pool.submit(task.batch_at, step + 1)
+        pending[step + stride] = pool.submit(task.batch_at, step + stride)
         return to_device(batch, cfg.device)
 
     try:
@@ -236,49 +244,61 @@ def _evaluate(task: TrainingTask, model: nn.Module, cfg: LoopConfig) -> dict[str
 
 
 def train_loop(task: TrainingTask, cfg: LoopConfig) -> LoopResult:
-    """Train ``task.model`` for at most ``cfg.steps`` optimizer steps (see the module's docstring); the
-    returned model holds the best evaluated weights (the last ones without an evaluation), in eval mode."""
+    """Train ``task.model`` for at most ``cfg.steps`` steps (see the module's docstring); the returned
+    model holds the best evaluated weights (the last ones without an evaluation), in eval mode. In a
+    process group, process 0's model is the one to keep."""
     if cfg.steps < 1:
         raise ValueError(f"{task.name}: a run needs at least one step, got a cap of {cfg.steps}")
+    processes, rank = distributed.world()
+    main = rank == 0
     model = task.model.to(cfg.device)
     optimizer = task.optimizer(model)
     progress = _Progress()
     if cfg.resume and cfg.state_path is not None:
         progress = _load_state(cfg.state_path, cfg, model, optimizer)
-        if cfg.log:
+        if cfg.log and main:
             cfg.log(f"[{task.name}] resumed at step {progress.step} from {cfg.state_path}")
+    loss_of = (
+        distributed.data_parallel_loss(model, task.loss)
+        if processes > 1
+        else (lambda batch: task.loss(model, batch))
+    )
     stopped = "step cap"
     began = time.perf_counter() - progress.seconds
     bar = tqdm(
-        total=cfg.steps, initial=progress.step, desc=task.name, file=sys.stderr, disable=not cfg.progress,
-        leave=False, unit="step", dynamic_ncols=True,
+        total=cfg.steps, initial=progress.step, desc=task.name, file=sys.stderr,
+        disable=not (cfg.progress and main), leave=False, unit="step", dynamic_ncols=True,
     )  # fmt: skip
     model.train()
-    with _batches(task, cfg, progress.step) as batch_of:
+    with _batches(task, cfg, progress.step + rank, processes) as batch_of:
         while progress.step < cfg.steps:
             step = progress.step
             for group in optimizer.param_groups:
                 group["lr"] = task.learning_rate(step)
-            batch = batch_of(step)
+            batch = batch_of(step + rank)
             with mixed_precision(cfg.device):
-                loss, figures = task.loss(model, batch)
+                loss, figures = loss_of(batch)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             if cfg.grad_clip is not None:
                 nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
             optimizer.step()
-            progress.step = step + 1
+            progress.step = step + processes
             progress.losses.append(float(figures.get("loss", float(loss.detach()))))
-            bar.update(1)
+            bar.update(processes)
             bar.set_postfix_str(f"loss {progress.losses[-1]:.4f}{progress.shown}", refresh=False)
-            last = progress.step == cfg.steps
+            last = progress.step >= cfg.steps
             out_of_time = cfg.max_minutes is not None and time.perf_counter() - began >= 60 * cfg.max_minutes
-            if (cfg.eval_every and progress.step % cfg.eval_every == 0) or last or out_of_time:
+            if cfg.max_minutes is not None:
+                out_of_time = distributed.agree(out_of_time, cfg.device)  # the clocks differ
+            due = bool(cfg.eval_every) and progress.step // cfg.eval_every > step // cfg.eval_every
+            if due or last or out_of_time:
                 progress.seconds = time.perf_counter() - began
-                if _record_evaluation(task, model, cfg, progress, bar):
+                plateau = _record_evaluation(task, model, cfg, progress, bar) if main else False
+                if distributed.agree(plateau, cfg.device):
                     stopped = "plateau"
                     break
-                if cfg.state_path is not None and not last:
+                if cfg.state_path is not None and not last and main:
                     _save_state(cfg.state_path, cfg, progress, model, optimizer)
             if out_of_time:
                 stopped = "max minutes"
@@ -287,7 +307,7 @@ def train_loop(task: TrainingTask, cfg: LoopConfig) -> LoopResult:
     if progress.best_state is not None:
         model.load_state_dict(progress.best_state)
     model.eval()
-    if cfg.state_path is not None:
+    if cfg.state_path is not None and main:
         cfg.state_path.unlink(missing_ok=True)
         _partial(cfg.state_path).unlink(missing_ok=True)  # one a kill cut short
     return LoopResult(
@@ -300,6 +320,7 @@ def train_loop(task: TrainingTask, cfg: LoopConfig) -> LoopResult:
         history=progress.history,
         seconds=time.perf_counter() - began,
         measure=task.measure,
+        processes=processes,
     )
 
 
