@@ -225,3 +225,50 @@ def test_bag_player_clock_publishes_each_messages_recorded_time_before_it(
     assert player.returncode == 0
     assert clocks == recorded  # the recorded time of each message, in order (published before it)
     assert len(commands) == 5
+
+
+def test_one_camera_stamp_a_year_ahead_costs_one_frame_not_the_stream(
+    procs: Processes, peer: RosPeer, tmp_path: Path
+) -> None:
+    """The issue's case on DDS: frame 31 of 120 carries a header stamp a year ahead. Before, the adapter
+    published nothing while the input went on (its step clock and horizon jumped a year) and logged
+    "315360000 steps missing". Now the frame is dropped with one warning and the steps are those of
+    `playseg convert`, published while the stream is still open (idle_timeout_s 60 has not passed)."""
+    from test_stamp_outliers import YEAR_NS, OutlierBag
+
+    from playseg_ros.convert.build import convert_bag
+    from playseg_ros.convert.mapping import load_mapping
+
+    spec = OutlierBag(seconds=4.0, labels=[], stamped_commands=True, outliers={31: YEAR_NS / 1e9})
+    bag = write_rosbag2(tmp_path / "robot", spec)
+    action = {"topic": "/cmd_vel", "fields": ["twist.linear.x", "twist.linear.y", "twist.angular.z"]}
+    mapping = write_mapping(
+        tmp_path / "map.yaml", dict(MAPPING, features={**MAPPING["features"], "action": action})
+    )
+    (episode,) = convert_bag(bag, load_mapping(mapping)).episodes
+    assert episode.num_steps + 1 >= 37
+
+    steps: list[PlayStep] = []
+    peer.node.create_subscription(PlayStep, "/play/steps", steps.append, qos.PLAY_STEPS)
+    adapter, adapter_log = procs.node(
+        "topic_adapter", "adapter", mapping=str(mapping), episode_id="robot", idle_timeout_s=60.0,
+        wait_for_subscribers=1,
+    )  # fmt: skip
+    assert peer.spin_until(lambda: peer.node.count_subscribers("/play/steps") >= 1, 60)
+    wait_for_log(adapter_log, r"topic_adapter\]: mapping", 30, adapter)
+    player, player_log = procs.node(
+        "bag_player", "player", bag=str(bag), rate=0.0, topics=TOPICS, wait_for_subscribers=1,
+        wait_topics=TOPICS,
+    )  # fmt: skip
+    # all but the last step or two (they wait for later samples or the stream's end) while it is open
+    published = lambda: len(steps) >= episode.num_steps - 1  # noqa: E731
+    assert peer.spin_until(published, 60), adapter_log.read_text()[-3000:] + player_log.read_text()[-2000:]
+    assert not any(s.episode_end for s in steps)
+    for t, msg in enumerate(steps):
+        frame = np.frombuffer(bytes(msg.observation.data), np.uint8).reshape(episode.images[CAMERA].shape[1:])
+        np.testing.assert_array_equal(frame, episode.images[CAMERA][t])
+    text = adapter_log.read_text()
+    assert text.count("dropped as a stamp outlier") == 1 and "topic /camera/image_raw: sample stamped" in text
+    assert "missing" not in text, text[-3000:]
+    assert stop(adapter) == 0
+    assert "Traceback" not in adapter_log.read_text()

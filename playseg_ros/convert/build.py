@@ -56,9 +56,9 @@ def episodes_of(
         {mapping.marker_topic} if mapping.marker_topic else set()
     )
     for topic in sorted(topics):
-        builder.add_sorted(
-            topic, samples[topic].stamps.tolist(), samples[topic].messages, samples[topic].msgtype
-        )
+        sample = samples[topic]
+        # arrival order: the stamp-outlier filter sees a bag's samples as the live adapter saw them
+        builder.add_sorted(topic, sample.stamps.tolist(), sample.messages, sample.msgtype, sample.arrival)
     steps = builder.finish()
     notes = builder.notes()
     grouped: list[list[BuiltStep]] = []

@@ -86,6 +86,7 @@ class LiveMapping:
         self._open_times: list[int] = []  # step times of the episode being handed out
         self._notes_seen = 0
         self._silences_seen = 0
+        self._outliers_seen = 0
         self._episodes_started = 0  # episodes of this stream with a step handed out
 
     @property
@@ -159,9 +160,10 @@ class LiveMapping:
         self.labels = [label for label in self.labels if label.start_ns > times[-1]]
 
     def _new_notes(self, out: LiveOutput) -> None:
-        bad, silences = self.builder.bad, self.builder.silences
+        bad, silences, outliers = self.builder.bad, self.builder.silences, self.builder.outliers
         out.notes += bad[self._notes_seen :] + silences[self._silences_seen :]
-        self._notes_seen, self._silences_seen = len(bad), len(silences)
+        out.notes += outliers[self._outliers_seen :]  # each stamp outlier warned about once
+        self._notes_seen, self._silences_seen, self._outliers_seen = len(bad), len(silences), len(outliers)
 
     def drop_notes(self) -> list[str]:
         """The stream's drop counts so far (per feature, primary gaps, short episodes)."""

@@ -132,6 +132,7 @@ class TopicSamples:
     msgtype: str
     stamps: np.ndarray
     messages: list[Any]
+    arrival: np.ndarray | None = None  # each sample's index in recording (log time) order
 
 
 def message_time(msg: Any, received_ns: int, use_header: bool) -> int:
@@ -191,7 +192,9 @@ def read_topics(
     for topic in wanted:
         times = np.asarray(stamps[topic], dtype=np.int64)
         order = np.argsort(times, kind="stable")
-        samples[topic] = TopicSamples(topic, types[topic], times[order], [messages[topic][i] for i in order])
+        samples[topic] = TopicSamples(
+            topic, types[topic], times[order], [messages[topic][i] for i in order], order
+        )
     for topic in absent:
         samples[topic] = TopicSamples(topic, "", np.zeros(0, dtype=np.int64), [])
     return samples

@@ -27,13 +27,22 @@ The rules (docs/convert.md, "Alignment"):
   its step as convert drops it on the recorded bag, and samples older than the horizon (less the
   tolerance) are forgotten: memory stays bounded while a topic is silent. A sample arriving later than
   the horizon cannot change a step any more; the bound must exceed the largest lag the input can have.
+- Stamp outliers (`StampFilter`, live and offline alike, over each topic's samples in arrival order: a
+  bag's recording order): a sample stamped more than a *jump* (``OUTLIER_INTERVALS`` typical intervals
+  of its topic, at least two step periods) away from the topic's previous sample is held until the
+  topic's next sample. When that one lies nearer the previous sample than the held one, the held one was
+  a single bad stamp (a clock glitch a year ahead or behind, a stale frame) and is dropped, with a note
+  naming topic and stamp; otherwise time really jumped (a pause) and it is kept. A topic's first sample
+  is kept once a second one agrees with it (or a third says which of the two is out of line); a suspect
+  with no sample after it is dropped. So one bad stamp costs one sample, never the stream: unfiltered, a
+  stamp a year ahead moved the step clock, the newest time and so every topic's horizon a year on.
 """
 
 from __future__ import annotations
 
 import bisect
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -48,6 +57,12 @@ from playseg_ros.convert.mapping import ConvertMapping, DerivedAction, TopicFeat
 
 TYPICAL_INTERVALS = 16
 """The primary's typical interval is the median of this many of its first intervals."""
+
+OUTLIER_INTERVALS = 4
+"""A sample further than this many typical intervals of its topic from the previous one is a suspect."""
+
+OUTLIER_NOTES = 10
+"""Outliers of one topic reported one by one (live warnings); further ones are only counted."""
 
 
 @dataclass
@@ -190,6 +205,73 @@ class StepClock:
         return True
 
 
+class StampFilter:
+    """One topic's samples in arrival order, a single out-of-line stamp taken out (module docstring).
+
+    ``offer`` a sample, get back the samples it released, in arrival order (a normal sample at once; a
+    suspect one when the next sample decides it); ``flush`` when the input ended. ``dropped``: the stamps
+    taken out, in order. Pure: no clock, no ROS."""
+
+    def __init__(self, min_jump_ns: int) -> None:
+        self.min_jump = min_jump_ns
+        self.last: int | None = None  # the last stamp released
+        self.dropped: list[int] = []
+        self._intervals: deque[int] = deque(maxlen=TYPICAL_INTERVALS)
+        self._held: list[tuple[int, Any]] = []
+
+    @property
+    def jump_ns(self) -> int:
+        typical = sorted(self._intervals)[len(self._intervals) // 2] if self._intervals else 0
+        return max(self.min_jump, OUTLIER_INTERVALS * typical)
+
+    def offer(self, stamp: int, item: Any) -> list[tuple[int, Any]]:
+        self._held.append((stamp, item))
+        return self._resolve(final=False)
+
+    def flush(self) -> list[tuple[int, Any]]:
+        return self._resolve(final=True)
+
+    def _resolve(self, final: bool) -> list[tuple[int, Any]]:
+        out: list[tuple[int, Any]] = []
+        held, jump = self._held, self.jump_ns
+        while held:
+            s = held[0][0]
+            if self.last is None:  # the first sample: kept once a second one agrees with it
+                if len(held) >= 2 and abs(held[1][0] - s) <= jump:
+                    out.append(self._release())
+                elif len(held) >= 3:  # a and b disagree: c says which one is out of line
+                    b, c = held[1][0], held[2][0]
+                    if abs(c - b) <= jump and abs(c - s) > jump:
+                        self.dropped.append(held.pop(0)[0])
+                    else:
+                        out.append(self._release())
+                elif final:  # too few samples to tell: kept
+                    out.append(self._release())
+                else:
+                    break
+            elif abs(s - self.last) <= jump:
+                out.append(self._release())
+            elif len(held) >= 2:  # a suspect: the next sample tells a bad stamp from a real jump
+                n = held[1][0]
+                if abs(n - self.last) < abs(n - s):
+                    self.dropped.append(held.pop(0)[0])
+                else:
+                    out.append(self._release())
+            elif final:  # a suspect nothing after it confirms
+                self.dropped.append(held.pop(0)[0])
+            else:
+                break
+            jump = self.jump_ns
+        return out
+
+    def _release(self) -> tuple[int, Any]:
+        stamp, item = self._held.pop(0)
+        if self.last is not None:
+            self._intervals.append(abs(stamp - self.last))
+        self.last = stamp
+        return stamp, item
+
+
 def typical_interval(stamps: list[int], period_ns: int) -> int:
     intervals = np.diff(np.asarray(stamps[: TYPICAL_INTERVALS + 1], dtype=np.int64))
     return int(np.median(intervals)) if len(intervals) else period_ns
@@ -221,6 +303,9 @@ class StepBuilder:
         self.features = mapping.topic_features
         self.readers = {f.name: FeatureReader(f, source) for f in self.features}
         self.buffers: dict[str, TopicBuffer] = {f.topic: TopicBuffer() for f in self.features}
+        # a jump shorter than two steps costs at most one step: not worth a sample's delay
+        self.filters = {topic: StampFilter(2 * mapping.period_ns) for topic in self.buffers}
+        self.outliers: list[str] = []  # a line per stamp outlier dropped (the first OUTLIER_NOTES a topic)
         self.primary = mapping.features[mapping.primary]
         self.markers: list[int] = []
         self.finished = False
@@ -248,32 +333,79 @@ class StepBuilder:
     def add(self, topic: str, stamp: int, msg: Any, msgtype: str = "") -> None:
         if topic == self.mapping.marker_topic:
             bisect.insort(self.markers, stamp)
-        buffer = self.buffers.get(topic)
-        if buffer is not None:
-            buffer.msgtype = buffer.msgtype or msgtype
-            buffer.add(stamp, msg)
-            self._first_ns = stamp if self._first_ns is None else min(self._first_ns, stamp)
-            self._newest_ns = stamp if self._newest_ns is None else max(self._newest_ns, stamp)
-            horizon = self._horizon()
-            if topic in self._silent and (horizon is None or buffer.latest >= horizon):
-                self._silent.discard(topic)  # it delivers again: a next silence is reported anew
+        stamp_filter = self.filters.get(topic)
+        if stamp_filter is None:
+            return
+        for kept, kept_msg in stamp_filter.offer(stamp, msg):
+            self._add_sample(topic, kept, kept_msg, msgtype)
+        self._report_outliers(topic)
+
+    def _add_sample(self, topic: str, stamp: int, msg: Any, msgtype: str) -> None:
+        buffer = self.buffers[topic]
+        buffer.msgtype = buffer.msgtype or msgtype
+        buffer.add(stamp, msg)
+        self._first_ns = stamp if self._first_ns is None else min(self._first_ns, stamp)
+        self._newest_ns = stamp if self._newest_ns is None else max(self._newest_ns, stamp)
+        horizon = self._horizon()
+        if topic in self._silent and (horizon is None or buffer.latest >= horizon):
+            self._silent.discard(topic)  # it delivers again: a next silence is reported anew
         if topic == self.primary.topic:
             self._primary_sample(stamp)
 
-    def add_sorted(self, topic: str, stamps: list[int], messages: list[Any], msgtype: str) -> None:
-        """All of a topic's samples at once, in time order (a bag): the same as adding them one by one."""
+    def add_sorted(
+        self,
+        topic: str,
+        stamps: list[int],
+        messages: list[Any],
+        msgtype: str,
+        arrival: Sequence[int] | None = None,
+    ) -> None:
+        """All of a topic's samples at once, in time order (a bag): the same as adding them one by one in
+        the order ``arrival`` ranks them (each sample's arrival index; None: time order), the topic's
+        input then ending."""
         if topic == self.mapping.marker_topic:
             self.markers = sorted([*self.markers, *stamps])
         buffer = self.buffers.get(topic)
-        if buffer is not None and stamps:
-            if buffer.stamps:
-                raise ValueError(f"add_sorted: topic {topic} has samples already")
-            buffer.msgtype = buffer.msgtype or msgtype
-            buffer.stamps, buffer.messages = list(stamps), list(messages)
-            buffer.latest, buffer._array = max(stamps), None
+        if buffer is None or not stamps:
+            return
+        if buffer.stamps:
+            raise ValueError(f"add_sorted: topic {topic} has samples already")
+        stamp_filter = self.filters[topic]
+        order = np.argsort(np.asarray(arrival), kind="stable") if arrival is not None else range(len(stamps))
+        kept = np.zeros(len(stamps), dtype=bool)
+        for i in order:
+            for _, index in stamp_filter.offer(stamps[i], i):
+                kept[index] = True
+        for _, index in stamp_filter.flush():
+            kept[index] = True
+        self._report_outliers(topic)
+        if not kept.all():
+            stamps = [t for t, k in zip(stamps, kept, strict=True) if k]
+            messages = [m for m, k in zip(messages, kept, strict=True) if k]
+        if not stamps:
+            return
+        buffer.msgtype = buffer.msgtype or msgtype
+        buffer.stamps, buffer.messages = list(stamps), list(messages)
+        buffer.latest, buffer._array = max(stamps), None
+        self._first_ns = min(stamps[0], self._first_ns if self._first_ns is not None else stamps[0])
+        self._newest_ns = max(stamps[-1], self._newest_ns if self._newest_ns is not None else stamps[-1])
         if topic == self.primary.topic:
             for stamp in stamps:
                 self._primary_sample(stamp)
+
+    def _report_outliers(self, topic: str) -> None:
+        stamp_filter = self.filters[topic]
+        reported = sum(1 for line in self.outliers if line.startswith(f"topic {topic}: "))
+        for stamp in stamp_filter.dropped[reported:OUTLIER_NOTES]:
+            last = stamp_filter.last
+            off = "" if last is None else f", {(stamp - last) / 1e9:+.3f} s from the samples around it"
+            more = (
+                " (further outliers of this topic are only counted)" if reported == OUTLIER_NOTES - 1 else ""
+            )
+            self.outliers.append(
+                f"topic {topic}: sample stamped {stamp / 1e9:.3f} s dropped as a stamp outlier{off}{more}"
+            )
+            reported += 1
 
     def _primary_sample(self, stamp: int) -> None:
         if self._clock is None:
@@ -307,6 +439,10 @@ class StepBuilder:
     def finish(self) -> list[BuiltStep]:
         """The input ended: decide every remaining step and end the last episode."""
         self.finished = True
+        for topic, stamp_filter in self.filters.items():
+            for stamp, msg in stamp_filter.flush():
+                self._add_sample(topic, stamp, msg, "")
+            self._report_outliers(topic)
         if self._clock is None and self._primary_waiting:
             self._start_clock()
         out = self.take()
@@ -372,6 +508,12 @@ class StepBuilder:
                     f"{feature.name} ({feature.topic}): {count} step(s) without a sample within "
                     f"{feature.tolerance_ns / 1e6:g} ms ({feature.align}); dropped, "
                     f"first at {first / 1e9:.3f}"
+                )
+        for topic, stamp_filter in self.filters.items():
+            if stamp_filter.dropped:
+                notes.append(
+                    f"topic {topic}: {len(stamp_filter.dropped)} sample(s) dropped as stamp outliers (far "
+                    f"from the samples around them), first stamped {stamp_filter.dropped[0] / 1e9:.3f} s"
                 )
         if self.short_episodes:
             notes.append(
