@@ -97,7 +97,8 @@ def read_checkpoint(path: str | os.PathLike[str], kinds: Iterable[str] = KINDS) 
     """Read and check a checkpoint of one of ``kinds``; CheckpointError naming the file otherwise."""
     path = Path(path)
     if not path.is_file():
-        raise CheckpointError(f"checkpoint {path}: no such file")
+        what = "is a directory, not a checkpoint file" if path.is_dir() else "no such file"
+        raise CheckpointError(f"checkpoint {path}: {what}")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # corrupt, truncated, or carrying objects weights_only refuses

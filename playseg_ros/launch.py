@@ -29,6 +29,8 @@ from pathlib import Path
 
 import yaml
 
+from playseg_core.yaml_io import load_yaml
+
 NODE_KINDS: dict[str, str] = {
     "recorder": "playseg_ros.nodes.recorder",
     "segmenter": "playseg_ros.nodes.segmenter",
@@ -61,10 +63,7 @@ class GraphSpec:
 def load_graph(path: str | Path) -> GraphSpec:
     """Parse and validate a graph config; errors name the file and the offending entry."""
     path = Path(path)
-    try:
-        raw = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise ValueError(f"{path}: cannot read graph config: {exc}") from exc
+    raw = load_yaml(path, "graph config")  # YamlFileError (a ValueError) naming the file and entry
     if not isinstance(raw, dict) or not isinstance(raw.get("nodes"), list) or not raw["nodes"]:
         raise ValueError(f"{path}: expected a mapping with a non-empty 'nodes' list")
     nodes, names = [], set()

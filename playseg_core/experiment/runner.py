@@ -239,9 +239,16 @@ def _repeats_start_split(condition: str, data: ExperimentData) -> bool:
 
 def _check_same_experiment(out: Path, settings: dict[str, Any]) -> None:
     """Record what ``out`` caches (out/experiment.json); ValueError when it holds another experiment, so
-    cached results are never reported under another scale or budget."""
+    cached results are never reported under another scale or budget, FileExistsError when it is a
+    non-empty directory without that record."""
     path = out / "experiment.json"
     recorded = json.loads(json.dumps(settings))  # as it reads back (tuples become lists)
+    if not path.exists() and out.is_dir() and any(out.iterdir()):
+        # its files would be taken for cached stages (a models/ps.pt trusted as this run's segmenter)
+        raise FileExistsError(
+            f"--out {out}: a non-empty directory that holds no experiment (no experiment.json); "
+            "give a new or empty directory"
+        )
     if path.exists():
         held = json.loads(path.read_text())
         # A scale field added after ``out`` was written, at its default, is what that experiment ran
@@ -265,6 +272,8 @@ def _ensure_data(out: Path, domain: str, scale: ExperimentScale, workers: int, l
     path = out / "data"
     if is_dataset(path):
         return path
+    if path.exists():  # not ours to replace (the dataset writer's refusal names an option we lack)
+        raise FileExistsError(f"--out {out}: {path} exists and is not a playseg dataset; move it away")
     log(f"generating {domain} play, preset {scale.preset!r}, start split {scale.start_share:.0%} ...")
     out.mkdir(parents=True, exist_ok=True)
     load_domain(domain).generate_dataset(

@@ -40,7 +40,7 @@ from mcap.records import (
     Statistics,
     SummaryOffset,
 )
-from mcap.stream_reader import breakup_chunk
+from mcap.stream_reader import get_chunk_data_stream
 
 MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEAD = struct.Struct("<BQ")  # opcode, length of the record body
@@ -80,8 +80,32 @@ def _parse(opcode: int, body: bytes) -> list[McapRecord]:
         return [Message.read(stream, len(body))]
     record = _READERS[Opcode(opcode)](stream)
     if isinstance(record, Chunk):
-        return [record, *breakup_chunk(record, validate_crc=True)]  # the chunk itself marks its offset
+        return [record, *_chunk_records(record)]  # the chunk itself marks its offset
     return [record]
+
+
+_CHUNK_RECORDS = frozenset((Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE))
+
+
+def _chunk_records(chunk: Chunk) -> list[McapRecord]:
+    """The records inside ``chunk``, each parsed from its own bytes. mcap's `breakup_chunk` reads a schema
+    or channel by its fields and ignores its length, so a damaged length passes it but not rosbags (an
+    OverflowError with no offset): here a length that does not fit the chunk is damage."""
+    stream, size = get_chunk_data_stream(chunk, validate_crc=True)
+    records: list[McapRecord] = []
+    while stream.count < size:
+        at = stream.count
+        if size - at < _RECORD_HEAD.size:
+            raise EndOfFile()
+        opcode, length = _RECORD_HEAD.unpack(stream.read(_RECORD_HEAD.size))
+        if length > size - stream.count:
+            raise ValueError(
+                f"the record at byte {at} inside it claims {length} bytes, {size - stream.count} left"
+            )
+        body = stream.read(length)
+        if opcode in _CHUNK_RECORDS:  # others are skipped, as the MCAP spec asks of unknown records
+            records += _parse(opcode, body)
+    return records
 
 
 @dataclass

@@ -12,10 +12,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
 from rosbags.interfaces import Connection
 from rosbags.rosbag2 import Reader as Rosbag2Reader
 
+from playseg_core.yaml_io import YamlFileError, load_yaml
 from playseg_ros.bag.errors import BagError
 from playseg_ros.bag.mcap_scan import damage_of
 from playseg_ros.bag.schema import METADATA_FILE
@@ -56,14 +56,18 @@ class BagReader:
             )
             raise BagError(self.path, f"not a rosbag2 bag: no {METADATA_FILE}{hint}")
         try:
-            loaded = yaml.safe_load((self.path / METADATA_FILE).read_text())
+            loaded = load_yaml(self.path / METADATA_FILE, METADATA_FILE)
+        except YamlFileError as error:  # too large, binary, an alias bomb, a syntax error: the loader says
+            entry = f", key {error.key!r}" if error.key else ""
+            raise BagError(self.path, f"cannot read {METADATA_FILE}{entry}: {error.detail}") from None
+        try:
             if not isinstance(loaded, dict) or not isinstance(
                 loaded.get("rosbag2_bagfile_information"), dict
             ):
                 raise BagError(self.path, f"{METADATA_FILE} holds no rosbag2_bagfile_information mapping")
             self.metadata: dict[str, Any] = loaded["rosbag2_bagfile_information"]
             self._files = [self.path / Path(p).name for p in self.metadata["relative_file_paths"]]
-        except (OSError, yaml.YAMLError, KeyError, TypeError) as error:
+        except (KeyError, TypeError) as error:
             raise BagError(self.path, f"cannot read {METADATA_FILE}: {_one_line(error)}") from None
         try:
             self._reader = Rosbag2Reader(self.path)

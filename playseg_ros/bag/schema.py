@@ -19,6 +19,7 @@ import yaml
 from mcap.records import Channel, Schema
 from rosbags.typesys.store import Typestore
 
+from playseg_core.yaml_io import parse_yaml
 from playseg_ros.typestore import msg_dir, playseg_typestore, split_type_name
 
 METADATA_FILE = "metadata.yaml"
@@ -165,7 +166,7 @@ def topic_info(
 
 def topic_from_channel(channel: Channel, schema: Schema | None) -> TopicInfo:
     qos_text = channel.metadata.get("offered_qos_profiles", "")
-    profiles = yaml.safe_load(qos_text) if qos_text else []
+    profiles = parse_yaml(qos_text, channel.topic, "offered_qos_profiles of topic") if qos_text else []
     return TopicInfo(
         name=channel.topic,
         type=schema.name if schema else "",

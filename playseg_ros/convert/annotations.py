@@ -15,6 +15,8 @@ dropped and reported; one that runs past its episode's end is cut there and repo
 
 from __future__ import annotations
 
+import math
+import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -64,50 +66,102 @@ def labels_from_topic(bag: Path, samples: TopicSamples) -> list[TimedLabel]:
     return [label_of(msg) for msg in samples.messages]
 
 
-def sidecar_path(bag: Path, pattern: str) -> Path:
+def sidecar_path(bag: Path, pattern: str, outside_bag: bool = False) -> Path:
     """Where the sidecar file of ``bag`` lies: ``pattern`` with ``{name}`` replaced by the bag's name (without
-    suffix), relative to the bag directory (a bag file: the directory holding it) unless absolute."""
+    suffix), relative to the bag directory (a bag file: the directory holding it) unless absolute.
+
+    A relative pattern that leads out of that directory (``../other_bag/labels.yaml``) would give this
+    bag another bag's labels without a word: a ConvertError unless ``outside_bag`` (the mapping's
+    ``annotations.allow_outside_bag``). The check is on the path as written (no symlink is followed)."""
     name = bag.name if bag.is_dir() else bag.stem
     relative = Path(pattern.replace("{name}", name))
-    return relative if relative.is_absolute() else (bag if bag.is_dir() else bag.parent) / relative
+    if relative.is_absolute():
+        return relative
+    home = bag if bag.is_dir() else bag.parent
+    if not outside_bag and os.path.normpath(relative).split(os.sep)[0] == os.pardir:
+        raise ConvertError(
+            bag,
+            f"annotations file {str(relative)!r} lies outside the bag's directory {str(home)!r}: give an "
+            "absolute path, or allow_outside_bag: true under the mapping's annotations",
+        )
+    return home / relative
+
+
+MAX_SECONDS = 4e9
+"""The largest sidecar time in seconds, either way (absolute times are epoch seconds: 4e9 is the year
+2096); with the bag's start added it is still an int64 count of nanoseconds."""
 
 
 def labels_from_file(bag: Path, file: Path, bag_start_ns: int) -> list[TimedLabel]:
-    """The labels of a sidecar file; ConvertError naming the bag, the file and the entry when malformed."""
+    """The labels of a sidecar file; ConvertError naming the bag, the file and the entry when malformed.
+    Messages quote keys at most, never values: a path given by mistake may point at any file."""
     try:
         raw: Any = read_yaml(file, "annotations file")
     except MappingError as error:
         raise ConvertError(bag, str(error)) from None
+    what = f"annotations file {str(file)!r}"
     entries: Any = raw
     base = bag_start_ns
     if isinstance(raw, Mapping):
         unknown = set(raw) - {"times", "annotations"}
         if unknown:
-            raise ConvertError(bag, f"annotations file {str(file)!r}: unknown key(s) {sorted(unknown)}")
+            raise ConvertError(bag, f"{what}: unknown key(s) {_keys(unknown)} (expected times, annotations)")
         times = raw.get("times", "from_start")
         if times not in ("from_start", "absolute"):
-            raise ConvertError(
-                bag, f"annotations file {str(file)!r}, key 'times': {times!r} is not from_start or absolute"
-            )
+            raise ConvertError(bag, f"{what}, key 'times': must be from_start or absolute")
         base = 0 if times == "absolute" else bag_start_ns
         entries = raw.get("annotations", [])
     if not isinstance(entries, Sequence) or isinstance(entries, str):
-        raise ConvertError(bag, f"annotations file {str(file)!r}: expected a list of annotations")
+        raise ConvertError(bag, f"{what}: expected a list of annotations, got {_kind(entries)}")
     labels = []
     for i, entry in enumerate(entries):
-        where = f"annotations file {str(file)!r}, annotations[{i}]"
-        if not isinstance(entry, Mapping) or set(entry) != {"start", "end", "instruction"}:
-            raise ConvertError(bag, f"{where}: expected exactly start, end, instruction; got {entry!r}")
-        start, end = entry["start"], entry["end"]
-        if (
-            not all(isinstance(v, int | float) and not isinstance(v, bool) for v in (start, end))
-            or end < start
-        ):
-            raise ConvertError(bag, f"{where}: start and end must be numbers (seconds) with start <= end")
+        where = f"{what}, annotations[{i}]"
+        if not isinstance(entry, Mapping):
+            raise ConvertError(
+                bag, f"{where}: expected a mapping of start, end, instruction; got {_kind(entry)}"
+            )
+        if set(entry) != {"start", "end", "instruction"}:
+            raise ConvertError(
+                bag, f"{where}: expected exactly start, end, instruction; got {_keys(set(entry))}"
+            )
+        seconds = {}
+        for key in ("start", "end"):
+            value = entry[key]
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise ConvertError(
+                    bag, f"{where}, key {key!r}: must be a number (seconds), got {_kind(value)}"
+                )
+            if (
+                not (isinstance(value, int) or math.isfinite(value))
+                or not -MAX_SECONDS <= value <= MAX_SECONDS
+            ):
+                # NaN and inf would become no integer time at all, 1e300 one past any clock
+                raise ConvertError(
+                    bag, f"{where}, key {key!r}: must be a finite number of seconds within +-{MAX_SECONDS:g}"
+                )
+            seconds[key] = value
+        if seconds["end"] < seconds["start"]:
+            raise ConvertError(bag, f"{where}: end is before start")
+        instruction = "" if entry["instruction"] is None else entry["instruction"]  # "": dropped, reported
+        if not isinstance(instruction, str):
+            raise ConvertError(
+                bag, f"{where}, key 'instruction': must be text, got {_kind(entry['instruction'])}"
+            )
         labels.append(
-            TimedLabel(base + round(start * 1e9), base + round(end * 1e9), str(entry["instruction"]))
+            TimedLabel(base + round(seconds["start"] * 1e9), base + round(seconds["end"] * 1e9), instruction)
         )
     return labels
+
+
+def _kind(value: Any) -> str:
+    """What a wrong value is, without quoting it."""
+    return "nothing" if value is None else f"a {type(value).__name__}"
+
+
+def _keys(keys: set[Any]) -> str:
+    """Keys for a message, each cut short (a stray file parsed as YAML may have whole lines as keys)."""
+    names = sorted(str(k) if len(str(k)) <= 40 else str(k)[:37] + "..." for k in keys)
+    return "[" + ", ".join(repr(n) for n in names[:5]) + (", ...]" if len(names) > 5 else "]")
 
 
 def segments_of_episodes(

@@ -105,9 +105,11 @@ def _labels(
     if mapping.annotation_topic and samples[mapping.annotation_topic].messages:
         labels += labels_from_topic(bag, samples[mapping.annotation_topic])
     if mapping.annotation_file:
-        file = sidecar_path(bag, mapping.annotation_file)
+        file = sidecar_path(bag, mapping.annotation_file, mapping.annotation_file_outside_bag)
         if file.is_file():
-            labels += labels_from_file(bag, file, bag_start_ns)
+            from_file = labels_from_file(bag, file, bag_start_ns)
+            labels += from_file
+            notes.append(f"{len(from_file)} label(s) from annotations file {str(file)!r}")
         else:
             notes.append(f"no annotations file {str(file)!r}")
     if mapping.annotation_topic and not samples[mapping.annotation_topic].messages:

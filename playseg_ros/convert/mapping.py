@@ -26,9 +26,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, NotRequired, TypedDict
 
-import yaml
-
 from playseg_core.data.features import ACTION, IMAGE_PREFIX, STATE
+from playseg_core.yaml_io import YamlFileError, load_yaml
 from playseg_ros.convert.errors import MappingError
 
 AlignMethod = Literal["nearest", "previous", "linear"]
@@ -70,6 +69,7 @@ class FeatureYaml(TypedDict, total=False):
 class AnnotationsYaml(TypedDict, total=False):
     topic: str
     file: str
+    allow_outside_bag: bool  # a relative ``file`` may lead out of the bag's directory
 
 
 class EpisodesYaml(TypedDict, total=False):
@@ -93,7 +93,7 @@ class MappingYaml(TypedDict):
 TOP_KEYS = ("fps", "primary", "tolerance_ms", "align", "clock", "features", "annotations", "episodes")
 TOPIC_FEATURE_KEYS = ("topic", "field", "fields", "joints", "align", "tolerance_ms", "resize", "low", "high")
 DERIVED_ACTION_KEYS = ("derive", "of", "low", "high")
-ANNOTATION_KEYS = ("topic", "file")
+ANNOTATION_KEYS = ("topic", "file", "allow_outside_bag")
 EPISODE_KEYS = {
     "bag": ("split", "min_steps"),
     "marker": ("split", "topic", "min_steps"),
@@ -101,6 +101,11 @@ EPISODE_KEYS = {
 }
 DEFAULT_TOLERANCE_MS = 50.0
 DEFAULT_MIN_STEPS = 1
+MIN_FPS, MAX_FPS = 1e-3, 1000.0
+MAX_SECONDS = 1e9
+"""The longest tolerance or episode gap, in seconds: in nanoseconds still far inside int64."""
+MAX_IMAGE_SIDE = 4096
+"""The widest or tallest ``resize``: a frame of 4096 x 4096 RGB is 48 MB already."""
 
 
 # --------------------------------------------------------------------------------------------------
@@ -149,6 +154,7 @@ class ConvertMapping:
     action: TopicFeature | DerivedAction
     annotation_topic: str | None
     annotation_file: str | None
+    annotation_file_outside_bag: bool
     split: SplitKind
     marker_topic: str | None
     gap_ns: int | None
@@ -177,42 +183,13 @@ class ConvertMapping:
 # Loading
 
 
-def _duplicate_key(node: yaml.Node | None, prefix: str = "") -> tuple[str, int, int] | None:
-    """The first key given twice in one YAML mapping (plain YAML silently keeps the last one): its dotted
-    path and both lines."""
-    if isinstance(node, yaml.MappingNode):
-        seen: dict[str, int] = {}
-        for key_node, value_node in node.value:
-            key = f"{prefix}{key_node.value}"
-            line = key_node.start_mark.line + 1
-            if key in seen:
-                return key, seen[key], line
-            seen[key] = line
-            found = _duplicate_key(value_node, f"{key}.")
-            if found:
-                return found
-    elif isinstance(node, yaml.SequenceNode):
-        for i, item in enumerate(node.value):
-            found = _duplicate_key(item, f"{prefix}{i}.")
-            if found:
-                return found
-    return None
-
-
 def read_yaml(path: Path, what: str = "mapping") -> Any:
-    """A YAML (or JSON) file's content; `MappingError` naming a key given twice, or the YAML error."""
+    """A YAML (or JSON) file's content through the project's safe loader (limits on size, depth and
+    aliases; a key given twice is an error); `MappingError` naming the file and the entry otherwise."""
     try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as error:
-        raise MappingError(path, None, f"cannot read: {error.strerror or error}", what) from None
-    try:
-        duplicate = _duplicate_key(yaml.compose(text, Loader=yaml.SafeLoader))
-        if duplicate:
-            key, first, second = duplicate
-            raise MappingError(path, key, f"given twice (lines {first} and {second})", what)
-        return yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        raise MappingError(path, None, f"not valid YAML: {error}", what) from None
+        return load_yaml(path, what)
+    except YamlFileError as error:
+        raise MappingError(error.path, error.key, error.detail, what) from None
 
 
 def load_mapping(path: str | Path) -> ConvertMapping:
@@ -225,8 +202,10 @@ def parse_mapping(raw: Any, path: Path) -> ConvertMapping:
     """Validate the YAML content ``raw`` of the mapping file ``path``."""
     top = _mapping(raw, path, None)
     _known_keys(top, TOP_KEYS, path, None)
-    fps = _positive(top.get("fps"), path, "fps")
-    tolerance_ms = _positive(top.get("tolerance_ms", DEFAULT_TOLERANCE_MS), path, "tolerance_ms")
+    fps = _positive(top.get("fps"), path, "fps", MAX_FPS, least=MIN_FPS)
+    tolerance_ms = _positive(
+        top.get("tolerance_ms", DEFAULT_TOLERANCE_MS), path, "tolerance_ms", MAX_SECONDS * 1e3
+    )
     align = _choice(top.get("align", "nearest"), ALIGN_METHODS, path, "align")
     clock = _choice(top.get("clock", "header"), CLOCKS, path, "clock")
     features_raw = _mapping(top.get("features"), path, "features")
@@ -235,7 +214,7 @@ def parse_mapping(raw: Any, path: Path) -> ConvertMapping:
     features: dict[str, TopicFeature] = {}
     action: TopicFeature | DerivedAction | None = None
     for name, spec in features_raw.items():
-        key = f"features.{name}"
+        key = _key("features", name)
         if not isinstance(name, str) or not _valid_feature_name(name):
             raise MappingError(
                 path, key, f"unknown feature name (expected {IMAGE_PREFIX}<camera>, {STATE} or {ACTION})"
@@ -254,20 +233,27 @@ def parse_mapping(raw: Any, path: Path) -> ConvertMapping:
             path, f"features.{ACTION}", "missing (a topic, or {derive: next, of: observation.state})"
         )
     if isinstance(action, DerivedAction) and action.of not in features:
-        raise MappingError(path, f"features.{ACTION}.of", f"{action.of!r} is not a feature of this mapping")
+        raise MappingError(
+            path, f"features.{ACTION}.of", f"{_show(action.of)} is not a feature of this mapping"
+        )
     if isinstance(action, DerivedAction) and features[action.of].is_image:
         raise MappingError(path, f"features.{ACTION}.of", "an action cannot be derived from an image")
     primary = top.get("primary")
     if primary is None:
         raise MappingError(path, "primary", "missing (the feature whose clock the steps follow)")
-    if primary not in features:
+    if not isinstance(primary, str) or primary not in features:
         raise MappingError(
-            path, "primary", f"{primary!r} is not one of the observation features {sorted(features)}"
+            path, "primary", f"{_show(primary)} is not one of the observation features {sorted(features)}"
         )
     annotations = _mapping(top.get("annotations", {}), path, "annotations")
     _known_keys(annotations, ANNOTATION_KEYS, path, "annotations")
     annotation_topic = _optional_str(annotations.get("topic"), path, "annotations.topic")
     annotation_file = _optional_str(annotations.get("file"), path, "annotations.file")
+    outside_bag = annotations.get("allow_outside_bag", False)
+    if not isinstance(outside_bag, bool):
+        raise MappingError(
+            path, "annotations.allow_outside_bag", f"must be true or false, got {_show(outside_bag)}"
+        )
     episodes = _mapping(top.get("episodes", {"split": "bag"}), path, "episodes")
     split = _choice(episodes.get("split", "bag"), SPLITS, path, "episodes.split")
     _known_keys(episodes, EPISODE_KEYS[split], path, "episodes")
@@ -278,10 +264,10 @@ def parse_mapping(raw: Any, path: Path) -> ConvertMapping:
         if marker_topic is None:
             raise MappingError(path, "episodes.topic", "missing (the topic whose messages start an episode)")
     if split == "gap":
-        gap_ns = round(_positive(episodes.get("gap_s"), path, "episodes.gap_s") * 1e9)
+        gap_ns = round(_positive(episodes.get("gap_s"), path, "episodes.gap_s", MAX_SECONDS) * 1e9)
     min_steps = episodes.get("min_steps", DEFAULT_MIN_STEPS)
     if isinstance(min_steps, bool) or not isinstance(min_steps, int) or min_steps < 1:
-        raise MappingError(path, "episodes.min_steps", f"must be a whole number >= 1, got {min_steps!r}")
+        raise MappingError(path, "episodes.min_steps", f"must be a whole number >= 1, got {_show(min_steps)}")
     digest = hashlib.sha256(json.dumps(raw, sort_keys=True, default=str).encode()).hexdigest()
     return ConvertMapping(
         path=path,
@@ -293,6 +279,7 @@ def parse_mapping(raw: Any, path: Path) -> ConvertMapping:
         action=action,
         annotation_topic=annotation_topic,
         annotation_file=annotation_file,
+        annotation_file_outside_bag=outside_bag,
         split=split,
         marker_topic=marker_topic,
         gap_ns=gap_ns,
@@ -318,7 +305,7 @@ def _topic_feature(
         fields = spec["fields"]
         if not isinstance(fields, list) or not fields or not all(isinstance(f, str) and f for f in fields):
             raise MappingError(
-                path, f"{key}.fields", f"must be a non-empty list of field paths, got {fields!r}"
+                path, f"{key}.fields", f"must be a non-empty list of field paths, got {_show(fields)}"
             )
     elif "field" in spec:
         field = _optional_str(spec["field"], path, f"{key}.field")
@@ -339,19 +326,30 @@ def _topic_feature(
     feature_align = _choice(spec.get("align", align), ALIGN_METHODS, path, f"{key}.align")
     if is_image and feature_align == "linear":
         raise MappingError(path, f"{key}.align", "linear interpolation is for numeric features, not images")
-    tolerance = _positive(spec.get("tolerance_ms", tolerance_ms), path, f"{key}.tolerance_ms")
+    tolerance = _positive(
+        spec.get("tolerance_ms", tolerance_ms), path, f"{key}.tolerance_ms", MAX_SECONDS * 1e3
+    )
     joints = spec.get("joints")
     if joints is not None and (
         not isinstance(joints, list) or not joints or not all(isinstance(j, str) for j in joints)
     ):
-        raise MappingError(path, f"{key}.joints", f"must be a non-empty list of joint names, got {joints!r}")
+        raise MappingError(
+            path, f"{key}.joints", f"must be a non-empty list of joint names, got {_show(joints)}"
+        )
     resize = None
     if "resize" in spec:
         size = _mapping(spec["resize"], path, f"{key}.resize")
         _known_keys(size, ("width", "height"), path, f"{key}.resize")
         width, height = (size.get(k) for k in ("width", "height"))
-        if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in (width, height)):
-            raise MappingError(path, f"{key}.resize", f"needs whole width and height > 0, got {dict(size)}")
+        if not all(
+            isinstance(v, int) and not isinstance(v, bool) and 0 < v <= MAX_IMAGE_SIDE
+            for v in (width, height)
+        ):
+            raise MappingError(
+                path,
+                f"{key}.resize",
+                f"needs whole width and height from 1 to {MAX_IMAGE_SIDE}, got {_show(dict(size))}",
+            )
         resize = (int(width), int(height))  # type: ignore[arg-type]
     if name != ACTION and ("low" in spec or "high" in spec):
         raise MappingError(path, key, "only the action takes bounds (low, high)")
@@ -393,26 +391,49 @@ def _mapping(value: Any, path: Path, key: str | None) -> MappingType[str, Any]:
 def _known_keys(value: MappingType[str, Any], known: tuple[str, ...], path: Path, key: str | None) -> None:
     for name in value:
         if name not in known:
-            where = f"{key}.{name}" if key else str(name)
+            where = _key(key, name)
             raise MappingError(path, where, f"unknown key (expected one of {', '.join(known)})")
 
 
-def _positive(value: Any, path: Path, key: str) -> float:
+def _positive(value: Any, path: Path, key: str, most: float, least: float = 0.0) -> float:
+    """A number above 0 in [least, most]: a bound keeps every derived nanosecond count inside int64 (and a huge
+    YAML integer, which float() cannot hold, is an error here rather than an OverflowError later)."""
     if value is None:
         raise MappingError(path, key, "missing")
-    if (
-        isinstance(value, bool)
-        or not isinstance(value, int | float)
-        or not math.isfinite(value)
-        or value <= 0
-    ):
-        raise MappingError(path, key, f"must be a positive number, got {value!r}")
-    return float(value)
+    number = _finite(value)
+    if number is None or not 0 < number <= most or number < least:
+        range_text = f"from {least:g} to {most:g}" if least else f"up to {most:g}"
+        raise MappingError(path, key, f"must be a positive number {range_text}, got {_show(value)}")
+    return number
+
+
+def _finite(value: Any) -> float | None:
+    """``value`` as a finite float; None for anything else (a bool, a string, NaN, inf, an int past float)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    try:
+        number = float(value)
+    except OverflowError:
+        return None
+    return number if math.isfinite(number) else None
+
+
+def _key(prefix: str | None, name: Any) -> str:
+    """The dotted key of ``name`` under ``prefix``; a long name cut short (it may be a whole line of a file
+    that is not a mapping at all)."""
+    text = str(name) if len(str(name)) <= 60 else str(name)[:57] + "..."
+    return f"{prefix}.{text}" if prefix else text
+
+
+def _show(value: Any) -> str:
+    """``value`` for an error message, cut short: a wrong value may be a whole list or mapping."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def _choice(value: Any, choices: tuple[str, ...], path: Path, key: str) -> Any:
     if value not in choices:
-        raise MappingError(path, key, f"{value!r} is not one of {', '.join(choices)}")
+        raise MappingError(path, key, f"{_show(value)} is not one of {', '.join(choices)}")
     return value
 
 
@@ -420,15 +441,14 @@ def _optional_str(value: Any, path: Path, key: str) -> str | None:
     if value is None:
         return None
     if not isinstance(value, str) or not value:
-        raise MappingError(path, key, f"must be a non-empty string, got {value!r}")
+        raise MappingError(path, key, f"must be a non-empty string, got {_show(value)}")
     return value
 
 
 def _bounds(value: Any, path: Path, key: str) -> tuple[float, ...] | None:
     if value is None:
         return None
-    if not isinstance(value, list) or not all(
-        isinstance(v, int | float) and not isinstance(v, bool) for v in value
-    ):
-        raise MappingError(path, key, f"must be a list of numbers, got {value!r}")
-    return tuple(float(v) for v in value)
+    numbers = [_finite(v) for v in value] if isinstance(value, list) else [None]
+    if any(n is None for n in numbers):
+        raise MappingError(path, key, f"must be a list of finite numbers, got {_show(value)}")
+    return tuple(numbers)  # type: ignore[arg-type]

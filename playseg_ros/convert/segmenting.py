@@ -69,7 +69,8 @@ class SegmentationSpec:
             raise ValueError(f"--keep: {error}") from None
         path = Path(model).resolve()
         if not path.is_file():
-            raise FileNotFoundError(f"--segment {model}: no such checkpoint file")
+            what = "is a directory, not a checkpoint file" if path.is_dir() else "no such checkpoint file"
+            raise FileNotFoundError(f"--segment {model}: {what}")
         # The default rule leaves the digest as it was before rules existed: those datasets resume.
         suffix = f"|{method}|{seed}" + ("" if keep == "label" else f"|{keep}")
         return cls(path, method, seed, file_digest(path, suffix.encode()), keep, device=device)

@@ -19,7 +19,9 @@ import numpy as np
 from rosbags.highlevel import AnyReader
 from rosbags.typesys.store import Typestore
 
+from playseg_core.yaml_io import YamlFileError, load_yaml
 from playseg_ros.bag.mcap_scan import damage_of
+from playseg_ros.bag.schema import METADATA_FILE
 from playseg_ros.convert.errors import ConvertError
 from playseg_ros.typestore import playseg_typestore
 
@@ -91,6 +93,11 @@ def bag_size(bag: Path) -> int:
 @contextmanager
 def open_bag(bag: Path) -> Iterator[AnyReader]:
     """An open `AnyReader`; ConvertError naming the bag when it cannot be opened."""
+    if bag.is_dir() and (bag / METADATA_FILE).is_file():
+        try:  # first through the project's bounded loader: rosbags' own YAML parser has no limits
+            load_yaml(bag / METADATA_FILE, METADATA_FILE)
+        except YamlFileError as error:
+            raise ConvertError(bag, str(error)) from None
     try:
         reader = AnyReader([bag], default_typestore=convert_typestore())
         reader.open()
@@ -175,9 +182,11 @@ def read_topics(
         except StopIteration:
             break
         except Exception as error:  # noqa: BLE001 -- a damaged file makes the storage reader raise anything
+            # the storage library's own words name no file or offset; the record scan does
+            where = damage(bag) or f"{type(error).__name__}: {error}"
             raise ConvertError(
                 bag,
-                f"unreadable after {sum(map(len, stamps.values()))} messages: {type(error).__name__}: {error}",
+                f"unreadable after {sum(map(len, stamps.values()))} messages: {where}",
                 time_ns=received or None,
             ) from None
         try:

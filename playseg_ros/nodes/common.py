@@ -12,9 +12,14 @@ import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import InvalidParameterTypeException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
+
+from playseg_ros.launch import NODE_NAME
+
+RCLError = _rclpy.RCLError
 
 
 class ReleasingLifecycleNode(LifecycleNode):
@@ -56,9 +61,36 @@ def declare(node: Node, name: str, default: Any, description: str) -> Any:
 
 
 def require(condition: bool, node: Node, message: str) -> None:
-    """Parameter validation: raise ValueError naming the node and the problem."""
+    """Parameter validation: raise ValueError naming the node and the problem.
+
+    It also marks the node (``bad_parameter``): a lifecycle node checks its parameters in configure,
+    where rclpy swallows the exception, and `run_node` must still tell a bad parameter (exit 2, the
+    node's one logged line) from a configure that failed otherwise (exit 1)."""
     if not condition:
+        node.bad_parameter = message  # type: ignore[attr-defined]
         raise ValueError(f"{node.get_name()}: invalid parameter: {message}")
+
+
+def ros_arguments_error(argv: list[str]) -> str | None:
+    """Why rcl would refuse ``argv``'s node-name remap (``--ros-args -r __node:=NAME``), or None.
+
+    rcl refuses it inside `rclpy.init` with two log lines of its own and an RCLError traceback; checked
+    here first, it is one line naming the argument."""
+    inside, previous = False, ""
+    for arg in argv:
+        if arg == "--ros-args":
+            inside = True
+        elif arg == "--":
+            inside = False
+        elif inside and previous in ("-r", "--remap"):
+            target, _, value = arg.partition(":=")
+            name = target.rsplit(":", 1)[-1]  # "talker:__node:=x" remaps the node named talker
+            if name in ("__node", "__name") and not NODE_NAME.fullmatch(value):
+                return (
+                    f"invalid node name {value!r} in '-r {arg}': a ROS node name is letters, digits and '_'"
+                )
+        previous = arg if inside else ""
+    return None
 
 
 def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threads: int = 1) -> int:
@@ -75,7 +107,16 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threa
     """
     # Our own SIGINT/SIGTERM handling: the context stays valid while the node shuts down, so lifecycle
     # transitions (which close files) can still run.
-    rclpy.init(args=sys.argv if args is None else args, signal_handler_options=SignalHandlerOptions.NO)
+    argv = sys.argv if args is None else args
+    problem = ros_arguments_error(argv)
+    if problem is None:
+        try:
+            rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+        except RCLError as exc:  # another argument rcl cannot parse (it logged its own lines already)
+            problem = f"invalid ROS arguments: {str(exc).split(', at ')[0]}"
+    if problem is not None:
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
     # Installed explicitly: a process started in the background by a shell inherits SIGINT ignored.
     # The first signal only asks the spin loop to stop, so no callback is cut off half-way (a message the
     # executor already took would be lost); a second one interrupts at once.
@@ -100,6 +141,8 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None = None, threa
         if isinstance(node, LifecycleNode):
             if autostart:
                 if node.trigger_configure() != TransitionCallbackReturn.SUCCESS:
+                    if getattr(node, "bad_parameter", None):
+                        return 2  # the node logged the parameter and the problem, in one line
                     node.get_logger().error("configure failed")
                     return 1
                 node.trigger_activate()
