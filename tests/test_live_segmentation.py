@@ -43,6 +43,15 @@ def _start(tmp_path: Path, kind: str, **parameters: object) -> Graph:
     return graph
 
 
+def _play_bag(tmp_path: Path, model_path: Path, seeds: tuple[int, ...]) -> tuple[Path, int]:
+    """A play bag of the episodes of ``seeds`` and how many segments the model finds in it."""
+    bag = tmp_path / "play"
+    episodes = [generate_episode(PlayConfig(), seed) for seed in seeds]
+    write_play_bag(bag, episodes, annotated=False, info=DataInfo(PlayConfig().features, DOMAIN, INSTRUCTIONS))
+    model, _ = load_model(model_path)
+    return bag, sum(len(segment_episode(model, episode)) for episode in read_play_bag(bag))
+
+
 class _Collector:
     def __init__(self, topic: str = "/segments") -> None:
         rclpy.init()
@@ -173,11 +182,7 @@ def test_reference_form_segments_give_the_trainer_the_same_buffer_as_embedded_on
 
     from playseg_core.augment.buffer import AugmentationBuffer
 
-    episodes = [generate_episode(PlayConfig(), seed) for seed in (31, 32)]
-    bag = tmp_path / "play"
-    write_play_bag(bag, episodes, annotated=False, info=DataInfo(PlayConfig().features, DOMAIN, INSTRUCTIONS))
-    model, _ = load_model(model_path)
-    expected = sum(len(segment_episode(model, episode)) for episode in read_play_bag(bag))
+    bag, expected = _play_bag(tmp_path, model_path, (31, 32))
     recording = tmp_path / "recording"
 
     def trainer(form: str, **parameters: object) -> NodeSpec:
@@ -245,3 +250,61 @@ def test_reference_form_segments_give_the_trainer_the_same_buffer_as_embedded_on
         np.testing.assert_array_equal(got.state, want.state)
         assert list(got.images) == list(want.images) == [CAMERA]
         np.testing.assert_array_equal(got.images[CAMERA], want.images[CAMERA])
+
+
+def test_two_segmenters_of_one_name_are_warned_about_and_the_trainer_stores_each_segment_once(
+    tmp_path, model_path
+):
+    """The issue's case: two segmenters started with the same node name both run and every segment is
+    published twice. Each warns about the other (a graph query), and the trainer stores each segment
+    once: segments are keyed by (episode, start, end, checkpoint digest), so a copy of the checkpoint
+    under another file name is the same model."""
+    import shutil
+
+    from playseg_msgs.msg import TrainerStatus
+
+    from playseg_core.augment.buffer import AugmentationBuffer
+
+    bag, expected = _play_bag(tmp_path, model_path, (41, 42))
+    copy = tmp_path / "ps-copy.pt"
+    shutil.copy(model_path, copy)
+    trainer = _start(
+        tmp_path, "trainer", buffer_dir=str(tmp_path / "buffer"), checkpoint_dir=str(tmp_path / "ckpt"),
+        status_period_s=0.5,
+    )  # fmt: skip
+    # two processes, one node name (`segmenter`, each node's default): what starting one twice gives
+    first = Graph(
+        GraphSpec([NodeSpec("segmenter", "segmenter", {"model": str(model_path)})]), log_dir=tmp_path / "a"
+    )
+    second = Graph(
+        GraphSpec([NodeSpec("segmenter", "segmenter", {"model": str(copy)})]), log_dir=tmp_path / "b"
+    )
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    first.start()
+    second.start()
+    collector = _Collector()
+    buffered = [0]
+    collector.node.create_subscription(
+        TrainerStatus, "/trainer/status", lambda s: buffered.__setitem__(0, s.buffer_segments), qos.STATUS
+    )
+    logs = lambda: "\n".join(p.read_text()[-2000:] for p in sorted(tmp_path.rglob("*.log")))  # noqa: E731
+    try:
+        assert collector.spin_until(lambda: collector.steps_pub.get_subscription_count() >= 2, 60), logs()
+        player = _start(tmp_path, "bag_player", bag=str(bag), rate=0.0, wait_for_subscribers=2)
+        twice = lambda: len(collector.segments) >= 2 * expected  # noqa: E731
+        assert collector.spin_until(twice, 120), (len(collector.segments), expected, logs())
+        assert collector.spin_until(lambda: buffered[0] == expected, 30), (buffered, expected, logs())
+        collector.spin_until(lambda: False, 1.5)  # nothing more is stored
+        assert buffered[0] == expected
+        player.stop()
+    finally:
+        collector.close()
+        codes = {**first.stop(), **second.stop(), **trainer.stop()}
+    assert set(codes.values()) == {0}, codes
+    ids = {s.model_id for s in collector.segments}
+    assert len(ids) == 2 and len({i.rsplit("@sha256:", 1)[1] for i in ids}) == 1, ids
+    for log in (tmp_path / "a" / "segmenter.log", tmp_path / "b" / "segmenter.log"):
+        assert "2 nodes named /segmenter on the graph" in log.read_text(), log.read_text()[-2000:]
+    with AugmentationBuffer(tmp_path / "buffer") as buffer:
+        assert len(buffer) == expected

@@ -135,8 +135,18 @@ class AugmentationBuffer:
         return size - good_end
 
 
+MODEL_DIGEST_SEP = "@sha256:"
+"""A source ``<name>@sha256:<hex>`` (the segmenter's model_id) names the model by its checkpoint digest."""
+MODEL_DIGEST_CHARS = 16
+
+
 def _key(clip: SegmentClip) -> tuple[str, int, int, str]:
-    return clip.episode_id, clip.segment.start, clip.segment.end, clip.source
+    """What makes a segment the same one: episode, start, end and the model that found it, by its
+    checkpoint digest where the source carries one (two segmenters, or two copies of one checkpoint)."""
+    source = clip.source
+    if MODEL_DIGEST_SEP in source:
+        source = MODEL_DIGEST_SEP + source.rsplit(MODEL_DIGEST_SEP, 1)[1]
+    return clip.episode_id, clip.segment.start, clip.segment.end, source
 
 
 class _TornRecord(Exception):

@@ -24,6 +24,8 @@ import torch
 from playseg_msgs.msg import LabelledSegment, PlayStep
 from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 
+from playseg_core.augment.buffer import MODEL_DIGEST_CHARS, MODEL_DIGEST_SEP
+from playseg_core.checkpoint import file_digest
 from playseg_core.data.features import DEFAULT_CAMERA
 from playseg_core.ps.labelling import KEEP_RULES, KeepRule, is_calibrated, uncalibrated_warning
 from playseg_core.ps.model import load_model
@@ -40,6 +42,9 @@ from playseg_ros.messages import (
     step_from_message,
 )
 from playseg_ros.nodes.common import ReleasingLifecycleNode, declare, require, run_node
+
+DUPLICATE_CHECK_S = 2.0
+"""How often the segmenter looks for another node of its name on the graph (a local cache query)."""
 
 
 @dataclass
@@ -62,7 +67,10 @@ class SegmenterNode(ReleasingLifecycleNode):
         super().__init__("segmenter")
         self.model_path = declare(self, "model", "", "PS checkpoint (playseg train)")
         self.model_id = declare(
-            self, "model_id", "", "id put in LabelledSegment.model_id ('' = checkpoint file name)"
+            self,
+            "model_id",
+            "",
+            "id put in LabelledSegment.model_id ('' = checkpoint file name), followed by @sha256:<16 hex of the checkpoint>",
         )
         self.steps_topic = declare(self, "steps_topic", "/play/steps", "PlayStep input topic")
         self.segments_topic = declare(self, "segments_topic", "/segments", "LabelledSegment output topic")
@@ -108,6 +116,8 @@ class SegmenterNode(ReleasingLifecycleNode):
         self._recording = ("", "")  # reference form: (bag, fully qualified steps topic), from activate
         self._pub = None  # created in on_configure, destroyed in on_cleanup, as the timer
         self._timer = None
+        self._graph_timer = None  # the duplicate-name check (a graph query), from configure to cleanup
+        self._duplicate_warned = False
         self._frame_shapes: dict[str, tuple[int, ...]] = {}  # by camera name, from the model
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -146,11 +156,17 @@ class SegmenterNode(ReleasingLifecycleNode):
                 self._frame_shapes[""] = features[cameras[0]].shape
             self._pub = self.create_publisher(LabelledSegment, self.segments_topic, qos.SEGMENTS)
             self._timer = self.create_timer(min(5.0, self.episode_timeout_s / 2), self._drop_silent_episodes)
+            self._graph_timer = self.create_timer(DUPLICATE_CHECK_S, self._check_duplicate_name)
         except Exception as exc:  # any configuration problem: report it, stay unconfigured (retryable)
             self.get_logger().error(str(exc) if isinstance(exc, ValueError) else f"configure failed: {exc!r}")
             self.release()
             return TransitionCallbackReturn.FAILURE
-        self.model_id = self.model_id or self.model_path.rsplit("/", 1)[-1]
+        # the checkpoint's digest in every segment: the trainer stores a segment once per model, however
+        # many segmenters (or copies of the checkpoint) publish it
+        # (split: a reconfigured node's model_id carries the earlier digest already)
+        name = self.model_id.split(MODEL_DIGEST_SEP)[0] or self.model_path.rsplit("/", 1)[-1]
+        self.model_id = f"{name}{MODEL_DIGEST_SEP}{file_digest(self.model_path)[:MODEL_DIGEST_CHARS]}"
+        self._duplicate_warned = False
         form = f"reference to {self.recording_bag}" if self.reference else "embedded"
         self.get_logger().info(
             f"model {self.model_path} (L_max {self.model.max_len}, on {self.model.device}); {self.steps_topic} -> {self.segments_topic} "
@@ -181,6 +197,9 @@ class SegmenterNode(ReleasingLifecycleNode):
         if self._timer is not None:
             self.destroy_timer(self._timer)
             self._timer = None
+        if self._graph_timer is not None:
+            self.destroy_timer(self._graph_timer)
+            self._graph_timer = None
         if self._pub is not None:
             self.destroy_publisher(self._pub)
             self._pub = None
@@ -257,6 +276,22 @@ class SegmenterNode(ReleasingLifecycleNode):
             )
         self._pub.publish(msg)
         self.published += 1
+
+    def _check_duplicate_name(self) -> None:
+        """Warn (once) when another node with this one's fully qualified name is on the graph: two
+        segmenters started alike publish every segment twice. Checked periodically, as discovery of a
+        node started at the same time (or later) takes a moment."""
+        if self._duplicate_warned:
+            return
+        me = (self.get_name(), self.get_namespace())
+        same = sum(1 for entry in self.get_node_names_and_namespaces() if tuple(entry) == me)
+        if same > 1:
+            self._duplicate_warned = True
+            self.get_logger().warning(
+                f"{same} nodes named {self.get_fully_qualified_name()} on the graph: every segment is "
+                "published once by each (give each segmenter its own name: --ros-args -r __node:=NAME); "
+                "a trainer stores each segment of one model once"
+            )
 
     def _drop_silent_episodes(self) -> None:
         now = time.monotonic()
