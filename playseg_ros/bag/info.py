@@ -8,6 +8,7 @@ from mcap.reader import make_reader
 
 from playseg_ros.bag.errors import BagError
 from playseg_ros.bag.reader import BagReader
+from playseg_ros.bag.recovery import LOSS_KEY
 
 
 def bag_info_text(path: Path | str) -> str:
@@ -21,8 +22,11 @@ def bag_info_text(path: Path | str) -> str:
             f"start:      {meta['starting_time']['nanoseconds_since_epoch'] / 1e9:.3f} s since epoch",
             f"duration:   {meta['duration']['nanoseconds'] / 1e9:.3f} s",
             f"messages:   {meta['message_count']}",
-            "files:",
         ]
+        note = (meta.get("custom_data") or {}).get(LOSS_KEY)
+        if note:  # a recovery could not keep everything: said as long as this metadata.yaml stands
+            lines.append(f"LOSSES:     {note}")
+        lines.append("files:")
         for file in reader.files:
             size = file.stat().st_size if file.exists() else 0
             lines.append(f"  {file.name}  {size / 1e6:.2f} MB{_chunk_compression(reader.path, file)}")

@@ -5,18 +5,28 @@ Every MCAP record is framed by an opcode and a length, so a scan can tell a comp
 short without parsing it, and a record is parsed only from its own bytes: a truncated or damaged file
 ends the scan at the first record that is incomplete or does not parse (chunks are also checked against
 their CRC), never with the parser's error (`struct.error`, zstd errors, ...).
+
+With ``resync`` (recovery) the scan does not end there: it looks for the next chunk past the damaged
+record (opcode, a length inside the file, a non-zero CRC that matches its content: a false match is a
+2^-32 chance) and goes on from it, noting the bytes it skipped. Only when no chunk follows is the damage
+the file's end: a cut (a clean tail) when the record ran past the end of the file, damage otherwise. A
+damaged length field looks like a cut (the record seems to run past the end) until a chunk is found past
+it; a chunk whose length field alone is damaged is read with the length its own fields give (compression
+name and data length) when that makes it intact, CRC included.
 """
 
 from __future__ import annotations
 
 import contextlib
+import mmap
 import os
 import re
 import struct
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from io import BytesIO
 from pathlib import Path
+from typing import BinaryIO
 
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import EndOfFile
@@ -46,6 +56,7 @@ MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEAD = struct.Struct("<BQ")  # opcode, length of the record body
 _OPCODES = frozenset(int(opcode) for opcode in Opcode)
 _FOOTER_BODY = 20  # summary start, summary offset start, summary CRC
+_CHUNK_MIN_BODY = 8 + 8 + 8 + 4 + 4 + 8  # times, size, CRC, empty compression string, records length
 _READERS = {
     Opcode.ATTACHMENT: Attachment.read,
     Opcode.ATTACHMENT_INDEX: AttachmentIndex.read,
@@ -74,11 +85,15 @@ class _BoundedStream(ReadDataStream):
         return data
 
 
-def _parse(opcode: int, body: bytes) -> list[McapRecord]:
+def _parse(opcode: int, body: bytes, exact: bool = False) -> list[McapRecord]:
+    """The record(s) of ``body``; ``exact``: a record that does not use all of its bytes is damage (a
+    damaged length the parser would step over, landing in the middle of the next records)."""
     stream = _BoundedStream(BytesIO(body))
     if opcode == Opcode.MESSAGE:
         return [Message.read(stream, len(body))]
     record = _READERS[Opcode(opcode)](stream)
+    if exact and stream.count != len(body):
+        raise ValueError(f"the record uses {stream.count} of its {len(body)} bytes")
     if isinstance(record, Chunk):
         return [record, *_chunk_records(record)]  # the chunk itself marks its offset
     return [record]
@@ -124,10 +139,17 @@ class RecordScan:
     end: int = 0
     problem: str | None = None
     start: int = 0
-    damaged: bool = False  # the scan stopped at bytes that are not MCAP (not at a cut): more may follow
+    damaged: bool = False  # damaged bytes (not a cut) were met: skipped (resync) or where the scan stopped
+    resync: bool = False  # go on at the next intact chunk past a damaged record (recovery)
+    ended_damaged: bool = False  # the scan stopped at damaged bytes, not at a cut or the footer
+    skipped: list[tuple[int, int, str]] = field(default_factory=list)  # (start, end, why): bytes passed over
+
+    @property
+    def skipped_bytes(self) -> int:
+        return sum(end - start for start, end, _ in self.skipped)
 
     def __iter__(self) -> Iterator[tuple[int, McapRecord]]:
-        self.end, self.problem, self.damaged = 0, None, False
+        self.end, self.problem, self.damaged, self.skipped, self.ended_damaged = 0, None, False, [], False
         with self.path.open("rb") as stream:
             size = os.fstat(stream.fileno()).st_size
             if stream.read(len(MAGIC)) != MAGIC:
@@ -140,25 +162,49 @@ class RecordScan:
                 if not head:
                     self.problem = f"ends after its last complete record at byte {offset}, without a footer"
                     return
+                problem, damaged, records, length = None, True, [], 0
                 if len(head) < _RECORD_HEAD.size:
-                    self.problem = f"cut inside the record at byte {offset}"
-                    return
-                opcode, length = _RECORD_HEAD.unpack(head)
-                if opcode not in _OPCODES:
-                    self.problem = f"unknown record (opcode {opcode:#04x}) at byte {offset}: damaged data"
-                    self.damaged = True
-                    return
-                kind = Opcode(opcode).name.lower()
-                if offset + _RECORD_HEAD.size + length > size:
-                    self.problem = f"cut inside the {kind} record at byte {offset}"
-                    return
-                body = stream.read(length)
-                try:
-                    records = _parse(opcode, body)
-                except Exception as error:  # noqa: BLE001 -- damaged bytes make any parser error possible
-                    self.problem = f"damaged {kind} record at byte {offset}: {type(error).__name__}: {error}"
-                    self.damaged = True
-                    return
+                    problem, damaged = f"cut inside the record at byte {offset}", False
+                else:
+                    opcode, length = _RECORD_HEAD.unpack(head)
+                    kind = Opcode(opcode).name.lower() if opcode in _OPCODES else ""
+                    if opcode not in _OPCODES:
+                        problem = f"unknown record (opcode {opcode:#04x}) at byte {offset}: damaged data"
+                    elif offset + _RECORD_HEAD.size + length > size:
+                        problem, damaged = f"cut inside the {kind} record at byte {offset}", False
+                    else:
+                        body = stream.read(length)
+                        try:
+                            records = _parse(opcode, body, exact=self.resync)
+                        except Exception as error:  # noqa: BLE001 -- damaged bytes make any parser error possible
+                            problem = (
+                                f"damaged {kind} record at byte {offset}: {type(error).__name__}: {error}"
+                            )
+                if (
+                    problem is not None
+                    and self.resync
+                    and len(head) == _RECORD_HEAD.size
+                    and opcode == Opcode.CHUNK
+                ):
+                    repaired = _chunk_by_its_sizes(stream, offset, size)
+                    if repaired is not None:  # only the length field was hit: the chunk itself is intact
+                        length, records = repaired
+                        self.skipped.append(
+                            (offset, offset, f"{problem}; read with the length its other fields give")
+                        )
+                        self.damaged, problem = True, None
+                        stream.seek(offset + _RECORD_HEAD.size + length)
+                if problem is not None:
+                    following = _next_chunk(stream, offset + 1, size) if self.resync else None
+                    if following is None:
+                        self.problem, self.damaged = problem, self.damaged or damaged
+                        self.ended_damaged = damaged
+                        return
+                    self.skipped.append((offset, following, problem))
+                    self.damaged = True  # what looked like a cut had intact data after it
+                    offset = self.end = following
+                    stream.seek(offset)
+                    continue
                 for record in records:
                     yield offset, record
                 offset = self.end = offset + _RECORD_HEAD.size + length
@@ -166,6 +212,77 @@ class RecordScan:
                     if stream.read(len(MAGIC)) != MAGIC:
                         self.problem = "cut inside its closing magic"
                     return
+
+
+def _chunk_by_its_sizes(stream: BinaryIO, offset: int, size: int) -> tuple[int, list[McapRecord]] | None:
+    """The chunk at ``offset`` read with the length its own fields give (compression name and data
+    length), not its record length; (that length, its records) when it is intact with a CRC, else None."""
+    fixed = 8 + 8 + 8 + 4  # times, uncompressed size, CRC
+    stream.seek(offset)
+    _, record_length = _RECORD_HEAD.unpack(stream.read(_RECORD_HEAD.size))
+    if offset + _RECORD_HEAD.size + record_length <= size:  # the data length field may be the damaged one
+        body = stream.read(record_length)
+        with contextlib.suppress(struct.error, UnicodeDecodeError):
+            name_length = struct.unpack_from("<I", body, fixed)[0]
+            start = fixed + 4 + name_length + 8
+            if name_length <= 64 and start <= len(body):
+                times = struct.unpack_from("<QQQI", body, 0)
+                chunk = Chunk(
+                    compression=body[fixed + 4 : fixed + 4 + name_length].decode(), data=body[start:],
+                    message_start_time=times[0], message_end_time=times[1], uncompressed_size=times[2],
+                    uncompressed_crc=times[3],
+                )  # fmt: skip
+                if _intact_chunk(chunk):
+                    return record_length, [chunk, *_chunk_records(chunk)]
+    stream.seek(offset + _RECORD_HEAD.size + fixed)
+    name_length = struct.unpack("<I", stream.read(4).rjust(4, b"\xff"))[0]
+    if name_length > 64:  # compression names are a few letters
+        return None
+    stream.seek(name_length, os.SEEK_CUR)
+    data_length = struct.unpack("<Q", stream.read(8).rjust(8, b"\xff"))[0]
+    length = fixed + 4 + name_length + 8 + data_length
+    if offset + _RECORD_HEAD.size + length > size:
+        return None
+    stream.seek(offset + _RECORD_HEAD.size)
+    body = stream.read(length)
+    try:
+        chunk = Chunk.read(_BoundedStream(BytesIO(body)))
+    except Exception:  # noqa: BLE001 -- damaged bytes
+        return None
+    if not _intact_chunk(chunk):
+        return None
+    return length, [chunk, *_chunk_records(chunk)]
+
+
+def _next_chunk(stream: BinaryIO, start: int, size: int) -> int | None:
+    """The offset of the first intact chunk record at or after ``start`` (see the module docstring)."""
+    if start + _RECORD_HEAD.size + _CHUNK_MIN_BODY > size:
+        return None
+    with mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ) as data:
+        at = data.find(bytes([Opcode.CHUNK]), start)
+        while at >= 0:
+            if at + _RECORD_HEAD.size <= size:
+                _, length = _RECORD_HEAD.unpack_from(data, at)
+                end = at + _RECORD_HEAD.size + length
+                if length >= _CHUNK_MIN_BODY and end <= size:
+                    with contextlib.suppress(Exception):  # most candidates are random bytes
+                        if _intact_chunk(
+                            Chunk.read(_BoundedStream(BytesIO(data[at + _RECORD_HEAD.size : end])))
+                        ):
+                            return at
+            at = data.find(bytes([Opcode.CHUNK]), at + 1)
+    return None
+
+
+def _intact_chunk(chunk: Chunk) -> bool:
+    """Whether ``chunk`` has a non-zero CRC matching its decompressed records (and they parse)."""
+    if chunk.uncompressed_crc == 0:
+        return False  # no CRC: nothing tells a real chunk from bytes that happen to parse
+    try:
+        _chunk_records(chunk)
+    except Exception:  # noqa: BLE001 -- damaged bytes make any error possible
+        return False
+    return True
 
 
 def read_record(path: Path, offset: int) -> list[McapRecord]:
