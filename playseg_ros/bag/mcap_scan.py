@@ -215,43 +215,48 @@ class RecordScan:
 
 
 def _chunk_by_its_sizes(stream: BinaryIO, offset: int, size: int) -> tuple[int, list[McapRecord]] | None:
-    """The chunk at ``offset`` read with the length its own fields give (compression name and data
-    length), not its record length; (that length, its records) when it is intact with a CRC, else None."""
+    """The chunk at ``offset`` whose record length and inner data length disagree, read with the one that
+    makes it intact with a CRC (zstd ignores bytes after its frame, so both may): the one after which a
+    plausible record (or the end of the file) follows wins. (That length, its records), else None."""
     fixed = 8 + 8 + 8 + 4  # times, uncompressed size, CRC
     stream.seek(offset)
     _, record_length = _RECORD_HEAD.unpack(stream.read(_RECORD_HEAD.size))
-    if offset + _RECORD_HEAD.size + record_length <= size:  # the data length field may be the damaged one
-        body = stream.read(record_length)
-        with contextlib.suppress(struct.error, UnicodeDecodeError):
-            name_length = struct.unpack_from("<I", body, fixed)[0]
-            start = fixed + 4 + name_length + 8
-            if name_length <= 64 and start <= len(body):
-                times = struct.unpack_from("<QQQI", body, 0)
-                chunk = Chunk(
-                    compression=body[fixed + 4 : fixed + 4 + name_length].decode(), data=body[start:],
-                    message_start_time=times[0], message_end_time=times[1], uncompressed_size=times[2],
-                    uncompressed_crc=times[3],
-                )  # fmt: skip
-                if _intact_chunk(chunk):
-                    return record_length, [chunk, *_chunk_records(chunk)]
+    candidates: list[tuple[int, Chunk]] = []
     stream.seek(offset + _RECORD_HEAD.size + fixed)
     name_length = struct.unpack("<I", stream.read(4).rjust(4, b"\xff"))[0]
     if name_length > 64:  # compression names are a few letters
         return None
     stream.seek(name_length, os.SEEK_CUR)
     data_length = struct.unpack("<Q", stream.read(8).rjust(8, b"\xff"))[0]
-    length = fixed + 4 + name_length + 8 + data_length
-    if offset + _RECORD_HEAD.size + length > size:
-        return None
-    stream.seek(offset + _RECORD_HEAD.size)
-    body = stream.read(length)
-    try:
-        chunk = Chunk.read(_BoundedStream(BytesIO(body)))
-    except Exception:  # noqa: BLE001 -- damaged bytes
-        return None
-    if not _intact_chunk(chunk):
-        return None
-    return length, [chunk, *_chunk_records(chunk)]
+    by_fields = fixed + 4 + name_length + 8 + data_length
+    if offset + _RECORD_HEAD.size + by_fields <= size:  # the record length may be the damaged one
+        stream.seek(offset + _RECORD_HEAD.size)
+        with contextlib.suppress(Exception):  # damaged bytes
+            candidates.append((by_fields, Chunk.read(_BoundedStream(BytesIO(stream.read(by_fields))))))
+    if offset + _RECORD_HEAD.size + record_length <= size:  # the data length may be the damaged one
+        stream.seek(offset + _RECORD_HEAD.size)
+        body = stream.read(record_length)
+        with contextlib.suppress(struct.error, UnicodeDecodeError):
+            start = fixed + 4 + name_length + 8
+            times = struct.unpack_from("<QQQI", body, 0)
+            chunk = Chunk(
+                compression=body[fixed + 4 : fixed + 4 + name_length].decode(), data=body[start:],
+                message_start_time=times[0], message_end_time=times[1], uncompressed_size=times[2],
+                uncompressed_crc=times[3],
+            )  # fmt: skip
+            candidates.append((record_length, chunk))
+    intact = [(length, chunk) for length, chunk in candidates if _intact_chunk(chunk)]
+    for length, chunk in intact:
+        end = offset + _RECORD_HEAD.size + length
+        stream.seek(end)
+        head = stream.read(_RECORD_HEAD.size)
+        if not head or (
+            len(head) == _RECORD_HEAD.size
+            and head[0] in _OPCODES
+            and end + _RECORD_HEAD.size + _RECORD_HEAD.unpack(head)[1] <= size
+        ):
+            return length, [chunk, *_chunk_records(chunk)]
+    return None
 
 
 def _next_chunk(stream: BinaryIO, start: int, size: int) -> int | None:
