@@ -156,6 +156,7 @@ class RecordScan:
                 self.problem = "cut inside its magic" if size < len(MAGIC) else "no MCAP magic at its start"
                 return
             offset = self.end = max(self.start, len(MAGIC))
+            chunked = False  # a chunk was seen: messages outside chunks are damage (resync)
             stream.seek(offset)
             while True:
                 head = stream.read(_RECORD_HEAD.size)
@@ -176,6 +177,11 @@ class RecordScan:
                         body = stream.read(length)
                         try:
                             records = _parse(opcode, body, exact=self.resync)
+                            if self.resync and opcode == Opcode.MESSAGE and chunked:
+                                # a chunked file keeps its messages in chunks: this is another record
+                                # with a damaged opcode (a message index read as a message)
+                                raise ValueError("a message record outside the chunks of a chunked file")
+                            chunked = chunked or opcode == Opcode.CHUNK
                         except Exception as error:  # noqa: BLE001 -- damaged bytes make any parser error possible
                             problem = (
                                 f"damaged {kind} record at byte {offset}: {type(error).__name__}: {error}"
