@@ -12,6 +12,7 @@ import sys
 import time
 import zipfile
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -140,19 +141,33 @@ def calibrate(
     return 0
 
 
-def _training_fingerprint(data: str, cfg: Any, model_cfg: Any, val_ids: list[str]) -> str:
+def _training_fingerprint(data: str, cfg: Any | None, model_cfg: Any, val_ids: list[str]) -> str:
     """What a run's resume file must match: the dataset, the settings that change what is trained (not
     the budget's bounds nor how progress is shown), the model and the held-out episodes."""
     import hashlib
 
     settings = {
         key: value
-        for key, value in asdict(cfg).items()
+        for key, value in (asdict(cfg) if cfg is not None else {}).items()
         if key
         not in ("progress", "log_epochs", "state_path", "resume", "fingerprint", "max_minutes", "device")
     }
     text = repr((str(Path(data).resolve()), sorted(settings.items()), repr(model_cfg), val_ids))
     return hashlib.sha256(text.encode()).hexdigest()
+
+
+@contextmanager
+def _state_kept_on_interrupt(state: Path) -> Iterator[None]:
+    """An interrupted run says where its resume state is (the loop writes it every evaluation)."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        if state.exists():
+            print(
+                f"training state kept in {state}: the same command with --resume continues it",
+                file=sys.stderr,
+            )
+        raise
 
 
 def train_state_path(out: str | Path) -> Path:
@@ -237,8 +252,6 @@ def train(
         raise ValueError(f"--end-grounding: must be in 0..{MAX_END_GROUNDING}, got {end_grounding}")
     if encoders_from and method not in ("unloc", "tridet"):
         raise ValueError(f"--encoders-from: only with --method unloc or tridet, not {method}")
-    if resume and method != "ps":
-        raise ValueError(f"--resume: only with --method ps, not {method}")
     if val_share is not None and not 0.0 <= val_share < 1.0:
         raise ValueError(f"--val-share: must be in [0, 1), got {val_share}")
     dataset = _open_dataset(data)
@@ -301,8 +314,17 @@ def train(
             for key, value in budget.items()
             if key in ("max_steps", "max_minutes", "patience", "num_threads")
         }
+        val_ids = sorted(episode.episode_id for episode in annotated_val)
+        what = (method, sorted((k, v) for k, v in given.items() if k not in ("device", "max_minutes")))
+        what += (bounds, encoders, encoders_from, augment, read_actions)
+        given |= {
+            "state_path": str(train_state_path(out)),
+            "resume": resume,
+            "fingerprint": _training_fingerprint(data, None, what, val_ids),
+        }
         training = (dataset, train_eps, val_eps, features, read_actions, bounds, encoders, encoders_from)
-        return _train_method(method, data, out, training, given, augment)
+        with _state_kept_on_interrupt(train_state_path(out)):
+            return _train_method(method, data, out, training, given, augment)
     model_cfg = model_config_for(
         features,
         dataset.domain,
@@ -342,15 +364,8 @@ def train(
         resume=resume,
         fingerprint=_training_fingerprint(data, cfg, model_cfg, val_ids),
     )
-    try:
+    with _state_kept_on_interrupt(state):
         result = train_ps(train_eps, val_eps, dataset.instructions, cfg, model_cfg)
-    except KeyboardInterrupt:
-        if state.exists():
-            print(
-                f"training state kept in {state}: the same command with --resume continues it",
-                file=sys.stderr,
-            )
-        raise
     if distributed.is_main():
         _save_ps_model(out, result, cfg, resolved, annotated_val, label_accuracy, data, val_ids, held)
         print(

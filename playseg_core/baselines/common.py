@@ -91,6 +91,9 @@ class TrainOptions:
     num_threads: int | None = None  # torch threads while training (None: as set)
     log: bool = False  # one line per evaluation on stderr
     progress: bool = False  # a progress bar (step / cap, loss, val loss, ETA) on stderr
+    state_path: str | None = None  # the loop's resume file (training/loop.py), written every evaluation
+    resume: bool = False  # continue from ``state_path``
+    fingerprint: str = ""  # what the run is: a resume file of another run is refused
     # the held-out label accuracy a calibrated confidence threshold is chosen for (methods that calibrate)
     label_accuracy: float = LABEL_ACCURACY_TARGET
 
@@ -495,6 +498,9 @@ def fit(
         device=device,
         progress=options.progress,
         log=(lambda line: print(line, file=sys.stderr, flush=True)) if options.log else None,
+        state_path=Path(options.state_path) if options.state_path else None,
+        resume=options.resume,
+        fingerprint=options.fingerprint,
     )
     result = train_loop(task, loop_cfg)
     result.model.to("cpu")  # checkpoints and segmenters hold CPU weights

@@ -139,6 +139,10 @@ class _Progress:
     shown: str = ""  # the last evaluation, as the progress bar shows it
 
 
+def _to_stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
 def _cpu_state(model: nn.Module) -> dict[str, torch.Tensor]:
     return {key: value.detach().to("cpu", copy=True) for key, value in model.state_dict().items()}
 
@@ -256,8 +260,8 @@ def train_loop(task: TrainingTask, cfg: LoopConfig) -> LoopResult:
     progress = _Progress()
     if cfg.resume and cfg.state_path is not None:
         progress = _load_state(cfg.state_path, cfg, model, optimizer)
-        if cfg.log and main:
-            cfg.log(f"[{task.name}] resumed at step {progress.step} from {cfg.state_path}")
+        if main:  # always said: a resumed run must not pass for a fresh one
+            (cfg.log or _to_stderr)(f"[{task.name}] resumed at step {progress.step} from {cfg.state_path}")
     loss_of = (
         distributed.data_parallel_loss(model, task.loss)
         if processes > 1
