@@ -32,6 +32,7 @@ from mcap.reader import make_reader
 from mcap.records import Channel, DataEnd, Message, Metadata, Schema
 from mcap.writer import CompressionType
 
+from playseg_core.yaml_io import YamlFileError, load_yaml, parse_yaml
 from playseg_ros.bag.errors import BagError
 from playseg_ros.bag.lock import BagLock
 from playseg_ros.bag.mcap_scan import MAGIC, RecordScan, mcap_files
@@ -352,8 +353,8 @@ def _topic_of(channel: Channel, schema: Schema | None) -> TopicInfo | None:
 def _old_metadata(directory: Path, name: str = METADATA_FILE) -> dict[str, Any] | None:
     """The bag's metadata.yaml (or ``name``) as a mapping, None when missing or unreadable."""
     try:
-        info = yaml.safe_load((directory / name).read_text())["rosbag2_bagfile_information"]
-    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        info = load_yaml(directory / name, "bag metadata")["rosbag2_bagfile_information"]
+    except (YamlFileError, KeyError, TypeError):
         return None
     return info if isinstance(info, dict) else None
 
@@ -396,8 +397,8 @@ def _custom_data_of_record(record: Metadata) -> dict[str, str] | None:
     if record.name == CUSTOM_DATA_RECORD:
         return dict(record.metadata)
     if record.name == "rosbag2" and "serialized_metadata" in record.metadata:
-        with contextlib.suppress(yaml.YAMLError, KeyError, TypeError, AttributeError):
-            info = yaml.safe_load(record.metadata["serialized_metadata"])
+        with contextlib.suppress(YamlFileError, KeyError, TypeError, AttributeError):
+            info = parse_yaml(record.metadata["serialized_metadata"], record.name, "bag metadata record")
             info = info.get("rosbag2_bagfile_information", info)
             if isinstance(info.get("custom_data"), dict):
                 return {str(k): str(v) for k, v in info["custom_data"].items()}
