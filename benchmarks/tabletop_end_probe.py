@@ -1,7 +1,7 @@
 """Why PS misses the ends of the tabletop's block tasks: a probe of what an end detector needs to see.
 
 PS finds the ends of the block tasks a third to a half of the time, the arm's about 70 % (docs/tabletop.md
-"Where PS loses the block tasks"). This asks why, on the annotated segments of a generated dataset (the
+"Play Segmentation on the tabletop"). This asks why, on the annotated segments of a generated dataset (the
 train split to learn, the val split to score): a small MLP reads each step of a segment, from the one
 after its start to 3 past its end, and says whether the segment ends there. It reads the effector's
 state, the blocks' positions, how far each has moved since the segment's start, the 4 last and 2 next

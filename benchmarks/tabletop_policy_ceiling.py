@@ -1,7 +1,7 @@
 """What the tabletop policy could reach if it knew where things are: a perception oracle.
 
 The ``bc`` policy from pixels learns the "move the arm" tasks and almost none of the block pushes
-(docs/tabletop.md "Why the pushes are not learnt"). This script asks whether the pushes are learnable from
+(docs/studies/2026-12-02-tabletop-policy-pushes.md). This script asks whether the pushes are learnable from
 the annotated segments at all, and whether more segments help, when perception is solved: each step's
 observation is the effector's position plus the positions the instruction names (the named block and the
 other block relative to the effector, the named region's centre relative to the thing to move; zeros
