@@ -41,7 +41,7 @@ DEMO_POLICY = {"train_steps": 400, "batch_size": 128, "policy_channels": 32, "ev
 DEMO_POLICY_SEED_STD = 0.007
 """The std of the demo policy's success over training seeds, part of the noise the demo states for its
 before -> after change: 0.967, 0.971, 0.953, 0.957, 0.955 on the annotated sample bag (seeds 0-4,
-benchmarks/bench_demo_policy.py, 2026-12-02, the policy with relevance maps)."""
+benchmarks/bench_demo_policy.py measures them)."""
 PLAY_TIMEOUT_S = 240.0
 SEGMENT_TIMEOUT_S = 300.0
 

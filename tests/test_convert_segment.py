@@ -160,7 +160,7 @@ def test_keep_own_cuts_stores_the_segments_the_own_cut_threshold_keeps(
     own = float(np.median(scores))
     expected = [s for s in found if segment_probability(s) >= own]
     assert 0 < len(expected) < len(found)
-    # A checkpoint calibrated before the own-cut calibration existed: one line, before any bag is read.
+    # A checkpoint with a label calibration only: one line, before any bag is read.
     capsys.readouterr()
     args = ([bags["play"]], tmp_path / "data", bags["mapping"])
     assert convert_cli(*args, "--segment", str(label_only), "--keep", "own_cuts") == 1

@@ -207,7 +207,7 @@ def test_keep_rules_score_and_threshold_as_the_checkpoint_records_them() -> None
     assert all(KeepRule.of_checkpoint("all", meta, "m.pt").keeps(s) for s in segments)
     assert own.describe() == "label x cut probability >= 0.300"
     assert own.to_json()["rule"] == "own_cuts"
-    # A checkpoint calibrated before the own-cut calibration existed: one line naming it.
+    # A checkpoint with a label calibration only: one line naming it.
     assert KeepRule.of_checkpoint("label", {}, "old.pt").threshold == 0.0
     with pytest.raises(ValueError, match="old.pt: records no own-cut calibration"):
         KeepRule.of_checkpoint("own_cuts", {"calibration": {"threshold": 0.6}}, "old.pt")

@@ -75,7 +75,7 @@ class AddedSegments:
     by_episode: dict[str, list[Segment]]
     start_kept: int | None = None  # how many of the start split's segments are trained on (None: all)
     # the checkpoints the segments come from, their path under the experiment's out -> digest of the file
-    # (None: not recorded, as in files written before it was); a cache made from another one is stale
+    # (None: not recorded in the file); a cache made from another one is stale
     made_from: dict[str, str] | None = None
 
     @property
@@ -100,7 +100,7 @@ class AddedSegments:
     @classmethod
     def load(cls, path: Path) -> AddedSegments:
         data = json.loads(path.read_text())
-        by_episode = {  # rows written before log_prob was kept have 4 columns
+        by_episode = {  # rows without log_prob have 4 columns
             episode_id: [Segment(int(r[0]), int(r[1]), str(r[2]), *map(float, r[3:5])) for r in rows]
             for episode_id, rows in data["segments"].items()
         }

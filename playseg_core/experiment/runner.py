@@ -301,7 +301,7 @@ def _models_digest(out: Path, methods: Sequence[str]) -> dict[str, str]:
 def _check_made_from(out: Path, path: Path, made_from: dict[str, str] | None, redo: str) -> None:
     """ValueError when a file the cached ``path`` was made from (``made_from``: path under ``out`` ->
     digest) is missing or no longer what it was, saying what to delete (``redo``); a file without the
-    record is trusted, as before it was kept."""
+    record is trusted (there is nothing to check it against)."""
     for name, digest in (made_from or {}).items():
         source = out / name
         if not source.exists():

@@ -97,14 +97,14 @@ class KeepRule:
     @classmethod
     def of_checkpoint(cls, kind: str, meta: Mapping[str, Any], source: str) -> KeepRule:
         """The rule ``kind`` with the threshold the checkpoint's ``meta`` records for it. A checkpoint
-        without a label calibration keeps everything by label (threshold 0, as before calibration
-        existed); ValueError naming ``source`` when it records no own-cut calibration."""
+        without a label calibration keeps everything by label (threshold 0: nothing says which
+        confidences to trust); ValueError naming ``source`` when it records no own-cut calibration."""
         rule = cls(kind)  # checks the kind
         record = KEEP_RULES[kind][0]
         if kind == "own_cuts" and "threshold" not in meta.get(record, {}):
             raise ValueError(
                 f"{source}: records no own-cut calibration (a PS checkpoint calibrated on a val split does; "
-                "`playseg calibrate` adds it to an older one); keep by 'label' instead"
+                "`playseg calibrate` adds it); keep by 'label' instead"
             )
         return cls(kind, float(meta.get(record, {}).get("threshold", 0.0))) if record else rule
 
