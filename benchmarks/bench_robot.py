@@ -36,6 +36,7 @@ from playseg_core.data.features import ACTION, STATE, Feature, Features
 from playseg_core.ps.model import PSModel
 from playseg_core.ps.segmentation import segment_episode
 from playseg_core.ps.training import TrainConfig, model_config_for, segment_bounds, step_cap, train_ps
+from playseg_core.training.device import resolve_device
 
 CAMERA = "observation.images.front"
 FEATURES = Features.of(
@@ -86,7 +87,7 @@ def throughput(args: argparse.Namespace) -> None:
     config = model_config_for(
         FEATURES, None, len(INSTRUCTIONS), max_len=args.max_len, episodes=[long_episode]
     )
-    model = PSModel(config, INSTRUCTIONS).eval()
+    model = PSModel(config, INSTRUCTIONS).eval().to(resolve_device(args.device))
     segment_episode(model, short_episode)  # warm-up
 
     began = time.perf_counter()
@@ -95,8 +96,10 @@ def throughput(args: argparse.Namespace) -> None:
     ours_rate = long_episode.num_steps / ours
     print(
         f"ours: {long_episode.num_steps} steps at L_max {args.max_len} in {ours:.1f} s = {ours_rate:.0f} steps/s "
-        f"on {args.threads} thread(s) (target >= 1,000); peak RSS {peak_rss_mb()} MB"
+        f"on {args.threads} thread(s), device {model.device} (target >= 1,000); peak RSS {peak_rss_mb()} MB"
     )
+    if args.skip_reference:
+        return
     began = time.perf_counter()
     ours_short = segment_episode(model, short_episode)
     ours_short_s = time.perf_counter() - began
@@ -128,7 +131,7 @@ def train(args: argparse.Namespace) -> None:
     )
     cfg = TrainConfig(
         epochs=args.epochs, k_max=bounds.k_max, num_threads=args.threads, progress=False,
-        log_epochs=False,
+        log_epochs=False, device=args.device,
     )  # fmt: skip
     steps_per_epoch = -(-num_segments // cfg.segments_per_batch)
     before = peak_rss_mb()
@@ -138,7 +141,8 @@ def train(args: argparse.Namespace) -> None:
     default_steps = step_cap(TrainConfig(), steps_per_epoch)
     print(
         f"{num_segments} segments ({sum(e.num_steps for e in episodes)} steps), L_min/L_max/k_max "
-        f"{bounds.min_len}/{bounds.max_len}/{bounds.k_max}, {args.threads} thread(s)"
+        f"{bounds.min_len}/{bounds.max_len}/{bounds.k_max}, {args.threads} thread(s), device "
+        f"{resolve_device(args.device)}"
     )
     print(
         f"{args.epochs} epoch(s) = {optimiser_steps} optimiser steps (validation included) in {result.seconds:.0f} s "
@@ -157,10 +161,15 @@ def main() -> None:
     speed.add_argument("--reference-steps", type=int, default=150)
     speed.add_argument("--max-len", type=int, default=100)
     speed.add_argument("--threads", type=int, default=1)
+    speed.add_argument("--device", default="cpu", help="auto, cpu, cuda or cuda:N")
+    speed.add_argument(
+        "--skip-reference", action="store_true", help="only ours (the reference way is CPU-bound)"
+    )
     fit = sub.add_parser("train")
     fit.add_argument("--segments", type=int, default=2000)
     fit.add_argument("--epochs", type=int, default=1)
     fit.add_argument("--threads", type=int, default=2)
+    fit.add_argument("--device", default="cpu", help="auto, cpu, cuda or cuda:N")
     args = parser.parse_args()
     throughput(args) if args.mode == "throughput" else train(args)
 

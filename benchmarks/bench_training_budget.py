@@ -58,6 +58,7 @@ from playseg_core.ps.training import (
     steps_per_epoch,
     train_ps,
 )
+from playseg_core.training.device import resolve_device
 from playseg_core.training.loop import LoopConfig
 
 CAMERA = "observation.images.front"
@@ -154,6 +155,7 @@ def main() -> None:
     parser.add_argument("--annotated", type=int, default=10, help="annotated episodes")
     parser.add_argument("--test", type=int, default=5, help="test episodes")
     parser.add_argument("--log", action="store_true", help="one line per evaluation on stderr")
+    parser.add_argument("--device", default="cpu", help="auto, cpu, cuda or cuda:N (training/device.py)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -171,6 +173,7 @@ def main() -> None:
         "num_threads": args.threads,
         "progress": False,
         "log_epochs": args.log,
+        "device": args.device,
     }
     if args.budget == "default":
         cfg = TrainConfig(**common)
@@ -185,7 +188,7 @@ def main() -> None:
     )
     print(
         f"model reads {', '.join(f'{s.feature} ({s.kind})' for s in model_cfg.encoders)}; "
-        f"{args.threads} thread(s), seed {args.seed}"
+        f"{args.threads} thread(s), seed {args.seed}, device {args.device}"
     )
     patience = "none (epochs)" if cfg.epochs is not None else str(cfg.patience)
     print(
@@ -208,7 +211,7 @@ def main() -> None:
             f"keeping step {kept} (~{stop * loop.seconds / loop.steps:.0f} s)"
         )
 
-    model = result.model
+    model = result.model.to(resolve_device(args.device))  # calibrated and run where it trained
     began = time.perf_counter()
     record = calibrate_ps_model(model, val)
     calibrated = time.perf_counter() - began

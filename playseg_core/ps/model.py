@@ -172,18 +172,55 @@ class StartCausalTrunk(nn.Module):
 
         starts_episode: (B,) bool, True where i = 0.
         """
-        num_pos = windows.shape[1]
         start = windows[:, :1].expand_as(windows)
-        h = self.in_norm(self.in_proj(torch.cat([windows, start, windows - start], dim=-1)))
-        h = h + self.offset.weight[:num_pos]
+        return self._from_projection(
+            self.in_proj(torch.cat([windows, start, windows - start], dim=-1)), starts_episode
+        )
+
+    def forward_over_steps(
+        self, features: torch.Tensor, num_windows: int, width: int, starts_episode: torch.Tensor
+    ) -> torch.Tensor:
+        """``forward`` of the windows of ``width`` rows starting at each of the first ``num_windows`` rows
+        of ``features`` (N, d), zero-padded past its end, as `episode_windows` makes them -> (num_windows,
+        width, hidden); equal up to float rounding.
+
+        The input projection of [o, o_i, o - o_i] is linear, so it splits into a part of each step, computed
+        once per step here instead of once per window holding it (``width`` times), and a part of each
+        window's start: segmenting reads every step in up to L_max windows.
+        """
+        dim = features.shape[-1]
+        weight = self.in_proj.weight
+        own, start, difference = weight[:, :dim], weight[:, dim : 2 * dim], weight[:, 2 * dim :]
+        per_step = F.linear(features, own + difference)
+        per_start = F.linear(features[:num_windows], start - difference, self.in_proj.bias)
+        projected = episode_windows(per_step, width)[:num_windows] + per_start[:, None]
+        return self._from_projection(projected, starts_episode)
+
+    def _from_projection(self, projected: torch.Tensor, starts_episode: torch.Tensor | None) -> torch.Tensor:
+        num_pos = projected.shape[1]
+        h = self.in_norm(projected) + self.offset.weight[:num_pos]
         if starts_episode is not None:
             h = h + starts_episode.to(h.dtype)[:, None, None] * self.episode_start
         for block in self.blocks:
             h = block(h)
         # A running max since the start: "did something happen earlier in this segment" (e.g. an end
         # already passed) is visible at every later position, beyond the convolutions' reach.
-        h = h + torch.cummax(self.memory(self.memory_norm(h)), dim=1).values
+        h = h + running_max(self.memory(self.memory_norm(h)))
         return self.norm(h)
+
+
+def running_max(values: torch.Tensor) -> torch.Tensor:
+    """(B, P, d) -> the maximum over positions 0..p at each p; exactly ``torch.cummax(values, 1).values``.
+    Without gradients it takes log2(P) vectorised maxima over shifted copies, several times faster than
+    cummax's sequential scan on the CPU (segmenting runs it on every window)."""
+    if torch.is_grad_enabled():
+        return torch.cummax(values, dim=1).values
+    out = values.clone()
+    shift = 1
+    while shift < out.shape[1]:
+        out[:, shift:] = torch.maximum(out[:, shift:], out[:, :-shift])
+        shift *= 2
+    return out
 
 
 def _class_names(instructions: list[str] | None, num_classes: int) -> list[str]:
@@ -485,8 +522,11 @@ class PSModel(StepModel):
         for lo in range(0, num_steps, chunk):
             hi = min(num_steps, lo + chunk)
             # Rows lo .. hi + width - 1: every window starting in [lo, hi) lies inside (zero-padded at the end).
-            windows = episode_windows(features[lo : hi + width], width)[: hi - lo]
-            hidden = self.trunk(windows, torch.arange(lo, hi, device=features.device) == 0)
+            rows = features[lo : hi + width]
+            starts = torch.arange(lo, hi, device=features.device) == 0
+            hidden = self.trunk.forward_over_steps(rows, hi - lo, width, starts)
+            # the windows themselves only for a grounded end head (a view: no copy)
+            windows = episode_windows(rows, width)[: hi - lo] if self.grounded_end is not None else None
             logits = self.raw_end_logits(hidden, windows)
             parts.append(logits[:, 1:] + self.end_bias)  # position 0: empty segment
         return torch.cat(parts) if parts else features.new_zeros(0, self.max_len)
