@@ -10,8 +10,10 @@ Config::
         parameters: {model: build/demo/ps.pt}
         exit_ends_graph: false     # true: when this node exits, stop the whole graph
 
-Ctrl-C (SIGINT) or SIGTERM stops every node with SIGINT, which each node handles by closing its files;
-a node still running after `shutdown_timeout_s` is terminated, then killed.
+Each stream source waits for the subscribers the graph will have, unless the config sets its wait
+(playseg_ros/wiring.py). Ctrl-C (SIGINT), SIGTERM or a graph-ending node stops the nodes upstream first,
+each with SIGINT once the nodes publishing to it have exited (it hands on what it still holds and closes
+its files); a node still running `shutdown_timeout_s` after its SIGINT is terminated, then killed.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from pathlib import Path
 import yaml
 
 from playseg_core.yaml_io import load_yaml
+from playseg_ros.wiring import stop_order, wire_waits
 
 NODE_KINDS: dict[str, str] = {
     "recorder": "playseg_ros.nodes.recorder",
@@ -58,6 +61,7 @@ class GraphSpec:
     nodes: list[NodeSpec]
     ros_domain_id: int | None = None
     shutdown_timeout_s: float = 15.0
+    wired: list[str] = field(default_factory=list)  # the waits `playseg up` set, one line per node
 
 
 def load_graph(path: str | Path) -> GraphSpec:
@@ -99,7 +103,9 @@ def load_graph(path: str | Path) -> GraphSpec:
     timeout = raw.get("shutdown_timeout_s", 15.0)
     if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not 0 < timeout < float("inf"):
         raise ValueError(f"{path}: shutdown_timeout_s {timeout!r}: expected a positive number of seconds")
-    return GraphSpec(nodes, domain_id, float(timeout))
+    graph = GraphSpec(nodes, domain_id, float(timeout))
+    graph.wired = wire_waits(graph)  # each stream waits for the subscribers this graph will have
+    return graph
 
 
 class _ParamsDumper(yaml.SafeDumper):
@@ -166,17 +172,21 @@ class Graph:
             time.sleep(poll_s)
 
     def stop(self) -> dict[str, int]:
-        """SIGINT every node (reverse order), then escalate; returns each node's exit code."""
-        for proc in reversed(list(self.processes.values())):
+        """Stop the nodes upstream first, each once the nodes publishing to it have exited: a stopping
+        node hands on what it still holds (a topic_adapter its last steps, a segmenter its last
+        segments), and its readers are still running to take it. SIGINT, then escalate after
+        `shutdown_timeout_s`; returns each node's exit code."""
+        for spec in stop_order(self.spec):
+            proc = self.processes.get(spec.name)
+            if proc is None:
+                continue
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)
-        deadline = time.monotonic() + self.spec.shutdown_timeout_s
-        for name, proc in self.processes.items():
             try:
-                proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+                proc.wait(timeout=self.spec.shutdown_timeout_s)
             except subprocess.TimeoutExpired:
                 print(
-                    f"[up] {name} did not stop within {self.spec.shutdown_timeout_s} s: terminating",
+                    f"[up] {spec.name} did not stop within {self.spec.shutdown_timeout_s} s: terminating",
                     file=sys.stderr,
                 )
                 proc.terminate()
@@ -201,6 +211,8 @@ def run_graph(path: str | Path) -> int:
     # nodes would inherit that (and miss the launcher's SIGINT while they start up).
     previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     print(f"[up] starting {len(spec.nodes)} nodes: {', '.join(s.name for s in spec.nodes)}", file=sys.stderr)
+    for line in spec.wired:
+        print(f"[up] waits for this graph's subscribers: {line}", file=sys.stderr)
     ended = None
     try:
         graph.start()

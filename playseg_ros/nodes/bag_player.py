@@ -5,7 +5,8 @@
 reliable KEEP_ALL on both sides, so nothing is dropped: a subscriber slower than the player queues the
 backlog in its reader (benchmarks/bench_live.py measures the resulting latency).
 `wait_for_subscribers` delays the start until each of `wait_topics` (default: the PlayStep topics) has that
-many subscribers (volatile topics have no history for late joiners). Annotation topics are published transient-local.
+many subscribers, or `TOPIC=N` entries their own N (volatile topics have no history for late joiners);
+`playseg up` sets them from the graph when a config leaves both out (playseg_ros/wiring.py). Annotation topics are published transient-local.
 `clock` publishes the recording's time on /clock before each message, like `ros2 bag play --clock` (which
 publishes it at a fixed rate instead): a node with `use_sim_time` then reads the recording's time from
 its clock, which is what gives a message without a header (a `geometry_msgs/Twist` command) its
@@ -23,13 +24,12 @@ import time
 
 import rclpy
 from builtin_interfaces.msg import Time
-from rclpy.duration import Duration
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
 from playseg_ros import qos
 from playseg_ros.bag import BagReader
-from playseg_ros.nodes.common import declare, require, run_node
+from playseg_ros.nodes.common import declare, require, run_node, wait_delivered
 from playseg_ros.ros_types import message_class
 from playseg_ros.typestore import as_current_cdr, playseg_typestore, typestore_for
 
@@ -43,7 +43,13 @@ class BagPlayerNode(Node):
         self.wait_for_subscribers = declare(
             self, "wait_for_subscribers", 0, "start once each of wait_topics has this many subscribers"
         )
-        wait_topics = declare(self, "wait_topics", [""], "topics to wait on (empty = the PlayStep topics)")
+        wait_topics = declare(
+            self,
+            "wait_topics",
+            [""],
+            "topics to wait on (empty = the PlayStep topics); TOPIC=N waits for N subscribers on that one "
+            "(playseg up sets these from the graph: every subscription its nodes make to what is played)",
+        )
         self.exit_when_done = declare(
             self, "exit_when_done", True, "shut down once subscribers acknowledged the last message"
         )
@@ -83,11 +89,7 @@ class BagPlayerNode(Node):
                 )
                 if store is not playseg_typestore():
                     self.earlier_definition[topic] = (type_name, digest)
-        self.wait_topics = [t for t in wait_topics if t] or [
-            t for t, ty in self.topic_types.items() if ty == "playseg_msgs/msg/PlayStep"
-        ]
-        unknown = sorted(set(self.wait_topics) - set(self.topic_types))
-        require(not unknown, self, f"wait_topics {unknown} are not played")
+        self.wait_counts = self._wait_counts([t for t in wait_topics if t], publish_clock)
         self.published = 0
         self.exit_code = 0  # 1 when the bag could not be played to its end (run_node exits with it)
         self._closing = False
@@ -137,19 +139,34 @@ class BagPlayerNode(Node):
     def _wait_until_delivered(self) -> None:
         """Reliable messages not yet acknowledged die with the process: wait until every subscriber's
         reader holds them (a slow subscriber queues them there), at most `delivery_timeout_s`."""
-        deadline = Duration(seconds=self.delivery_timeout_s)
-        for topic, publisher in self.publishers_by_topic.items():
-            if not publisher.wait_for_all_acked(deadline):
-                self.get_logger().warning(f"{topic}: not every subscriber acknowledged within {deadline}")
+        wait_delivered(self, self.publishers_by_topic.values(), self.delivery_timeout_s)
+
+    def _wait_counts(self, entries: list[str], publish_clock: bool) -> dict[str, int]:
+        """Subscribers to wait for, by topic: `TOPIC=N` entries, plain ones (or the PlayStep topics) with
+        `wait_for_subscribers`; with `clock`, /clock too (a node on sim time must see the first one: it
+        times the first message)."""
+        counts: dict[str, int] = {}
+        for entry in entries or [
+            t for t, ty in self.topic_types.items() if ty == "playseg_msgs/msg/PlayStep"
+        ]:
+            topic, sep, number = entry.partition("=")
+            require(
+                not sep or (number.isdigit() and bool(topic)),
+                self,
+                f"wait_topics entry {entry!r}: TOPIC or TOPIC=N",
+            )
+            counts[topic] = int(number) if sep else self.wait_for_subscribers
+        played = set(self.topic_types) | ({"/clock"} if publish_clock else set())
+        unknown = sorted(set(counts) - played)
+        require(not unknown, self, f"wait_topics {unknown} are not played")
+        if publish_clock and "/clock" not in counts:
+            counts["/clock"] = self.wait_for_subscribers
+        return {topic: n for topic, n in counts.items() if n > 0}
 
     def _wait_for_subscribers(self) -> None:
-        if self.wait_for_subscribers <= 0:
-            return
-        # With `clock`, /clock too: a node on sim time must see the first one (it times the first message).
-        waited = [self.publishers_by_topic[topic] for topic in self.wait_topics]
-        waited += [self.clock_publisher] if self.clock_publisher is not None else []
+        publishers = {**self.publishers_by_topic, "/clock": self.clock_publisher}
         while rclpy.ok() and any(
-            publisher.get_subscription_count() < self.wait_for_subscribers for publisher in waited
+            publishers[topic].get_subscription_count() < n for topic, n in self.wait_counts.items()
         ):
             time.sleep(0.05)
 

@@ -5,21 +5,82 @@ from __future__ import annotations
 import signal
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.duration import Duration
 from rclpy.exceptions import InvalidParameterTypeException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
+from rclpy.publisher import Publisher
 from rclpy.signals import SignalHandlerOptions
+from rclpy.subscription import Subscription
 
 from playseg_ros.launch import NODE_NAME
 
 RCLError = _rclpy.RCLError
+
+STOP_DELIVERY_TIMEOUT_S = 10.0
+"""At a stop, how long a node waits at most for its subscribers to acknowledge what it published last
+(below `playseg up`'s default shutdown_timeout_s, so the launcher does not kill it first)."""
+
+SEQUENCE_NUMBER_UNSUPPORTED = 2**64 - 1
+"""rmw's value of a message info's sequence number when the middleware does not report it."""
+
+
+def take_queued(sub: Subscription) -> int:
+    """Run the subscription's callback on each message its reader holds already (delivered, so
+    acknowledged to the publisher, but not yet handed over by the executor); a node that stops takes
+    them instead of dropping them with its subscription. Returns how many."""
+    with_info = sub._callback_type is Subscription.CallbackType.WithMessageInfo  # as rclpy's executor
+    count = 0
+    while True:
+        with sub.handle:
+            taken = sub.handle.take_message(sub.msg_type, sub.raw)
+        if taken is None:
+            return count
+        if with_info:
+            sub.callback(*taken)
+        else:
+            sub.callback(taken[0])
+        count += 1
+
+
+def wait_delivered(node: Node, publishers: Iterable[Publisher | None], timeout_s: float) -> None:
+    """Wait until every subscriber acknowledged what the publishers sent (reliable messages not yet
+    acknowledged die with the process), at most ``timeout_s``; a warning names a topic that missed it."""
+    for publisher in publishers:
+        if publisher is not None and not publisher.wait_for_all_acked(Duration(seconds=timeout_s)):
+            node.get_logger().warning(
+                f"{publisher.topic_name}: not every subscriber acknowledged within {timeout_s} s"
+            )
+
+
+class StartGaps:
+    """Warns once per topic when the first message a node receives on it is not the first its publisher
+    sent: a gap at the start (the node subscribed after the stream began, e.g. a bag_player that did not
+    wait for it). The publisher's sequence number says so, for any message type."""
+
+    def __init__(self, node: Node) -> None:
+        self.node = node
+        self.seen: set[str] = set()
+
+    def check(self, topic: str, info: Mapping[str, Any]) -> None:
+        if topic in self.seen:
+            return
+        self.seen.add(topic)
+        number = info.get("publication_sequence_number")
+        if number is None or number == SEQUENCE_NUMBER_UNSUPPORTED or number <= 1:
+            return
+        self.node.get_logger().warning(
+            f"{topic}: gap at the start: the first message received is its publisher's message {number}, "
+            f"the {number - 1} before it were published before this node subscribed (a publisher that does "
+            "not wait for its subscribers: wait_for_subscribers, or `playseg up`, which sets it)"
+        )
 
 
 class ReleasingLifecycleNode(LifecycleNode):

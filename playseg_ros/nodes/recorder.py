@@ -28,7 +28,7 @@ from rclpy.subscription import Subscription
 
 from playseg_ros import qos
 from playseg_ros.bag import BagError, BagWriter, QosProfile, partial_path, topic_info
-from playseg_ros.nodes.common import declare, require, run_node
+from playseg_ros.nodes.common import StartGaps, declare, require, run_node, take_queued
 from playseg_ros.ros_types import message_class
 
 
@@ -68,6 +68,7 @@ class RecorderNode(LifecycleNode):
         self._flushed_count = 0
         self._subs: dict[str, Subscription | None] = {}
         self._own_timers = []  # created (stopped) in on_configure, run while active, destroyed in on_cleanup
+        self._start_gaps = StartGaps(self)
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:
@@ -147,12 +148,14 @@ class RecorderNode(LifecycleNode):
                 profile.durability = DurabilityPolicy.TRANSIENT_LOCAL
             self.received[topic] = 0
             self._subs[topic] = self.create_subscription(
-                msg_class, topic, lambda data, t=topic: self._on_message(t, data), profile, raw=True
-            )
+                msg_class, topic, lambda data, info, t=topic: self._on_message(t, data, info), profile,
+                raw=True,
+            )  # fmt: skip
             durability = " transient-local" if latched else ""
             self.get_logger().info(f"subscribed to {topic} ({type_name}){durability}")
 
-    def _on_message(self, topic: str, data: bytes) -> None:
+    def _on_message(self, topic: str, data: bytes, info: dict) -> None:
+        self._start_gaps.check(topic, info)
         if self.writer is None:  # writing failed earlier; the node is on its way out
             return
         try:
@@ -187,24 +190,14 @@ class RecorderNode(LifecycleNode):
             self._flushed_count = total
             self.get_logger().debug(f"flushed: {total} messages on disk")
 
-    def _drain(self, topic: str, sub: Subscription) -> int:
-        """Record what DDS already received (and acknowledged) but the executor has not handed over."""
-        count = 0
-        while True:
-            with sub.handle:
-                taken = sub.handle.take_message(sub.msg_type, True)
-            if taken is None:
-                return count
-            self._on_message(topic, taken[0])
-            count += 1
-
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         for timer in self._own_timers:
             timer.cancel()
         writing = self.writer is not None
         for topic, sub in self._subs.items():
             if sub is not None:
-                drained = self._drain(topic, sub) if self.writer is not None else 0
+                # what DDS delivered (and acknowledged) but the executor has not handed over yet
+                drained = take_queued(sub) if self.writer is not None else 0
                 if drained:
                     self.get_logger().info(f"{topic}: recorded {drained} messages still queued at stop")
                 self.destroy_subscription(sub)

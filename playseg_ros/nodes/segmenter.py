@@ -8,9 +8,11 @@ topic and the stamps of its first and last step; a few hundred bytes whatever th
 and end that episode's segmentation (a gap cannot be segmented across); the node keeps running. An
 episode whose steps stop arriving without `episode_end` is dropped after `episode_timeout_s`.
 
-Lifecycle: configure loads the model and creates the segment publisher and the silent-episode timer;
-activate subscribes; deactivate unsubscribes (open episodes are kept); cleanup drops open episodes and the
-model and destroys the publisher and the timer (shutdown and error processing release the same).
+Lifecycle: configure loads the model and creates the segment publisher, the silent-episode timer and the
+wait timer; activate subscribes to steps (once ``wait_for_subscribers`` readers take the segments);
+deactivate segments the steps already delivered, unsubscribes (open episodes are kept) and waits until the
+segments are acknowledged; cleanup drops open episodes and the model and destroys the publisher and the
+timers (shutdown and error processing release the same).
 """
 
 from __future__ import annotations
@@ -41,7 +43,16 @@ from playseg_ros.messages import (
     stamp_ns,
     step_from_message,
 )
-from playseg_ros.nodes.common import ReleasingLifecycleNode, declare, require, run_node
+from playseg_ros.nodes.common import (
+    STOP_DELIVERY_TIMEOUT_S,
+    ReleasingLifecycleNode,
+    StartGaps,
+    declare,
+    require,
+    run_node,
+    take_queued,
+    wait_delivered,
+)
 
 DUPLICATE_CHECK_S = 2.0
 """How often the segmenter looks for another node of its name on the graph (a local cache query)."""
@@ -105,6 +116,13 @@ class SegmenterNode(ReleasingLifecycleNode):
         self.recording_bag = declare(
             self, "recording_bag", "", "reference form: the recorder's bag directory (its 'output')"
         )
+        self.wait_for_subscribers = declare(
+            self,
+            "wait_for_subscribers",
+            0,
+            "subscribe to steps only once segments_topic has this many subscribers (segments are volatile: "
+            "a recorder or trainer matched late would miss the first ones; playseg up sets it from the graph)",
+        )
         self.model = None
         self.keep_rule = KeepRule("all")  # from the checkpoint, in on_configure
         self.camera = DEFAULT_CAMERA  # the feature the PlaySteps' image is: the model's camera
@@ -117,6 +135,8 @@ class SegmenterNode(ReleasingLifecycleNode):
         self._pub = None  # created in on_configure, destroyed in on_cleanup, as the timer
         self._timer = None
         self._graph_timer = None  # the duplicate-name check (a graph query), from configure to cleanup
+        self._wait_timer = None  # while active: subscribes to steps once the segments have their readers
+        self._start_gaps = StartGaps(self)
         self._duplicate_warned = False
         self._frame_shapes: dict[str, tuple[int, ...]] = {}  # by camera name, from the model
 
@@ -126,6 +146,7 @@ class SegmenterNode(ReleasingLifecycleNode):
             require(self.min_len >= 0, self, "min_len must be >= 0")
             require(self.episode_timeout_s > 0, self, "episode_timeout_s must be > 0")
             require(self.threads >= 1, self, "torch_threads must be >= 1")
+            require(self.wait_for_subscribers >= 0, self, "wait_for_subscribers must be >= 0")
             require(
                 self.segment_form in ("embedded", "reference"), self, "segment_form: embedded | reference"
             )
@@ -157,6 +178,7 @@ class SegmenterNode(ReleasingLifecycleNode):
             self._pub = self.create_publisher(LabelledSegment, self.segments_topic, qos.SEGMENTS)
             self._timer = self.create_timer(min(5.0, self.episode_timeout_s / 2), self._drop_silent_episodes)
             self._graph_timer = self.create_timer(DUPLICATE_CHECK_S, self._check_duplicate_name)
+            self._wait_timer = self.create_timer(0.1, self._subscribe_when_heard, autostart=False)
         except Exception as exc:  # any configuration problem: report it, stay unconfigured (retryable)
             self.get_logger().error(str(exc) if isinstance(exc, ValueError) else f"configure failed: {exc!r}")
             self.release()
@@ -179,14 +201,28 @@ class SegmenterNode(ReleasingLifecycleNode):
         return self.segment_form == "reference"
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._sub = self.create_subscription(PlayStep, self.steps_topic, self._on_step, qos.PLAY_STEPS)
-        self._recording = (self.recording_bag, self._sub.topic_name)  # the name the recorder records
+        self._wait_timer.reset()
+        self._subscribe_when_heard()
         return super().on_activate(state)
 
+    def _subscribe_when_heard(self) -> None:
+        """Subscribe to steps once `wait_for_subscribers` readers take the segments: upstream waits for
+        this subscription, so the whole chain starts only when its last reader is there."""
+        if self._sub is not None or self._pub.get_subscription_count() < self.wait_for_subscribers:
+            return
+        self._wait_timer.cancel()
+        self._sub = self.create_subscription(PlayStep, self.steps_topic, self._on_step, qos.PLAY_STEPS)
+        self._recording = (self.recording_bag, self._sub.topic_name)  # the name the recorder records
+
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._wait_timer.cancel()
         if self._sub is not None:
+            # the steps already delivered are segmented and their segments sent, not dropped: a graph
+            # stopped upstream first (playseg up) gets the last episode's segments
+            take_queued(self._sub)
             self.destroy_subscription(self._sub)
             self._sub = None
+        wait_delivered(self, [self._pub], STOP_DELIVERY_TIMEOUT_S)
         return super().on_deactivate(state)
 
     def release(self) -> None:
@@ -197,9 +233,10 @@ class SegmenterNode(ReleasingLifecycleNode):
         if self._timer is not None:
             self.destroy_timer(self._timer)
             self._timer = None
-        if self._graph_timer is not None:
-            self.destroy_timer(self._graph_timer)
-            self._graph_timer = None
+        for name in ("_graph_timer", "_wait_timer"):
+            if getattr(self, name) is not None:
+                self.destroy_timer(getattr(self, name))
+                setattr(self, name, None)
         if self._pub is not None:
             self.destroy_publisher(self._pub)
             self._pub = None
@@ -210,7 +247,8 @@ class SegmenterNode(ReleasingLifecycleNode):
         self.episodes.clear()
         self.model = None
 
-    def _on_step(self, msg: PlayStep) -> None:
+    def _on_step(self, msg: PlayStep, info: dict) -> None:
+        self._start_gaps.check(self.steps_topic, info)
         if msg.episode_id in self.finished and msg.step != 0:
             if msg.episode_id in self._ended_quietly:  # a dropped episode had its log line already
                 self._ended_quietly.discard(msg.episode_id)

@@ -21,7 +21,8 @@ clock, so the stream ends ``idle_timeout_s`` of real time after the replay's las
 
 Lifecycle: configure reads the mapping and creates the publishers and the discovery/idle timer;
 activate subscribes to each mapping topic once a publisher reveals its type (or at once with
-``topic_types``); deactivate unsubscribes and ends the open stream; cleanup (and shutdown, error
+``topic_types``); deactivate takes what the subscriptions hold already, unsubscribes, ends the open
+stream and waits until its steps are acknowledged; cleanup (and shutdown, error
 processing) destroys publishers, subscriptions and the timer.
 """
 
@@ -43,7 +44,16 @@ from playseg_ros.convert.live import DEFAULT_MAX_LAG_S, LiveMapping, LiveOutput,
 from playseg_ros.convert.mapping import load_mapping
 from playseg_ros.convert.source import message_time
 from playseg_ros.messages import RCLPY, annotation_message, play_step_message
-from playseg_ros.nodes.common import ReleasingLifecycleNode, declare, require, run_node
+from playseg_ros.nodes.common import (
+    STOP_DELIVERY_TIMEOUT_S,
+    ReleasingLifecycleNode,
+    StartGaps,
+    declare,
+    require,
+    run_node,
+    take_queued,
+    wait_delivered,
+)
 from playseg_ros.ros_types import message_class
 
 
@@ -96,6 +106,7 @@ class TopicAdapterNode(ReleasingLifecycleNode):
         self._clock_sub = None
         self._replay: ReplayStamps | None = None  # use_sim_time: times of messages without a header
         self._refused_seen = 0
+        self._start_gaps = StartGaps(self)
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:
@@ -155,8 +166,13 @@ class TopicAdapterNode(ReleasingLifecycleNode):
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._timer.cancel()
+        # what the readers hold already becomes steps before the stream ends (a graph stopped upstream
+        # first: the player has exited, its last messages are here), and the last steps reach the
+        # segmenter and the recorder before this process goes
+        self._take_queued()
         self._unsubscribe()
         self._end_stream()
+        wait_delivered(self, [self._steps_pub, self._annotations_pub], STOP_DELIVERY_TIMEOUT_S)
         return super().on_deactivate(state)
 
     def release(self) -> None:
@@ -192,18 +208,11 @@ class TopicAdapterNode(ReleasingLifecycleNode):
                 self._end_stream()
 
     def _take_queued(self) -> bool:
-        """Handle the messages waiting in the subscriptions' readers; whether any was a data message."""
-        taken = False
-        for sub in [self._clock_sub, *self._subs.values()]:
-            while sub is not None and (sub is self._clock_sub or sub in self._subs.values()):
-                with sub.handle:  # as rclpy's executor takes a message
-                    message = sub.handle.take_message(sub.msg_type, sub.raw)
-                if message is None:
-                    break
-                sub.callback(*message)
-                # /clock alone keeps no stream open (a simulator publishes it all the time)
-                taken = taken or sub is not self._clock_sub
-        return taken
+        """Handle the messages waiting in the subscriptions' readers; whether any was a data message
+        (/clock alone keeps no stream open: a simulator publishes it all the time)."""
+        if self._clock_sub is not None:
+            take_queued(self._clock_sub)
+        return sum(take_queued(sub) for sub in list(self._subs.values()) if sub is not None) > 0
 
     def _subscribe_discovered(self) -> None:
         """Subscribe to each mapping topic once its type is known (given, or a publisher reveals it)."""
@@ -243,6 +252,7 @@ class TopicAdapterNode(ReleasingLifecycleNode):
 
     def _on_message(self, topic: str, msg_class: type, data: bytes, info: dict) -> None:
         received = self.get_clock().now().nanoseconds
+        self._start_gaps.check(topic, info)
         self._last_message = time.monotonic()
         self._stream_open = True
         try:

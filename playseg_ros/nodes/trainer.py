@@ -41,7 +41,14 @@ from playseg_core.augment.retraining import (
 from playseg_core.training.device import resolve_device
 from playseg_ros import qos
 from playseg_ros.messages import clip_from_labelled
-from playseg_ros.nodes.common import ReleasingLifecycleNode, declare, require, run_node
+from playseg_ros.nodes.common import (
+    ReleasingLifecycleNode,
+    StartGaps,
+    declare,
+    require,
+    run_node,
+    take_queued,
+)
 from playseg_ros.play_bags import DataInfo, load_annotated
 from playseg_ros.recorded_steps import RecordedSteps, StepsNotRecorded, StepsReference, reference_of
 
@@ -120,6 +127,7 @@ class TrainerNode(ReleasingLifecycleNode):
         self.last_loss = math.nan
         self._training = threading.Lock()
         self._sub = None
+        self._start_gaps = StartGaps(self)
         # Created in on_configure, destroyed in on_cleanup. The status publisher is also used from the
         # retraining thread: `_status_lock` keeps it from being destroyed under a publish.
         self._status_lock = threading.Lock()
@@ -218,6 +226,7 @@ class TrainerNode(ReleasingLifecycleNode):
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         if self._sub is not None:
+            take_queued(self._sub)  # delivered segments are stored, not dropped with the subscription
             self.destroy_subscription(self._sub)
             self._sub = None
         return super().on_deactivate(state)
@@ -254,7 +263,8 @@ class TrainerNode(ReleasingLifecycleNode):
         self.last_eval_metric, self.last_eval_value = "", math.nan
 
     # -- data ------------------------------------------------------------------------------------------
-    def _on_segment(self, msg: LabelledSegment) -> None:
+    def _on_segment(self, msg: LabelledSegment, info: dict) -> None:
+        self._start_gaps.check(self.p["segments_topic"], info)
         ref = reference_of(msg)
         if ref is None:
             self._store(msg)
