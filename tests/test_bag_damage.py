@@ -26,6 +26,7 @@ from playseg_core.data.episode import Episode, Segment
 from playseg_core.data.features import DEFAULT_CAMERA
 from playseg_ros.bag import BagError, BagReader, BagWriter, recover_bag, topic_info
 from playseg_ros.bag.lock import LOCK_FILE
+from playseg_ros.bag.recovery import LOSS_KEY
 from playseg_ros.cli import main as cli_main
 from playseg_ros.play_bags import DataInfo, iter_play_bag, read_play_bag, write_play_bag
 from playseg_ros.typestore import playseg_typestore
@@ -187,8 +188,11 @@ def test_a_truncated_sample_bag_with_metadata_is_recovered_in_place(tmp_path: Pa
     (report,) = recover_bag(bag)
     assert report.rebuilt and 0 < report.messages < total and report.dropped_bytes > 0
     assert _rosbags_count(bag) == report.messages
+    assert report.lossy and report.lost_messages == total - report.messages  # metadata counted them
     with BagReader(bag) as reader:
-        assert reader.custom_data == custom  # the feature schema survives
+        notes = dict(reader.custom_data)
+        assert f"{total - report.messages} messages lost" in notes.pop(LOSS_KEY)
+        assert notes == custom  # the feature schema survives
         assert reader.message_count == report.messages
     episodes = read_play_bag(bag, incomplete="drop")
     assert 0 < len(episodes) < 80

@@ -146,8 +146,10 @@ def test_a_deleted_split_file_is_named_with_its_messages_and_the_old_metadata_ke
 
 
 def test_a_crash_tail_alone_is_no_loss(tmp_path: Path) -> None:
-    """A file cut inside a chunk (what a crash leaves) keeps its original nowhere and notes nothing."""
+    """A file cut inside a chunk with no metadata.yaml counting it (what a crash leaves) keeps its
+    original nowhere and notes nothing."""
     bag = _string_bag(tmp_path / "cut", 200)
+    (bag / "metadata.yaml").unlink()  # written when a bag is closed: a crash leaves none
     (file,) = bag.glob("*.mcap")
     file.write_bytes(file.read_bytes()[: file.stat().st_size // 2])
     code, out, err = _recover_cli(bag)
@@ -155,6 +157,23 @@ def test_a_crash_tail_alone_is_no_loss(tmp_path: Path) -> None:
     assert not (bag / (file.name + ".damaged")).exists() and not (bag / ORIGINAL_METADATA).exists()
     with BagReader(bag) as reader:
         assert LOSS_KEY not in reader.custom_data
+
+
+def test_a_finished_file_cut_short_is_a_loss(tmp_path: Path) -> None:
+    """A file that metadata.yaml counted, cut later (an interrupted copy): the messages it lost are
+    reported, the old metadata kept, and the note stays in the new metadata."""
+    bag = _string_bag(tmp_path / "copied", 200)
+    old = (bag / "metadata.yaml").read_text()
+    (file,) = bag.glob("*.mcap")
+    file.write_bytes(file.read_bytes()[: file.stat().st_size // 2])
+    code, out, err = _recover_cli(bag)
+    kept = len(_texts(bag))
+    assert code == 0 and 0 < kept < 200
+    assert f"{200 - kept} of the 200 messages metadata.yaml counted lost" in out
+    assert f"playseg: warning: {file.name}: {file.name} cut short" in err
+    assert (bag / ORIGINAL_METADATA).read_text() == old
+    with BagReader(bag) as reader:
+        assert f"{200 - kept} messages lost" in reader.custom_data[LOSS_KEY]
 
 
 # --- fuzzed ----------------------------------------------------------------------------------------------
@@ -232,7 +251,10 @@ def test_recovery_keeps_every_complete_message_outside_damage_and_reports_every_
             if set(numbers) - set(kept):
                 assert touched.rebuilt and (touched.damage or stop > tail), (offset, touched)
         with BagReader(bag) as reader:
-            assert (LOSS_KEY in reader.custom_data) == (removed is not None or bool(touched.damage))
+            # a note for anything but a crash's clean tail: the source bag is finished, so metadata.yaml
+            # counted every message and any cut of it loses some
+            noted = removed is not None or bool(touched.damage) or bool(touched.lost_messages)
+            assert (LOSS_KEY in reader.custom_data) == noted
         if touched.damage:
             assert touched.kept_original and (bag / touched.kept_original).is_file()
     finally:

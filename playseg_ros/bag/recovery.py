@@ -77,8 +77,9 @@ class RecoveredFile:
 
     @property
     def lossy(self) -> bool:
-        """Lost more than a clean tail: damaged bytes, or the whole file."""
-        return self.missing or bool(self.damage)
+        """Lost more than a crash's clean tail: damaged bytes, the whole file, or messages the old
+        metadata.yaml counted (a finished file cut short later, as by an interrupted copy)."""
+        return self.missing or bool(self.damage) or bool(self.lost_messages)
 
     def summary(self) -> str:
         """One line: what was kept and what could not be."""
@@ -109,7 +110,8 @@ class RecoveredFile:
         lost = "" if self.lost_messages is None else f", {self.lost_messages} messages lost"
         if self.untyped_messages:
             lost += f", {self.untyped_messages} complete messages without their channel dropped"
-        return f"{self.path} damaged ({self.skipped_bytes + self.dropped_bytes} bytes dropped{lost})"
+        how = "damaged" if self.damage else "cut short"
+        return f"{self.path} {how} ({self.skipped_bytes + self.dropped_bytes} bytes dropped{lost})"
 
 
 def recover_bag(path: Path | str) -> list[RecoveredFile]:
