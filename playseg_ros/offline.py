@@ -259,7 +259,16 @@ def train(
         raise ValueError(
             f"--labeller {labeller}: the same file as --out (the labeller would replace the PS model)"
         )
-    check_output_file(out, overwrite)
+    # A run killed while training the labeller resumes there: its PS model is already written.
+    ps_done = bool(
+        resume
+        and labeller
+        and Path(out).is_file()
+        and not train_state_path(out).exists()
+        and train_state_path(labeller).exists()
+    )
+    if not ps_done:
+        check_output_file(out, overwrite)
     if labeller:
         check_output_file(labeller, overwrite, "--labeller")
     train_eps = list(dataset.episodes("train"))
@@ -364,19 +373,28 @@ def train(
         resume=resume,
         fingerprint=_training_fingerprint(data, cfg, model_cfg, val_ids),
     )
-    with _state_kept_on_interrupt(state):
-        result = train_ps(train_eps, val_eps, dataset.instructions, cfg, model_cfg)
-    if distributed.is_main():
-        _save_ps_model(out, result, cfg, resolved, annotated_val, label_accuracy, data, val_ids, held)
-        print(
-            f"{out}: PS model trained on {len(train_eps)} episodes, {result.summary()}; "
-            f"val label accuracy {result.label_accuracy:.3f}; peak RSS {_peak_rss_mb():.0f} MB"
-        )
+    if ps_done:
+        print(f"{out}: written before the run was stopped; resuming the labeller")
+    else:
+        with _state_kept_on_interrupt(state):
+            result = train_ps(train_eps, val_eps, dataset.instructions, cfg, model_cfg)
+        if distributed.is_main():
+            _save_ps_model(out, result, cfg, resolved, annotated_val, label_accuracy, data, val_ids, held)
+            print(
+                f"{out}: PS model trained on {len(train_eps)} episodes, {result.summary()}; "
+                f"val label accuracy {result.label_accuracy:.3f}; peak RSS {_peak_rss_mb():.0f} MB"
+            )
     if labeller:  # every process of a group trains it too
+        lab_state = train_state_path(labeller)
         lab_cfg = replace(
-            cfg, state_path=str(train_state_path(labeller)), fingerprint=cfg.fingerprint + "-labeller"
+            cfg,
+            state_path=str(lab_state),
+            # a run killed while training PS has no labeller state yet: the labeller starts afresh
+            resume=resume and lab_state.exists(),
+            fingerprint=cfg.fingerprint + "-labeller",
         )
-        lab = train_labeller(train_eps, val_eps, dataset.instructions, lab_cfg, model_cfg)
+        with _state_kept_on_interrupt(lab_state):
+            lab = train_labeller(train_eps, val_eps, dataset.instructions, lab_cfg, model_cfg)
         if distributed.is_main():
             save_model(labeller, lab.model, {"train": asdict(lab_cfg), "history": lab.history})
             print(f"{labeller}: labeller, {lab.summary()}; val accuracy {lab.label_accuracy:.3f}")

@@ -150,6 +150,28 @@ def test_a_run_killed_by_sigterm_resumes_to_the_whole_runs_result(
     assert a.keys() == b.keys() and all(torch.equal(a[key], b[key]) for key in a)
 
 
+def test_a_run_killed_while_training_the_labeller_resumes_the_labeller(
+    tiny_data: Path, tmp_path: Path
+) -> None:
+    model, labeller = tmp_path / "ps.pt", tmp_path / "labeller.pt"
+    argv = [*_train_argv(tiny_data, model), "--labeller", str(labeller)]
+    state = train_state_path(labeller)
+    process = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+    while not state.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)  # the labeller's state: written at its first evaluation, after PS is saved
+    process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 130, err
+    assert model.is_file() and state.exists() and not labeller.exists()
+    written = model.read_bytes()
+    resumed = subprocess.run([*argv, "--resume"], capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr
+    assert "resuming the labeller" in resumed.stdout and "[labeller] resumed at step 25" in resumed.stderr
+    assert labeller.is_file() and not state.exists()
+    assert model.read_bytes() == written  # the PS model is not trained again
+
+
 def test_nproc_2_trains_data_parallel_and_process_0_alone_writes(tiny_data: Path, tmp_path: Path) -> None:
     model, labeller = tmp_path / "ps.pt", tmp_path / "labeller.pt"
     argv = [*_train_argv(tiny_data, model), "--nproc", "2", "--labeller", str(labeller)]
