@@ -193,3 +193,23 @@ def test_nproc_2_trains_data_parallel_and_process_0_alone_writes(tiny_data: Path
     assert failed.stderr.strip().splitlines() == [
         f"playseg train: --data {tmp_path / 'none'}: no such directory"
     ]
+
+
+def test_sigterm_stops_every_process_of_an_nproc_run(tiny_data: Path, tmp_path: Path) -> None:
+    model = tmp_path / "ps.pt"
+    argv = [
+        *_train_argv(tiny_data, model),
+        "--nproc",
+        "2",
+        "--max-steps",
+        "5000",
+    ]  # the last --max-steps wins
+    process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    state = train_state_path(model)
+    deadline = time.monotonic() + 300
+    while not state.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=120)  # the processes stop, not train on to their cap
+    assert process.returncode == 130, err
+    assert "interrupted" in err and state.exists() and not model.exists()

@@ -14,6 +14,7 @@ alone evaluates, decides when to stop (broadcast to the others), logs and writes
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import warnings
 from collections.abc import Callable
@@ -121,7 +122,10 @@ def _run_rank(rank: int, nproc: int, port: int, target: Callable[..., int], args
 def launch(nproc: int, target: Callable[..., int], *args: Any) -> int:
     """Run ``target(*args)`` in ``nproc`` local processes set up as ``torchrun`` would (``target`` calls
     `join`); the exit code of the first that failed, else 0. ``target`` must be a module-level function
-    (the processes are spawned)."""
+    (the processes are spawned). Interrupted (Ctrl-C, or SIGTERM turned into KeyboardInterrupt), the
+    processes get SIGTERM, so each stops as an interrupted single-process run does (`playseg` turns
+    SIGTERM into KeyboardInterrupt; SIGINT may be ignored, as in a shell's background job), and are
+    waited for."""
     import logging
 
     import torch.multiprocessing as mp
@@ -130,8 +134,26 @@ def launch(nproc: int, target: Callable[..., int], *args: Any) -> int:
     logging.getLogger("torch.multiprocessing.spawn").setLevel(logging.ERROR)
     # torch's C++ warnings (e.g. that no parameter went unused in a step) go to stderr unfiltered
     os.environ.setdefault("TORCH_CPP_LOG_LEVEL", "ERROR")
+    context = mp.spawn(_run_rank, args=(nproc, _free_port(), target, args), nprocs=nproc, join=False)
     try:
-        mp.spawn(_run_rank, args=(nproc, _free_port(), target, args), nprocs=nproc, join=True)
+        while not context.join():
+            pass
     except mp.ProcessExitedException as failed:
         return failed.exit_code if failed.exit_code and failed.exit_code > 0 else 1
+    except BaseException:
+        _interrupt(context.processes)
+        raise
     return 0
+
+
+def _interrupt(processes: list[Any], grace_s: float = 60.0) -> None:
+    """SIGTERM to every live process, then wait for them (SIGKILL after ``grace_s``: one stuck in a
+    collective whose peer is gone)."""
+    for process in processes:
+        if process.is_alive():
+            os.kill(process.pid, signal.SIGTERM)
+    for process in processes:
+        process.join(grace_s)
+        if process.is_alive():
+            process.kill()
+            process.join()
