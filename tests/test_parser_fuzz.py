@@ -9,7 +9,6 @@ in `make fuzz` (the profiles in conftest.py).
 from __future__ import annotations
 
 import copy
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -29,7 +28,6 @@ from playseg_ros.convert.mapping import ConvertMapping, load_mapping
 pytestmark = pytest.mark.fuzz
 
 INT64 = 2**63 - 1
-SECONDS = 5.0  # the longest one example may take, on a loaded machine
 
 numbers = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True),
@@ -92,7 +90,6 @@ def _set(tree: dict[str, Any], path: tuple[str, ...], value: Any) -> None:
 
 
 def _check_mapping(path: Path) -> ConvertMapping | None:
-    started = time.perf_counter()
     try:
         mapping = load_mapping(path)
     except MappingError as error:
@@ -100,8 +97,6 @@ def _check_mapping(path: Path) -> ConvertMapping | None:
         assert message.startswith(f"mapping {str(path)!r}") and "\n" not in message, message
         assert len(message) < 500, message
         return None
-    finally:
-        assert time.perf_counter() - started < SECONDS
     assert 1 <= mapping.period_ns <= INT64 and 0 < mapping.tolerance_ns <= INT64
     assert mapping.gap_ns is None or 0 <= mapping.gap_ns <= INT64
     for feature in mapping.topic_features:
@@ -142,14 +137,12 @@ yaml_text = st.lists(
 def test_any_text_as_a_mapping_or_sidecar_is_a_value_or_one_named_line(work: Path, text: str) -> None:
     file = work / "text.yaml"
     file.write_text(text, encoding="utf-8", errors="surrogatepass")
-    started = time.perf_counter()
     try:
         load_yaml(file)
     except YamlFileError as error:
         assert str(error).startswith(f"YAML file {str(file)!r}") and "\n" not in str(error)
     _check_mapping(file)
     _check_sidecar(file, 1_700_000_000 * 10**9)
-    assert time.perf_counter() - started < SECONDS
 
 
 @given(
@@ -169,7 +162,6 @@ def test_anchors_and_aliases_never_hang_and_duplicates_are_found(
         lines.append(f"a{k}: &a{k} {'[' * nested}[{', '.join([f'*a{k - 1}'] * fan_out)}]{']' * nested}")
     file = work / "aliases.yaml"
     file.write_text("\n".join(lines) + "\n")
-    started = time.perf_counter()
     try:
         loaded = load_yaml(file)
     except YamlFileError as error:
@@ -182,7 +174,6 @@ def test_anchors_and_aliases_never_hang_and_duplicates_are_found(
             assert "its aliases expand to more than" in str(error) and fan_out**levels > 10**5, error
     else:
         assert not duplicate and loaded["a0"] == {"x": 1}
-    assert time.perf_counter() - started < SECONDS
 
 
 def _check_sidecar(file: Path, bag_start_ns: int) -> list[TimedLabel] | None:
@@ -225,11 +216,9 @@ def test_any_sidecar_gives_labels_or_one_named_line(
         raw = {"annotations": listed, **({"times": times} if times is not None else {}), **(extra or {})}
     file = work / "labels.yaml"
     file.write_text(yaml.safe_dump(raw))
-    started = time.perf_counter()
     labels = _check_sidecar(file, bag_start_ns)
     if labels:  # what the labels become must not fail either: two episodes of ten steps at 10 Hz
         steps = [bag_start_ns + np.arange(10, dtype=np.int64) * 10**8 + k * 2 * 10**9 for k in range(2)]
         segments, notes = segments_of_episodes(steps, labels)
         assert all(0 <= s.start < s.end < 10 for episode in segments for s in episode)
         assert all("\n" not in note for note in notes)
-    assert time.perf_counter() - started < SECONDS
