@@ -133,7 +133,7 @@ def node_command(spec: NodeSpec, params_dir: Path) -> list[str]:
 
 
 class Graph:
-    """Running node processes; `stop()` shuts them down in reverse start order."""
+    """Running node processes; `stop()` shuts them down upstream first (`stop_order`)."""
 
     def __init__(self, spec: GraphSpec, log_dir: Path | None = None) -> None:
         self.spec = spec

@@ -142,8 +142,9 @@ def calibrate(
 
 
 def _training_fingerprint(data: str, cfg: Any | None, model_cfg: Any, val_ids: list[str]) -> str:
-    """What a run's resume file must match: the dataset, the settings that change what is trained (not
-    the budget's bounds nor how progress is shown), the model and the held-out episodes."""
+    """What a run's resume file must match: the dataset, the settings that change what is trained (the
+    step cap and patience too: the cap sets the learning-rate schedule; not ``max_minutes``, the device
+    nor how progress is shown), the model (or another method's settings) and the held-out episodes."""
     import hashlib
 
     settings = {

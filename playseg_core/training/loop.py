@@ -5,8 +5,8 @@ optionally a held-out evaluation) and the loop does the rest, the same way for e
 
 - the learning rate of each step comes from a function of the step (`cosine_learning_rate` by default);
 - every ``eval_every`` steps the held-out measure is computed; the best weights are kept, and the run
-  stops when the measure has not improved for ``patience`` evaluations (early stopping) or at the step
-  cap, ``max_minutes`` or an interrupt;
+  stops when the measure has not improved for ``patience`` evaluations (early stopping), at the step
+  cap or after ``max_minutes`` (an interrupt propagates: the caller reports it, the resume file stays);
 - the state (model, optimiser, step, RNG, best weights) is written every evaluation to a resume file, so
   a killed run continues where it was (`LoopConfig.resume`), giving what the uninterrupted run gives;
 - batches are moved to the device, the forward pass runs in its mixed precision (device.py), and on a
