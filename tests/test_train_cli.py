@@ -110,6 +110,20 @@ def test_labeller_and_model_cannot_be_one_file(tiny_data: Path, tmp_path: Path, 
     assert "the same file as --out" in capsys.readouterr().err
 
 
+def _sigterm_once_written(
+    argv: list[str], state: Path, env: dict[str, str] | None = None, stdout: int | None = None
+) -> tuple[int, str]:
+    """Run ``argv`` until ``state`` (a training state, written at an evaluation) exists, then SIGTERM it:
+    (exit code, stderr)."""
+    process = subprocess.Popen(argv, env=env, stdout=stdout, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+    while not state.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=120)
+    return process.returncode, err
+
+
 def _train_argv(data: Path, out: Path, method: str = "ps") -> list[str]:
     return [sys.executable, "-m", "playseg_ros.cli", "train", "--data", str(data), "--out", str(out),
             "--max-steps", "50", "--patience", "100", "--method", method,
@@ -127,15 +141,8 @@ def test_a_run_killed_by_sigterm_resumes_to_the_whole_runs_result(
     subprocess.run(_train_argv(tiny_data, whole, method), check=True, env=env, capture_output=True)
     killed = tmp_path / "killed.pt"
     state = train_state_path(killed)
-    process = subprocess.Popen(
-        _train_argv(tiny_data, killed, method), env=env, stderr=subprocess.PIPE, text=True
-    )
-    deadline = time.monotonic() + 300
-    while not state.exists() and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)  # the state is written at the first evaluation (step 25)
-    process.send_signal(signal.SIGTERM)
-    _, err = process.communicate(timeout=120)
-    assert process.returncode == 130, err
+    code, err = _sigterm_once_written(_train_argv(tiny_data, killed, method), state, env)  # at step 25
+    assert code == 130, err
     assert state.exists() and not killed.exists()
     assert "--resume continues it" in err
     resumed = subprocess.run(
@@ -156,13 +163,8 @@ def test_a_run_killed_while_training_the_labeller_resumes_the_labeller(
     model, labeller = tmp_path / "ps.pt", tmp_path / "labeller.pt"
     argv = [*_train_argv(tiny_data, model), "--labeller", str(labeller)]
     state = train_state_path(labeller)
-    process = subprocess.Popen(argv, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 300
-    while not state.exists() and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)  # the labeller's state: written at its first evaluation, after PS is saved
-    process.send_signal(signal.SIGTERM)
-    _, err = process.communicate(timeout=120)
-    assert process.returncode == 130, err
+    code, err = _sigterm_once_written(argv, state)  # the labeller's state: written after PS is saved
+    assert code == 130, err
     assert model.is_file() and state.exists() and not labeller.exists()
     written = model.read_bytes()
     resumed = subprocess.run([*argv, "--resume"], capture_output=True, text=True, timeout=300)
@@ -204,12 +206,7 @@ def test_sigterm_stops_every_process_of_an_nproc_run(tiny_data: Path, tmp_path: 
         "--max-steps",
         "5000",
     ]  # the last --max-steps wins
-    process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     state = train_state_path(model)
-    deadline = time.monotonic() + 300
-    while not state.exists() and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
-    process.send_signal(signal.SIGTERM)
-    _, err = process.communicate(timeout=120)  # the processes stop, not train on to their cap
-    assert process.returncode == 130, err
+    code, err = _sigterm_once_written(argv, state, stdout=subprocess.PIPE)  # stops, not trains to its cap
+    assert code == 130, err
     assert "interrupted" in err and state.exists() and not model.exists()

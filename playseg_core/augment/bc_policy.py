@@ -28,7 +28,6 @@ simulator: `evaluate` returns None. Checkpoints are playseg checkpoints of kind 
 
 from __future__ import annotations
 
-import sys
 import time
 import zlib
 from collections.abc import Callable, Mapping, Sequence
@@ -54,7 +53,7 @@ from playseg_core.ps.encoders import (
 )
 from playseg_core.ps.model import instruction_tokens, instruction_words
 from playseg_core.training.device import resolve_device
-from playseg_core.training.loop import LoopConfig, TrainingTask, train_loop
+from playseg_core.training.loop import LoopConfig, TrainingTask, log_to_stderr, train_loop
 
 POLICY_NAME = "bc"
 
@@ -770,7 +769,7 @@ class BCPolicyLearner:
                     max_minutes=s.max_minutes,
                     grad_clip=1.0,
                     device=device,
-                    log=(lambda line: print(line, file=sys.stderr, flush=True)) if progress else None,
+                    log=log_to_stderr if progress else None,
                 ),
             )
             if running:  # stopped early, between two entries

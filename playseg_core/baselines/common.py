@@ -11,7 +11,6 @@ TriDet): for the latter only precision and label accuracy mean anything (the pap
 from __future__ import annotations
 
 import math
-import sys
 import zlib
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -31,7 +30,7 @@ from playseg_core.ps.encoders import EncoderSpec, StepEncoders, as_tensors
 from playseg_core.ps.labelling import KeepRule
 from playseg_core.ps.metrics import LabelCounts, label_accuracy
 from playseg_core.training.device import resolve_device, to_device
-from playseg_core.training.loop import LoopConfig, LoopResult, TrainingTask, train_loop
+from playseg_core.training.loop import LoopConfig, LoopResult, TrainingTask, log_to_stderr, train_loop
 
 
 @dataclass
@@ -497,7 +496,7 @@ def fit(
         grad_clip=5.0,
         device=device,
         progress=options.progress,
-        log=(lambda line: print(line, file=sys.stderr, flush=True)) if options.log else None,
+        log=log_to_stderr if options.log else None,
         state_path=Path(options.state_path) if options.state_path else None,
         resume=options.resume,
         fingerprint=options.fingerprint,

@@ -6,7 +6,6 @@ one-cycle schedule; the best epoch on the annotated val split is kept.
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -30,7 +29,14 @@ from playseg_core.ps.samples import (
     make_batch,
 )
 from playseg_core.training.device import resolve_device, to_device
-from playseg_core.training.loop import LoopConfig, LoopResult, TrainingTask, cosine_learning_rate, train_loop
+from playseg_core.training.loop import (
+    LoopConfig,
+    LoopResult,
+    TrainingTask,
+    cosine_learning_rate,
+    log_to_stderr,
+    train_loop,
+)
 
 
 @dataclass
@@ -465,7 +471,7 @@ def _fit(model, loss_fn, train_eps, val_eps, instructions, cfg: TrainConfig, nam
         grad_clip=5.0,
         device=device,
         progress=cfg.progress,
-        log=(lambda line: print(line, file=sys.stderr, flush=True)) if cfg.log_epochs else None,
+        log=log_to_stderr if cfg.log_epochs else None,
         state_path=Path(cfg.state_path) if cfg.state_path else None,
         resume=cfg.resume,
         fingerprint=cfg.fingerprint,

@@ -139,7 +139,8 @@ class _Progress:
     shown: str = ""  # the last evaluation, as the progress bar shows it
 
 
-def _to_stderr(line: str) -> None:
+def log_to_stderr(line: str) -> None:
+    """A `LoopConfig.log`: each line on stderr, flushed (it interleaves with a progress bar)."""
     print(line, file=sys.stderr, flush=True)
 
 
@@ -261,7 +262,7 @@ def train_loop(task: TrainingTask, cfg: LoopConfig) -> LoopResult:
     if cfg.resume and cfg.state_path is not None:
         progress = _load_state(cfg.state_path, cfg, model, optimizer)
         if main:  # always said: a resumed run must not pass for a fresh one
-            (cfg.log or _to_stderr)(f"[{task.name}] resumed at step {progress.step} from {cfg.state_path}")
+            (cfg.log or log_to_stderr)(f"[{task.name}] resumed at step {progress.step} from {cfg.state_path}")
     loss_of = (
         distributed.data_parallel_loss(model, task.loss)
         if processes > 1

@@ -30,7 +30,7 @@ JOINT_NAMES: tuple[str, str] = ("effector_x", "effector_y")
 """The effector's two prismatic axes as a joint-state sensor names them (position m, velocity m/s)."""
 
 LOG_START_NS = 1_767_225_600 * 10**9
-"""Default start of a log: 2026-01-01T00:00:00Z."""
+"""Default start of a log: a fixed UTC time (whole seconds), so a generated log is the same every run."""
 
 DEFAULT_STATE_HZ = 50.0
 """The joint-state sensor's default rate (Hz)."""
