@@ -279,7 +279,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 def _cmd_segment(args: argparse.Namespace) -> int:
     from playseg_ros.offline import segment
 
-    return segment(
+    code = segment(
         args.model,
         args.input,
         args.out,
@@ -292,6 +292,19 @@ def _cmd_segment(args: argparse.Namespace) -> int:
         args.keep,
         args.device,
     )
+    return _labels_out(args.out, args.labels_out, args.model) if code == 0 else code
+
+
+def _labels_out(dataset: str, labels_out: str | None, model: str | None) -> int:
+    """``--labels-out DIR``: the written dataset's segments as sidecar label files (docs/convert.md)."""
+    from pathlib import Path
+
+    from playseg_ros.convert.annotations import write_output_labels
+
+    if labels_out:
+        files = write_output_labels(Path(dataset), Path(labels_out), model)
+        print(f"{labels_out}: {len(files)} label file(s)")
+    return 0
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
@@ -300,6 +313,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return evaluate(args.pred, args.truth, args.json, args.plot, args.plot_episodes)
 
 
+LABELS_OUT_HELP = (
+    "also write the segments as time-based labels, one sidecar file per bag (DIR/<bag name>.yaml), that "
+    "`playseg convert` reads back"
+)
 LABEL_ACCURACY_HELP = (
     "label accuracy on the val split's annotated segments that the confidence threshold for keeping a "
     "segment is chosen for (default 0.95; the paper chose 0.90 for CALVIN)"
@@ -455,6 +472,7 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     )
     segment.add_argument("--seed", type=int, default=0, help="seed of the random windows (not ps)")
     segment.add_argument("--keep", default="label", choices=KEEP_RULE_CHOICES, help=KEEP_HELP)
+    segment.add_argument("--labels-out", metavar="DIR", help=LABELS_OUT_HELP)
     add_device_argument(segment)
     segment.set_defaults(func=_cmd_segment)
     evaluate = sub.add_parser("evaluate", help="metrics of segmented play against the ground truth")
@@ -472,6 +490,7 @@ def _cmd_convert(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from playseg_ros.convert import SegmentationSpec, convert, inspect_text, load_mapping
+    from playseg_ros.convert.run import playseg_copy
 
     if args.inspect:
         if len(args.bags) != 1 or args.out or args.mapping:
@@ -499,7 +518,10 @@ def _cmd_convert(args: argparse.Namespace) -> int:
         print(f"playseg convert: failed: {report.error}", file=sys.stderr)
     print(summary.text())
     print(summary.val_text())
-    return EXIT_FAILED if summary.failed else 0
+    if summary.failed:
+        return EXIT_FAILED
+    dataset = args.out if args.format == "playseg" else str(playseg_copy(Path(args.out)))
+    return _labels_out(dataset, args.labels_out, args.segment)
 
 
 def _add_convert_command(sub: argparse._SubParsersAction) -> None:
@@ -528,6 +550,7 @@ def _add_convert_command(sub: argparse._SubParsersAction) -> None:
         "--method", choices=SEGMENTATION_METHODS, help="the --segment checkpoint's method (default: ps)"
     )
     convert.add_argument("--keep", choices=KEEP_RULE_CHOICES, help=f"with --segment: {KEEP_HELP}")
+    convert.add_argument("--labels-out", metavar="DIR", help=LABELS_OUT_HELP)
     add_device_argument(convert)
     convert.add_argument("--workers", type=int, default=1, help="bags converted in parallel (processes)")
     convert.add_argument(

@@ -9,6 +9,8 @@ Layout of a dataset directory (format version 2)::
                              (sum of T+1, H, W, 3) uint8, data/observation.state.bin (sum of T+1, ...),
                              data/action.bin (sum of T, ...) float32; C order
     data/segments.npy        structured table: episode, start, end, instruction, confidence, log_prob
+    data/timestamp.bin       (sum of T+1,) float64: each observation's recording time in seconds from its
+                             source's start (absent in older datasets: read as step / fps)
 
 Each episode's boundary observations are stored once (T+1 per episode); segments are half-open step
 ranges into their episode. Arrays are opened with ``np.memmap`` so a corpus larger than RAM loads lazily.
@@ -40,6 +42,7 @@ from playseg_core.data.features import (
     infer_features,
 )
 from playseg_core.data.splits import ANNOTATED_SPLITS, SPLITS
+from playseg_core.errors import PlaysegError
 
 FORMAT_NAME = "playseg-dataset"
 FORMAT_VERSION = 2
@@ -48,6 +51,8 @@ READABLE_VERSIONS = (1, 2)
 INFO_FILE = "meta/info.json"
 EPISODES_FILE = "meta/episodes.jsonl"
 SEGMENTS_FILE = "data/segments.npy"
+TIMESTAMP = "timestamp"
+"""The `arrays` entry of the per-observation recording times (not a feature: no model reads it)."""
 VERSION_1_FILES = {"frames": DEFAULT_CAMERA, "states": STATE, "actions": ACTION}
 """Version 1 array names -> the feature each one is."""
 
@@ -68,7 +73,7 @@ def check_out_apart(
     would destroy the input."""
     out, source = Path(out).resolve(), Path(source).resolve()
     if out == source or source in out.parents or out in source.parents:
-        raise ValueError(f"{option} {out}: overlaps the input {source}; choose another directory")
+        raise PlaysegError(f"{option} {out}: overlaps the input {source}; choose another directory")
 
 
 def _remove_stale_staging(path: Path) -> list[Path]:
@@ -127,10 +132,13 @@ class EpisodeRecord:
     segment_start: int
     num_segments: int
     extra: dict[str, Any]
+    source: dict[str, Any] | None = None  # where it was recorded (`Episode.source`)
 
     def to_json(self) -> str:
         fields = asdict(self)
         extra = fields.pop("extra")
+        if fields["source"] is None:
+            del fields["source"]
         return json.dumps({**fields, "extra": extra}, sort_keys=True)
 
 
@@ -222,7 +230,8 @@ class DatasetWriter:
         """Append ``episode`` to ``split``; returns its index in the dataset.
 
         ``episode.segments`` are stored as its ground truth (``play``/``test`` loaders hide them).
-        ``extra`` (JSON-serialisable) is kept in the episode's meta/episodes.jsonl line.
+        ``extra`` (JSON-serialisable) is kept in the episode's meta/episodes.jsonl line, with
+        ``episode.source``. ``episode.timestamps`` are stored; without them, step / fps (step / 1 without fps).
         """
         if self._closed:
             raise RuntimeError(f"{self.path}: DatasetWriter is closed")
@@ -254,6 +263,12 @@ class DatasetWriter:
             if feature not in self._files:
                 self._files[feature] = open(self._tmp / array_file(feature), "wb")  # noqa: SIM115
             self._files[feature].write(np.ascontiguousarray(array).data)
+        times = episode.timestamps
+        if times is None:
+            times = np.arange(episode.num_steps + 1) / (self.features.fps or 1.0)
+        if TIMESTAMP not in self._files:
+            self._files[TIMESTAMP] = open(self._tmp / array_file(TIMESTAMP), "wb")  # noqa: SIM115
+        self._files[TIMESTAMP].write(np.ascontiguousarray(times, dtype="<f8").data)
         index = len(self._ids)
         record = EpisodeRecord(
             index=index,
@@ -265,6 +280,7 @@ class DatasetWriter:
             segment_start=len(self._segments),
             num_segments=len(episode.segments),
             extra=dict(extra or {}),
+            source=episode.source,
         )
         for seg, label in zip(episode.segments, labels, strict=True):
             self._segments.append((index, seg.start, seg.end, label, seg.confidence, seg.log_prob))
@@ -301,6 +317,11 @@ class DatasetWriter:
         for name, feature in self.features.by_name.items():
             rows = self._num_steps if feature.kind == "action" else self._num_observations
             arrays[name] = {"file": array_file(name), "dtype": feature.dtype, "shape": [rows, *feature.shape]}
+        arrays[TIMESTAMP] = {
+            "file": array_file(TIMESTAMP),
+            "dtype": "float64",
+            "shape": [self._num_observations],
+        }
         info = {
             "format": FORMAT_NAME,
             "format_version": FORMAT_VERSION,
@@ -362,6 +383,7 @@ class PlayDataset:
         self.domain: str | None = info.get("domain")
         self.features, files = _features_and_files(path, info)
         self._arrays = self._open_arrays(files)
+        self._timestamps = self._open_timestamps()
         self.segment_table: np.ndarray = self._load_segments()
         self._by_split = {name: [r.index for r in records if r.split == name] for name in SPLITS}
 
@@ -419,6 +441,14 @@ class PlayDataset:
             for row in rows
         ]
 
+    def timestamps(self, index: int) -> np.ndarray:
+        """Episode ``index``'s observation times in seconds from its source's start, (T+1,) float64 (a
+        dataset written without them: step / fps)."""
+        record = self.records[index]
+        if self._timestamps is None:
+            return np.arange(record.num_steps + 1) / (self.features.fps or 1.0)
+        return self._timestamps[record.observation_start : record.observation_start + record.num_steps + 1]
+
     def episode(self, index: int, truth: bool = False) -> Episode:
         """Episode ``index`` with memory-mapped arrays (nothing is read until used)."""
         if not 0 <= index < len(self.records):
@@ -433,6 +463,8 @@ class PlayDataset:
             images={name: self._arrays[name][observations] for name in self.features.cameras},
             state=None if state is None else state[observations],
             segments=self.segments(index, truth=truth),
+            timestamps=self.timestamps(index),
+            source=record.source,
         )
 
     def episodes(self, split: str, truth: bool = False) -> Iterator[Episode]:
@@ -464,6 +496,23 @@ class PlayDataset:
             else:
                 arrays[name] = np.memmap(file, dtype=dtype, mode="r", shape=shape)
         return arrays
+
+    def _open_timestamps(self) -> np.ndarray | None:
+        spec = self.info["arrays"].get(TIMESTAMP) if self.format_version >= 2 else None
+        if spec is None:
+            return None
+        file, rows = self.path / str(spec.get("file")), self.info["counts"]["observations"]
+        if not file.is_file():
+            raise FileNotFoundError(f"{file}: missing (the array of {INFO_FILE} arrays.{TIMESTAMP})")
+        if file.stat().st_size != rows * 8:
+            raise _fail(file, f"size {file.stat().st_size} bytes, but {rows} observations need {rows * 8}")
+        times = np.memmap(file, dtype="<f8", mode="r", shape=(rows,)) if rows else np.zeros(0)
+        for record in self.records:
+            own = times[record.observation_start : record.observation_start + record.num_steps + 1]
+            if not np.all(np.isfinite(own)) or np.any(np.diff(own) < 0):
+                name = f"episode {record.episode_id!r} (index {record.index})"
+                raise _fail(file, f"{name}: timestamps are not finite and non-decreasing")
+        return times
 
     def _load_segments(self) -> np.ndarray:
         file = self.path / self.info.get("segments_file", SEGMENTS_FILE)
@@ -607,6 +656,7 @@ def _read_episodes(root: Path, info: dict[str, Any]) -> list[EpisodeRecord]:
                     segment_start=int(fields["segment_start"]),
                     num_segments=int(fields["num_segments"]),
                     extra=dict(fields.get("extra", {})),
+                    source=fields.get("source"),
                 )
             except (json.JSONDecodeError, KeyError, TypeError, ValueError) as error:
                 raise _fail(file, f"{where}: bad episode record ({type(error).__name__}: {error})") from error

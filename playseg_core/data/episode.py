@@ -9,9 +9,12 @@ boundary observation ``o_end`` belongs to both neighbouring segments and is stor
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
+
+from playseg_core.errors import PlaysegError
 
 
 @dataclass(frozen=True, order=True)
@@ -47,6 +50,10 @@ class Episode:
              cameras, none included.
     state:   (T+1, *state_shape) low-dimensional observations, or None.
     segments: the labelled segments known for this episode (all, some or none of them), sorted, disjoint.
+    timestamps: (T+1,) float64 recording time of each observation in seconds from its source's start (a
+             bag's first message), non-decreasing; None when the source has no clock.
+    source:  where the episode was recorded, JSON-serialisable: ``{"bag": path, "topics": [...]}``, or
+             ``{"generator": name, ...}``; None when unknown.
 
     data/features.py names and describes these arrays (`Features`).
     """
@@ -56,6 +63,8 @@ class Episode:
     images: dict[str, np.ndarray] = field(default_factory=dict)
     state: np.ndarray | None = None
     segments: list[Segment] = field(default_factory=list)
+    timestamps: np.ndarray | None = None
+    source: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         check_episode(self)
@@ -67,7 +76,7 @@ class Episode:
 
     def with_segments(self, segments: Sequence[Segment]) -> Episode:
         """The same data (no copy) with other segments."""
-        return Episode(self.episode_id, self.actions, self.images, self.state, list(segments))
+        return replace(self, segments=list(segments))
 
 
 @dataclass
@@ -137,6 +146,16 @@ def check_episode(episode: Episode) -> None:
     if episode.actions.ndim < 2:
         raise ValueError(f"{name}: actions must be (T, action_dim), got shape {episode.actions.shape}")
     _check_observations(name, episode.images, episode.state, episode.num_steps + 1)
+    times = episode.timestamps
+    if times is not None and (
+        times.shape != (episode.num_steps + 1,)
+        or not np.all(np.isfinite(times))
+        or np.any(np.diff(times) < 0)
+    ):
+        raise PlaysegError(
+            f"{name}: timestamps must be ({episode.num_steps + 1},) finite non-decreasing seconds, "
+            f"got shape {times.shape}"
+        )
     check_segments(episode.segments, episode.num_steps, name)
 
 

@@ -314,4 +314,4 @@ def conform_episode(episode: Episode, features: Features) -> Episode:
     if state is not None and features.state is not None:
         state = state.astype(features.state.dtype, copy=False)
     actions = episode.actions.astype(np.float32, copy=False)
-    return Episode(episode.episode_id, actions, images, state, episode.segments)
+    return replace(episode, actions=actions, images=images, state=state)

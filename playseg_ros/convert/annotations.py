@@ -11,19 +11,24 @@ A label [start, end] becomes the segment [s, e) of the episode holding it, where
 after ``start`` and e the last step at or before ``end`` (the observations o_s..o_e lie inside the label's
 time). A label that covers fewer than two steps, overlaps an earlier label, or has no instruction is
 dropped and reported; one that runs past its episode's end is cut there and reported.
+
+An entry may also carry ``provenance`` (who made it: ``human``, ``model:<checkpoint digest>``, ``edited``),
+``confidence`` (the model's label probability) and ``reviewer``; conversion ignores them. `write_sidecar`
+writes the format (`playseg segment --labels-out`, `playseg review`).
 """
 
 from __future__ import annotations
 
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, NotRequired, TypedDict
 
 import numpy as np
 
+from playseg_core.data.dataset import PlayDataset
 from playseg_core.data.episode import Segment
 from playseg_ros.convert.errors import ConvertError, MappingError
 from playseg_ros.convert.mapping import read_yaml
@@ -34,6 +39,13 @@ class SidecarLabelYaml(TypedDict):
     start: float
     end: float
     instruction: str
+    provenance: NotRequired[str]
+    confidence: NotRequired[float]
+    reviewer: NotRequired[str]
+
+
+LABEL_KEYS = frozenset({"start", "end", "instruction"})
+OPTIONAL_LABEL_KEYS = frozenset({"provenance", "confidence", "reviewer"})
 
 
 class SidecarYaml(TypedDict):
@@ -120,9 +132,11 @@ def labels_from_file(bag: Path, file: Path, bag_start_ns: int) -> list[TimedLabe
             raise ConvertError(
                 bag, f"{where}: expected a mapping of start, end, instruction; got {_kind(entry)}"
             )
-        if set(entry) != {"start", "end", "instruction"}:
+        if not LABEL_KEYS <= set(entry) <= LABEL_KEYS | OPTIONAL_LABEL_KEYS:
             raise ConvertError(
-                bag, f"{where}: expected exactly start, end, instruction; got {_keys(set(entry))}"
+                bag,
+                f"{where}: expected start, end, instruction (and optionally provenance, confidence, "
+                f"reviewer); got {_keys(set(entry))}",
             )
         seconds = {}
         for key in ("start", "end"):
@@ -201,3 +215,101 @@ def segments_of_episodes(
             continue
         segments[index].append(Segment(start, end, label.instruction))
     return segments, notes
+
+
+def sidecar_entries(
+    segments: Sequence[Segment], timestamps: np.ndarray, provenance: str
+) -> list[SidecarLabelYaml]:
+    """``segments`` as sidecar labels: [s, e) becomes [time of o_s, time of o_e], which `segments_of_episodes`
+    maps back onto [s, e). Unlabelled segments have no entry."""
+    return [
+        {
+            "start": float(timestamps[seg.start]),
+            "end": float(timestamps[seg.end]),
+            "instruction": seg.instruction,
+            "provenance": provenance,
+            "confidence": round(float(seg.confidence), 6),
+        }
+        for seg in segments
+        if seg.instruction
+    ]
+
+
+def sidecar_name(episode_id: str, source: Mapping[str, Any] | None) -> str:
+    """The sidecar file name (without suffix) of an episode: its bag's name (all episodes of a bag share one
+    file, times from the bag's start), else its id with path separators replaced."""
+    bag = source.get("bag") if source else None
+    if isinstance(bag, str) and bag:
+        path = Path(bag)
+        return path.name if path.suffix == "" else path.stem
+    return "".join(c if c.isalnum() or c in "-_.:" else "_" for c in episode_id).lstrip(".") or "episode"
+
+
+def write_sidecar(path: Path, labels: Sequence[SidecarLabelYaml]) -> None:
+    """Write ``labels`` as a sidecar file (times from_start), atomically: a reader sees the old file or the
+    new one, never a part."""
+    import yaml
+
+    text = yaml.safe_dump(
+        {"times": "from_start", "annotations": [dict(label) for label in sorted(labels, key=_start_of)]},
+        sort_keys=False,
+        allow_unicode=True,
+        width=200,
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    staging = path.with_name(f".{path.name}.partial-{os.getpid()}")
+    staging.write_text(text, encoding="utf-8")
+    os.replace(staging, path)
+
+
+def _start_of(label: SidecarLabelYaml) -> float:
+    return label["start"]
+
+
+def write_labels_out(
+    dataset: PlayDataset, out_dir: Path, keeps: Callable[[Segment], bool], provenance: Callable[[int], str]
+) -> list[Path]:
+    """Every episode's segments that ``keeps`` accepts as sidecar files in ``out_dir``, one per source
+    (`sidecar_name`), times from the source's start (`PlayDataset.timestamps`), each entry's
+    ``provenance(episode index)``: what `convert` reads back as the same segments. Returns the files."""
+    groups: dict[str, list[SidecarLabelYaml]] = {}
+    for index, record in enumerate(dataset.records):
+        kept = [s for s in dataset.segments(index, truth=True) if keeps(s)]
+        entries = sidecar_entries(kept, dataset.timestamps(index), provenance(index))
+        groups.setdefault(sidecar_name(record.episode_id, record.source), []).extend(entries)
+    files = []
+    for name, labels in sorted(groups.items()):
+        files.append(out_dir / f"{name}.yaml")
+        write_sidecar(files[-1], labels)
+    return files
+
+
+def model_provenance(checkpoint: str | os.PathLike[str]) -> str:
+    """``model:<digest>``: the first 12 hex digits of the checkpoint file's SHA-256."""
+    import hashlib
+
+    digest = hashlib.sha256(Path(checkpoint).read_bytes()).hexdigest()[:12]
+    return f"model:{digest}"
+
+
+def write_output_labels(dataset_dir: Path, out_dir: Path, model: str | None) -> list[Path]:
+    """``--labels-out`` of `playseg segment` and `playseg convert --segment`: the segments of the dataset
+    they wrote, as sidecar files. `segment`'s dataset holds every segment: those its keep rule (recorded in
+    its meta) keeps are written; `convert` kept only those already. Annotated episodes' segments are
+    ``human``, the others ``model:<digest of model>``."""
+    from playseg_core.data.splits import ANNOTATED_SPLITS
+    from playseg_core.ps.labelling import KeepRule
+
+    dataset = PlayDataset.open(dataset_dir)
+    keep = dataset.info.get("meta", {}).get("keep")
+    rule = KeepRule("all")
+    if isinstance(keep, dict):
+        threshold = keep.get("threshold")
+        rule = KeepRule(str(keep.get("rule")), math.inf if threshold is None else float(threshold))
+    by_model = model_provenance(model) if model else "model"
+    return write_labels_out(
+        dataset,
+        out_dir,
+        rule.keeps,
+        lambda index: "human" if dataset.records[index].split in ANNOTATED_SPLITS else by_model,
+    )

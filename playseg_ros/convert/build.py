@@ -8,7 +8,7 @@ dropped, never filled in, and reported once per feature (count and first time). 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -74,9 +74,17 @@ def episodes_of(
     segments, label_notes = segments_of_episodes(times, labels)
     notes += label_notes
     name = bag.name if bag.is_dir() else bag.stem
+    source = {"bag": str(bag), "topics": mapping.topics}
     episodes = [
-        _episode(f"{name}:{k}", episode, mapping, episode_segments)
-        for k, (episode, episode_segments) in enumerate(zip(grouped, segments, strict=True))
+        replace(
+            _episode(f"{name}:{k}", episode, mapping, episode_segments),
+            timestamps=(episode_times - bag_start_ns)
+            / 1e9,  # seconds from the bag's start, as sidecars count
+            source=source,
+        )
+        for k, (episode, episode_times, episode_segments) in enumerate(
+            zip(grouped, times, segments, strict=True)
+        )
     ]
     return BagEpisodes(episodes, builder.schema(), builder.dropped_steps, notes)
 

@@ -1,0 +1,114 @@
+# ruff: noqa: F811 (the tests take the imported fixture `bags` as an argument)
+"""Times everywhere: converted episodes keep each step's recording time and their bag; `--labels-out` of
+`convert --segment` and `segment` writes segments as sidecar labels that `convert` reads back as the same
+segments (proposals round-trip to the bags)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from test_convert import write_mapping
+from test_convert_segment import (
+    bags,  # noqa: F401 (the fixture: two bags and their mapping)
+    convert_cli,
+    untrained_model,
+)
+
+from playseg_core.data.dataset import DatasetWriter, PlayDataset
+from playseg_core.data.episode import Episode, Segment
+from playseg_ros.cli import main
+
+
+def spans(dataset: PlayDataset, index: int) -> list[tuple[int, int, str]]:
+    return [(s.start, s.end, s.instruction) for s in dataset.segments(index, truth=True) if s.instruction]
+
+
+MAPPING_TOPICS = ["/annotations", "/camera/image_raw", "/cmd_vel", "/joint_states"]
+"""Every topic the test mapping reads, as an episode's source lists them."""
+
+
+def mapping_reading(labels: Path, path: Path) -> Path:
+    """The test mapping with its labels from ``labels/<bag name>.yaml`` instead of its topic."""
+    return write_mapping(path, annotations={"file": str(labels / "{name}.yaml")})
+
+
+def test_converted_episodes_keep_their_times_and_bag(bags: dict[str, Path], tmp_path: Path) -> None:
+    assert convert_cli([bags["annotated"]], tmp_path / "data", bags["mapping"]) == 0
+    dataset = PlayDataset.open(tmp_path / "data")
+    record = dataset.records[0]
+    assert record.source == {"bag": str(bags["annotated"]), "topics": MAPPING_TOPICS}
+    times = dataset.timestamps(0)
+    assert times.shape == (record.num_steps + 1,) and times.dtype == np.float64
+    # steps are the camera frames thinned to 10 Hz, from the bag's first message
+    np.testing.assert_allclose(np.diff(times), 0.1, atol=1e-6)
+    assert dataset.episode(0).timestamps is not None
+    np.testing.assert_array_equal(dataset.episode(0).timestamps, times)
+
+
+def test_convert_segment_labels_out_round_trips_to_the_same_segments(
+    bags: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert convert_cli([bags["play"]], tmp_path / "plain", bags["mapping"]) == 0
+    plain = PlayDataset.open(tmp_path / "plain")
+    model = untrained_model(tmp_path / "ps.pt", plain.features, plain.episode(0, truth=True))
+    labels = tmp_path / "labels"
+    both = [bags["play"], bags["annotated"]]
+    code = convert_cli(
+        both, tmp_path / "data", bags["mapping"], "--segment", str(model), "--labels-out", str(labels)
+    )
+    assert code == 0, capsys.readouterr().err
+    assert sorted(p.name for p in labels.iterdir()) == ["annotated.yaml", "play.yaml"]
+    proposed = yaml.safe_load((labels / "play.yaml").read_text())
+    assert proposed["times"] == "from_start" and len(proposed["annotations"]) >= 2
+    entry = proposed["annotations"][0]
+    assert entry["provenance"].startswith("model:") and 0.0 < entry["confidence"] <= 1.0
+    human = yaml.safe_load((labels / "annotated.yaml").read_text())["annotations"]
+    assert [e["provenance"] for e in human] == ["human", "human"]
+
+    # The labels, read back by convert from the sidecars, are the same segments.
+    assert convert_cli(both, tmp_path / "again", mapping_reading(labels, tmp_path / "m.yaml")) == 0
+    first, again = PlayDataset.open(tmp_path / "data"), PlayDataset.open(tmp_path / "again")
+    ids = {r.episode_id: i for i, r in enumerate(first.records)}
+    for i, record in enumerate(again.records):
+        assert spans(again, i) == spans(first, ids[record.episode_id]), record.episode_id
+        assert record.split in ("train", "val")  # labels now: annotated episodes
+
+
+def test_segment_labels_out_writes_what_the_keep_rule_keeps(bags: dict[str, Path], tmp_path: Path) -> None:
+    assert convert_cli([bags["play"]], tmp_path / "plain", bags["mapping"]) == 0
+    plain = PlayDataset.open(tmp_path / "plain")
+    episode = plain.episode(0, truth=True)
+    probe = untrained_model(tmp_path / "probe.pt", plain.features, episode)
+    assert main(["segment", "--model", str(probe), "--input", str(tmp_path / "plain"), "--splits", "play",
+                 "--out", str(tmp_path / "all"), "--keep", "all"]) == 0  # fmt: skip
+    confidences = sorted(s.confidence for s in PlayDataset.open(tmp_path / "all").segments(0, truth=True))
+    threshold = float(np.median(confidences))
+    model = untrained_model(tmp_path / "ps.pt", plain.features, episode, threshold)
+    labels = tmp_path / "labels"
+    assert main(["segment", "--model", str(model), "--input", str(tmp_path / "plain"), "--splits", "play",
+                 "--out", str(tmp_path / "seg"), "--labels-out", str(labels)]) == 0  # fmt: skip
+    segmented = PlayDataset.open(tmp_path / "seg")
+    assert segmented.records[0].source == plain.records[0].source  # the bag is remembered
+    np.testing.assert_array_equal(segmented.timestamps(0), plain.timestamps(0))
+    kept = [(s.start, s.end, s.instruction) for s in segmented.segments(0, truth=True)
+            if s.confidence >= threshold and s.instruction]  # fmt: skip
+    assert 0 < len(kept) < len(confidences)
+    assert convert_cli([bags["play"]], tmp_path / "back", mapping_reading(labels, tmp_path / "m.yaml")) == 0
+    assert spans(PlayDataset.open(tmp_path / "back"), 0) == kept
+
+
+def test_datasets_without_recorded_times_count_steps_at_their_rate(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    timed = Episode("timed", rng.random((5, 2), np.float32), timestamps=np.array([0, 0.5, 0.5, 2, 3, 7.5]))
+    untimed = Episode("untimed", rng.random((3, 2), np.float32), segments=[Segment(0, 3, "a")])
+    with DatasetWriter(tmp_path / "d", ["a"]) as writer:
+        writer.add(timed, "train")
+        writer.add(untimed, "train")
+    dataset = PlayDataset.open(tmp_path / "d")
+    np.testing.assert_array_equal(dataset.timestamps(0), [0, 0.5, 0.5, 2, 3, 7.5])
+    np.testing.assert_array_equal(dataset.timestamps(1), [0, 1, 2, 3])  # no fps: one step a second
+    with pytest.raises(ValueError, match="timestamps must be"):
+        Episode("bad", rng.random((2, 2), np.float32), timestamps=np.array([0.0, 2.0, 1.0]))
