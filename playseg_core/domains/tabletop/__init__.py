@@ -78,7 +78,7 @@ POLICIES: dict[str, Any] = {"bc": _bc_policy}
 """The policies of this domain (see playseg_core.domains): ``tabletop.bc``, the generic ``bc`` policy
 evaluated in the tabletop simulator."""
 
-PRESET_NAMES = ("tiny", "small", "paper")
+PRESET_NAMES = ("tiny", "small", "paper", "calvin-small", "calvin")
 """The dataset sizes `generate_dataset` knows (generate.py PRESETS)."""
 
 

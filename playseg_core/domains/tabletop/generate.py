@@ -20,7 +20,6 @@ from playseg_core.data import generation
 from playseg_core.data.episode import Episode
 from playseg_core.data.generation import SEED_STRIDE, EpisodeSource, GenerateSummary, episode_seed
 from playseg_core.data.splits import SplitTargets
-from playseg_core.domains.tabletop.instructions import INSTRUCTIONS
 from playseg_core.domains.tabletop.play import PlayConfig, PlayEpisode, PlayStats, generate_episode
 from playseg_core.domains.tabletop.spec import DOMAIN
 
@@ -45,6 +44,21 @@ PRESETS: dict[str, Preset] = {
         "to augment to 100%, 500 held-out test segments; ~210,000 steps (~6 GB)",
         PlayConfig(),
         SplitTargets.from_share(total_segments=4000, annotated_share=0.25, test_segments=500),
+    ),
+    "calvin-small": Preset(
+        "calvin-small",
+        "CALVIN's shape (32 task types, instructions.CALVIN_INSTRUCTIONS), small: 400 annotated + 1,200 play "
+        "segments (25%), 160 test segments; ~75,000 steps (~2 GB)",
+        PlayConfig(task_set="calvin"),
+        SplitTargets.from_share(total_segments=1600, annotated_share=0.25, test_segments=160),
+    ),
+    "calvin": Preset(
+        "calvin",
+        "CALVIN's shape (32 task types, instructions.CALVIN_INSTRUCTIONS): a 25% annotated start split "
+        "(1,800 segments, >= 30 per task type), 5,400 play segments to augment to 100%, 500 held-out test "
+        "segments; ~320,000 steps (~9 GB)",
+        PlayConfig(task_set="calvin"),
+        SplitTargets.from_share(total_segments=7200, annotated_share=0.25, test_segments=500),
     ),
 }
 
@@ -127,7 +141,7 @@ def generate_dataset(
         out,
         preset,
         source,
-        INSTRUCTIONS,
+        preset.play.instructions,
         preset.play.features,
         DOMAIN,
         meta,

@@ -18,7 +18,8 @@ from types import MappingProxyType
 import numpy as np
 
 from playseg_core.domains.tabletop.sim import Scene
-from playseg_core.domains.tabletop.spec import BLOCK_EXTENTS, BLOCKS, TABLE_SIZE
+from playseg_core.domains.tabletop.spec import BLOCK_EXTENTS, BLOCKS, COLOURS, TABLE_SIZE
+from playseg_core.errors import PlaysegError
 
 REGION_CELLS: MappingProxyType[str, tuple[int, int]] = MappingProxyType(
     {
@@ -75,7 +76,7 @@ class Task:
 def region_box(region: str) -> tuple[float, float, float, float]:
     """(x_low, y_low, x_high, y_high) of ``region``'s cell shrunk by REGION_MARGIN."""
     if region not in REGION_CELLS:
-        raise ValueError(f"unknown tabletop region {region!r} (expected one of {list(REGION_CELLS)})")
+        raise PlaysegError(f"unknown tabletop region {region!r} (expected one of {list(REGION_CELLS)})")
     column, row = REGION_CELLS[region]
     cell = TABLE_SIZE / 3
     return (
@@ -248,10 +249,43 @@ INSTRUCTIONS: tuple[str, ...] = tuple(task.text for task in TASKS)
 TASK_BY_TEXT: MappingProxyType[str, Task] = MappingProxyType({task.text: task for task in TASKS})
 
 
+CALVIN_INSTRUCTIONS: tuple[str, ...] = (
+    *(f"push the {colour} cube {direction}" for colour in COLOURS for direction in DIRECTIONS),
+    *(f"push the {colour} cylinder to the centre" for colour in COLOURS),
+    *(f"push the {colour} cube next to the {colour} cylinder" for colour in COLOURS),
+    *(f"move the arm to the {region}" for region in REGION_CELLS if region != "centre"),
+)
+"""The `calvin` task set: 32 task types, each a distinct skill with one wording, as CALVIN's 34 (push a
+cube one way, a cylinder to the centre, a cube next to its twin cylinder, the arm to a corner or an
+edge). Closed under the table's 8 symmetries (symmetry.py): a turned instruction is one of the set."""
+
+
+@dataclass(frozen=True)
+class TaskSet:
+    """The instructions play may give, and how the next one is drawn: ``by_family`` first draws a family
+    uniformly among those with a task that may be given, then one of its tasks (each family as often
+    whatever its size); otherwise one of the tasks that may be given, uniformly (each task type about
+    as often)."""
+
+    name: str
+    tasks: tuple[Task, ...]
+    by_family: bool
+
+    @property
+    def instructions(self) -> tuple[str, ...]:
+        """The set's instruction strings: a dataset's instruction index is the position here."""
+        return tuple(task.text for task in self.tasks)
+
+    @property
+    def members(self) -> frozenset[Task] | None:
+        """The set's tasks to draw among (None: every task)."""
+        return None if self.tasks == TASKS else frozenset(self.tasks)
+
+
 def task_for(text: str) -> Task:
     """The task of instruction ``text``; ValueError naming it when there is none."""
     if text not in TASK_BY_TEXT:
-        raise ValueError(f"unknown tabletop instruction {text!r}")
+        raise PlaysegError(f"unknown tabletop instruction {text!r}")
     return TASK_BY_TEXT[text]
 
 
@@ -260,17 +294,43 @@ def is_done(task: Task, scene: Scene, start: Scene) -> bool:
     return FAMILIES[task.family].done(task, scene, start)
 
 
-def applicable_tasks(scene: Scene) -> dict[str, list[Task]]:
-    """Family name -> the tasks that may be given in ``scene`` (families without any left out)."""
+def applicable_tasks(scene: Scene, among: frozenset[Task] | None = None) -> dict[str, list[Task]]:
+    """Family name -> the tasks (of ``among``, or any) that may be given in ``scene`` (families without
+    any left out), in family and task order."""
     by_family: dict[str, list[Task]] = {}
     for name, family in FAMILIES.items():
-        tasks = [task for task in family.tasks if family.applicable(task, scene)]
+        tasks = [
+            task
+            for task in family.tasks
+            if (among is None or task in among) and family.applicable(task, scene)
+        ]
         if tasks:
             by_family[name] = tasks
     return by_family
 
 
+TASK_SETS: MappingProxyType[str, TaskSet] = MappingProxyType(
+    {
+        "all": TaskSet("all", TASKS, by_family=True),
+        "calvin": TaskSet("calvin", tuple(task_for(text) for text in CALVIN_INSTRUCTIONS), by_family=False),
+    }
+)
+"""Task sets by name (`PlayConfig.task_set`): ``all``, the 197 instructions of the five families, and
+``calvin``, CALVIN's shape (`CALVIN_INSTRUCTIONS`)."""
+
+
+def task_set(name: str) -> TaskSet:
+    """The task set ``name``; ValueError naming it and the known ones."""
+    if name not in TASK_SETS:
+        raise PlaysegError(f"unknown tabletop task set {name!r} (expected one of {', '.join(TASK_SETS)})")
+    return TASK_SETS[name]
+
+
 __all__ = [
+    "CALVIN_INSTRUCTIONS",
+    "TASK_SETS",
+    "TaskSet",
+    "task_set",
     "DIRECTIONS",
     "FAMILIES",
     "INSTRUCTIONS",

@@ -23,7 +23,14 @@ import numpy as np
 
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.data.features import ACTION, STATE, Feature, Features
-from playseg_core.domains.tabletop.instructions import Task, applicable_tasks, is_done
+from playseg_core.domains.tabletop.instructions import (
+    TASK_SETS,
+    Task,
+    TaskSet,
+    applicable_tasks,
+    is_done,
+    task_set,
+)
 from playseg_core.domains.tabletop.render import Renderer
 from playseg_core.domains.tabletop.sim import Scene, TabletopSim
 from playseg_core.domains.tabletop.spec import (
@@ -36,6 +43,7 @@ from playseg_core.domains.tabletop.spec import (
     STATE_NAMES,
 )
 from playseg_core.domains.tabletop.teleop import TeleopConfig, Teleoperator
+from playseg_core.errors import PlaysegError
 
 
 @dataclass(frozen=True)
@@ -46,6 +54,7 @@ class PlayConfig:
     max_task_steps: a task not done after this many steps counts as failed (its steps stay unlabelled).
     max_failures: failed tasks in a row that end the episode.
     idle_chance: chance of an unlabelled stretch before each task; idle_steps: its (low, high) length.
+    task_set: the instructions play gives (instructions.py `TASK_SETS`: ``all`` or ``calvin``).
     """
 
     image_size: int = DEFAULT_IMAGE_SIZE
@@ -55,38 +64,50 @@ class PlayConfig:
     idle_chance: float = 0.1
     idle_steps: tuple[int, int] = (5, 15)
     teleop: TeleopConfig = field(default_factory=TeleopConfig)
+    task_set: str = "all"
 
     def __post_init__(self) -> None:
         Renderer(self.image_size)  # ValueError naming a bad image size
+        task_set(self.task_set)  # ValueError naming an unknown set
         low, high = self.tasks_per_episode
         if not 1 <= low <= high:
-            raise ValueError(f"PlayConfig.tasks_per_episode must be 1 <= low <= high, got {(low, high)}")
+            raise PlaysegError(f"PlayConfig.tasks_per_episode must be 1 <= low <= high, got {(low, high)}")
         if self.max_task_steps < 1 or self.max_failures < 1:
-            raise ValueError("PlayConfig.max_task_steps and max_failures must be >= 1")
+            raise PlaysegError("PlayConfig.max_task_steps and max_failures must be >= 1")
         if not 0.0 <= self.idle_chance <= 1.0:
-            raise ValueError(f"PlayConfig.idle_chance must be in [0, 1], got {self.idle_chance}")
+            raise PlaysegError(f"PlayConfig.idle_chance must be in [0, 1], got {self.idle_chance}")
         if not 1 <= self.idle_steps[0] <= self.idle_steps[1]:
-            raise ValueError(f"PlayConfig.idle_steps must be 1 <= low <= high, got {self.idle_steps}")
+            raise PlaysegError(f"PlayConfig.idle_steps must be 1 <= low <= high, got {self.idle_steps}")
 
     @classmethod
     def from_json(cls, raw: Mapping[str, Any], where: str = "play_config") -> PlayConfig:
         """The config ``asdict(config)`` was written from (a dataset's ``meta.play_config``); ValueError
         naming ``where`` and the field for anything else."""
         if not isinstance(raw, Mapping):
-            raise ValueError(f"{where}: expected a mapping of PlayConfig fields, got {type(raw).__name__}")
+            raise PlaysegError(f"{where}: expected a mapping of PlayConfig fields, got {type(raw).__name__}")
         settings = _settings(cls, raw, where)
         if "teleop" in settings:
             teleop = settings["teleop"]
             if not isinstance(teleop, Mapping):
-                raise ValueError(f"{where}.teleop: expected a mapping of TeleopConfig fields")
+                raise PlaysegError(f"{where}.teleop: expected a mapping of TeleopConfig fields")
             try:
                 settings["teleop"] = TeleopConfig(**_settings(TeleopConfig, teleop, f"{where}.teleop"))
             except TypeError as error:
-                raise ValueError(f"{where}.teleop: {error}") from error
+                raise PlaysegError(f"{where}.teleop: {error}") from error
         try:
             return cls(**settings)
         except TypeError as error:  # a value of the wrong type
-            raise ValueError(f"{where}: {error}") from error
+            raise PlaysegError(f"{where}: {error}") from error
+
+    @property
+    def tasks(self) -> TaskSet:
+        """The task set play draws from."""
+        return task_set(self.task_set)
+
+    @property
+    def instructions(self) -> tuple[str, ...]:
+        """The instructions a dataset of this play lists (its instruction index is the position here)."""
+        return self.tasks.instructions
 
     @property
     def features(self) -> Features:
@@ -109,7 +130,7 @@ def _settings(kind: type, raw: Mapping[str, Any], where: str) -> dict[str, Any]:
     known = {f.name for f in fields(kind)}
     unknown = sorted(set(raw) - known)
     if unknown:
-        raise ValueError(
+        raise PlaysegError(
             f"{where}: unknown field {unknown[0]!r} (a {kind.__name__} has {', '.join(sorted(known))})"
         )
     return {name: tuple(value) if isinstance(value, list) else value for name, value in raw.items()}
@@ -209,7 +230,7 @@ def seed_of_episode(episode_id: str) -> int:
     """The seed the play episode ``episode_id`` was generated from (`episode_id_for_seed`'s inverse)."""
     seed = episode_id.removeprefix(_EPISODE_PREFIX)
     if seed == episode_id or not seed.isdigit():
-        raise ValueError(
+        raise PlaysegError(
             f"episode {episode_id!r}: not a generated tabletop episode ({_EPISODE_PREFIX}<seed>)"
         )
     return int(seed)
@@ -236,13 +257,17 @@ def replay_scenes(
     assert isinstance(recording, SceneRecorder)
     replayed = np.asarray(recording.actions, np.float32).reshape(-1, 2)
     if actions is not None and (replayed.shape != actions.shape or not np.allclose(replayed, actions)):
-        raise ValueError(f"episode {episode_id}: replaying its seed gives other commands than recorded")
+        raise PlaysegError(f"episode {episode_id}: replaying its seed gives other commands than recorded")
     return recording.scenes, segments
 
 
-def draw_task(scene: Scene, rng: np.random.Generator, exclude: Task | None = None) -> Task | None:
-    """A task that may be given in ``scene``: a family uniformly, then one of its tasks; None if none."""
-    by_family = applicable_tasks(scene)
+def draw_task(
+    scene: Scene, rng: np.random.Generator, exclude: Task | None = None, tasks: TaskSet = TASK_SETS["all"]
+) -> Task | None:
+    """A task of ``tasks`` that may be given in ``scene``, drawn as the set draws (`TaskSet.by_family`:
+    a family uniformly, then one of its tasks; or one of the tasks uniformly), never ``exclude``; None if
+    none."""
+    by_family = applicable_tasks(scene, tasks.members)
     if exclude is not None and exclude.family in by_family:
         remaining = [task for task in by_family[exclude.family] if task != exclude]
         if remaining:
@@ -251,9 +276,12 @@ def draw_task(scene: Scene, rng: np.random.Generator, exclude: Task | None = Non
             del by_family[exclude.family]
     if not by_family:
         return None
+    if not tasks.by_family:
+        candidates = [task for family in sorted(by_family) for task in by_family[family]]
+        return candidates[int(rng.integers(len(candidates)))]
     families = sorted(by_family)
-    tasks = by_family[families[int(rng.integers(len(families)))]]
-    return tasks[int(rng.integers(len(tasks)))]
+    family_tasks = by_family[families[int(rng.integers(len(families)))]]
+    return family_tasks[int(rng.integers(len(family_tasks)))]
 
 
 def run_task(recorder: Recorder, teleop: Teleoperator, task: Task, max_steps: int) -> bool:
@@ -283,7 +311,7 @@ def play(
     stats = PlayStats()
     segments: list[Segment] = []
     wanted = int(rng.integers(config.tasks_per_episode[0], config.tasks_per_episode[1] + 1))
-    failures, previous = 0, None
+    failures, previous, tasks = 0, None, config.tasks
     while len(segments) < wanted and failures < config.max_failures:
         if rng.random() < config.idle_chance:
             teleop.begin_idle("pause" if rng.random() < 0.5 else "wander")
@@ -291,7 +319,7 @@ def play(
             for _ in range(steps):
                 recording.step(teleop.act(recording.scene))
             stats.idle_steps += steps
-        task = draw_task(recording.scene, rng, exclude=previous)
+        task = draw_task(recording.scene, rng, exclude=previous, tasks=tasks)
         if task is None:
             break
         previous = task
