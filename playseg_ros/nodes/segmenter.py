@@ -292,6 +292,8 @@ class SegmenterNode(ReleasingLifecycleNode):
             self._ended_quietly.add(data.episode_id)
         for segment in decided:
             self._publish(episode, segment)
+        if data.episode_end:  # every segment of the episode is published
+            self.get_logger().info(f"episode {data.episode_id!r} ended after {data.step + 1} steps")
         if decided:
             drop = decided[-1].end - episode.first_step
             episode.steps = episode.steps[drop:]
