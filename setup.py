@@ -11,6 +11,7 @@ setup(
     license="Apache-2.0",
     python_requires=">=3.11,<3.12",
     packages=find_packages(include=["playseg_core", "playseg_core.*", "playseg_ros", "playseg_ros.*"]),
+    package_data={"playseg_ros.review": ["static/*"]},  # the review page
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),

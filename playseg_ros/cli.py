@@ -620,6 +620,8 @@ def build_parser() -> argparse.ArgumentParser:
         f"command line, {EXIT_INTERRUPTED} interrupted (partial outputs removed)",
     )
     parser.add_argument("--debug", action="store_true", help="print a traceback for every failure")
+    from playseg_ros.review.command import add_review_command
+
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     demo = sub.add_parser("demo", help="run the main job on the sample bags in bags/")
     demo.add_argument(
@@ -634,6 +636,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_segmentation_commands(sub)
     _add_convert_command(sub)
     _add_experiment_command(sub)
+    add_review_command(sub)
     return parser
 
 

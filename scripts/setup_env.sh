@@ -4,7 +4,8 @@
 #   2. install the exactly pinned dependencies (requirements.txt)
 #   3. repair the ROS 2 wheels' CMake files (they name the build machine's Python paths)
 #   4. build and install msg_defs/playseg_msgs into the venv with the real rosidl generators
-#   5. install playseg (playseg_core + playseg_ros) in development mode
+#   5. install Debian's chromium and chromium-driver (the review page's browser tests) when missing
+#   6. install playseg (playseg_core + playseg_ros) in development mode
 # Each step is skipped when its inputs did not change (stamp files in .venv/.stamps), so a warm run takes
 # seconds. On failure it stops, names the step and shows the end of that step's log.
 set -euo pipefail
@@ -86,6 +87,17 @@ install_project() {
   "$VENV/bin/python" -c 'import playseg_core, playseg_ros'
 }
 
+install_browser() {
+  # Debian's headless Chromium and its WebDriver: tests/test_review_browser.py drives them (Selenium).
+  if command -v chromium >/dev/null && command -v chromedriver >/dev/null; then return 0; fi
+  if [[ "$(id -u)" != 0 ]]; then
+    echo "not root: install chromium and chromium-driver with apt-get (the review page's browser tests skip without them)"
+    return 0
+  fi
+  apt-get update
+  DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends chromium chromium-driver
+}
+
 step venv "$("$PYTHON" --version 2>&1)" create_venv
 step requirements "$(hash_of "$ROOT/requirements.txt")" install_requirements
 step fix-cmake "$(hash_of "$ROOT/requirements.txt")" fix_wheel_cmake_paths
@@ -93,4 +105,5 @@ step fix-cmake "$(hash_of "$ROOT/requirements.txt")" fix_wheel_cmake_paths
 ros_pins_key="$(grep -E '^(ros-kilted-|catkin-pkg)' "$ROOT/requirements.txt" | sha256sum | cut -c1-16)"
 step playseg_msgs "$ros_pins_key-$(hash_of "$ROOT"/msg_defs/playseg_msgs/CMakeLists.txt \
   "$ROOT"/msg_defs/playseg_msgs/package.xml "$ROOT"/msg_defs/playseg_msgs/msg/* "$ROOT"/msg_defs/playseg_msgs/srv/*)" build_msgs
+step browser "$(command -v chromedriver || echo none)" install_browser
 step project "$(hash_of "$ROOT/requirements.txt" "$ROOT/setup.py" "$ROOT/package.xml")" install_project

@@ -1,0 +1,192 @@
+"""The review page's HTTP server (the standard library's threading server: nothing to install).
+
+Routes (JSON unless said otherwise; every one needs ``?token=`` when the server was given a token):
+
+    GET  /                                  the page (static/index.html)
+    GET  /static/<file>                     the page's script and style
+    GET  /api/info                          dataset, vocabulary, episodes in queue order, model, jobs
+    GET  /api/episode/<i>                   an episode's labels, proposals, version, cameras, signals
+    GET  /api/episode/<i>/signals?start=&end=&points=   plotted channels over a window of observations
+    GET  /api/episode/<i>/video/<camera>    MP4 (encoded once, cached), with HTTP range requests
+    POST /api/episode/<i>/save              {labels, version, reviewed, rejected} -> {version} or 409
+    POST /api/propose | /api/retrain        start a background job; GET /api/jobs polls them
+    GET  /api/export/preview                the language_persistent rows an export would write
+    POST /api/export                        {out}: the reviewed dataset as LeRobot v3.0
+"""
+
+from __future__ import annotations
+
+import hmac
+import json
+import mimetypes
+import re
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from typing import Any
+from urllib.parse import parse_qs, unquote, urlsplit
+
+from playseg_core.errors import PlaysegError
+from playseg_ros.review.session import ReviewSession
+from playseg_ros.review.store import VersionConflict
+from playseg_ros.review.video import episode_video
+
+STATIC = Path(__file__).with_name("static")
+MAX_BODY = 8 * 1024 * 1024
+CHUNK = 1 << 16
+
+
+class ReviewServer(ThreadingHTTPServer):
+    daemon_threads = True
+
+    def __init__(
+        self, address: tuple[str, int], session: ReviewSession, token: str | None, actions: Any
+    ) -> None:
+        super().__init__(address, ReviewHandler)
+        self.session, self.token, self.actions = session, token, actions
+
+
+class ReviewHandler(BaseHTTPRequestHandler):
+    server: ReviewServer
+    protocol_version = "HTTP/1.1"
+
+    def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 (the base class's name)
+        pass  # one line per request would drown the URL the user needs
+
+    # ----------------------------------------------------------------------------------------------
+
+    def do_GET(self) -> None:  # noqa: N802 (http.server's name)
+        self._handle("GET")
+
+    def do_HEAD(self) -> None:  # noqa: N802
+        self._handle("HEAD")
+
+    def do_POST(self) -> None:  # noqa: N802
+        self._handle("POST")
+
+    def _handle(self, method: str) -> None:
+        url = urlsplit(self.path)
+        query = {k: v[-1] for k, v in parse_qs(url.query).items()}
+        token = self.server.token
+        if token and not hmac.compare_digest(
+            query.get("token", self.headers.get("X-Review-Token", "")), token
+        ):
+            self._json(
+                {"error": "a token is needed: open the URL `playseg review` printed"}, HTTPStatus.FORBIDDEN
+            )
+            return
+        try:
+            self._route(method, unquote(url.path), query)
+        except VersionConflict as error:
+            self._json({"error": str(error)}, HTTPStatus.CONFLICT)
+        except (PlaysegError, OSError, KeyError) as error:
+            self._json({"error": " ".join(str(error).split())}, HTTPStatus.BAD_REQUEST)
+
+    def _route(self, method: str, path: str, query: dict[str, str]) -> None:
+        session = self.server.session
+        if method in ("GET", "HEAD"):
+            if path in ("/", "/index.html"):
+                self._file(STATIC / "index.html")
+            elif path.startswith("/static/") and re.fullmatch(r"/static/[\w.-]+", path):
+                self._file(STATIC / path.removeprefix("/static/"))
+            elif path == "/api/info":
+                self._json(self.server.actions.info())
+            elif path == "/api/jobs":
+                self._json({name: job.to_json() for name, job in session.jobs.items()})
+            elif path == "/api/export/preview":
+                self._json(self.server.actions.export_preview())
+            elif match := re.fullmatch(r"/api/episode/(\d+)", path):
+                self._json(session.episode(int(match[1])))
+            elif match := re.fullmatch(r"/api/episode/(\d+)/signals", path):
+                start, end = int(query.get("start", 0)), int(query.get("end", 1 << 62))
+                self._json(session.signals(int(match[1]), start, end, int(query.get("points", 1000))))
+            elif match := re.fullmatch(r"/api/episode/(\d+)/video/(.+)", path):
+                index, camera = int(match[1]), match[2]
+                session._check_index(index)
+                if camera not in session.dataset.features.cameras:
+                    raise PlaysegError(f"no camera {camera!r} in this dataset")
+                self._file(episode_video(session.dataset, index, camera, session.cache_dir), ranges=True)
+            else:
+                self._json({"error": f"no page {path}"}, HTTPStatus.NOT_FOUND)
+            return
+        body = self._body()
+        if match := re.fullmatch(r"/api/episode/(\d+)/save", path):
+            self._json(session.save(int(match[1]), body))
+        elif path == "/api/propose":
+            self._json(session.start_job("propose", session.propose).to_json())
+        elif path == "/api/retrain":
+            self._json(self.server.actions.retrain(body).to_json())
+        elif path == "/api/export":
+            self._json(self.server.actions.export(body).to_json())
+        else:
+            self._json({"error": f"no action {path}"}, HTTPStatus.NOT_FOUND)
+
+    # ----------------------------------------------------------------------------------------------
+
+    def _body(self) -> dict[str, Any]:
+        length = int(self.headers.get("Content-Length") or 0)
+        if length > MAX_BODY:
+            raise PlaysegError(f"request body of {length} bytes is over {MAX_BODY}")
+        try:
+            body = json.loads(self.rfile.read(length) or b"{}")
+        except ValueError as error:
+            raise PlaysegError(f"request body is not JSON ({error})") from None
+        if not isinstance(body, dict):
+            raise PlaysegError("request body must be a JSON object")
+        return body
+
+    def _json(self, value: Any, status: HTTPStatus = HTTPStatus.OK) -> None:
+        data = json.dumps(value, allow_nan=False, default=str).encode()
+        self.send_response(status)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(data)))
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+        if self.command != "HEAD":
+            self.wfile.write(data)
+
+    def _file(self, path: Path, ranges: bool = False) -> None:
+        """A file; with ``ranges`` a ``Range: bytes=a-b`` request gets 206 and that part (video seeking)."""
+        if not path.is_file():
+            self._json({"error": f"no file {path.name}"}, HTTPStatus.NOT_FOUND)
+            return
+        size = path.stat().st_size
+        start, end, status = 0, size - 1, HTTPStatus.OK
+        header = self.headers.get("Range", "")
+        if ranges and (match := re.fullmatch(r"bytes=(\d*)-(\d*)", header.strip())):
+            first, last = match[1], match[2]
+            if first:
+                start, end = int(first), min(int(last), size - 1) if last else size - 1
+            elif last:
+                start = max(0, size - int(last))
+            if start > end or start >= size:
+                self.send_response(HTTPStatus.REQUESTED_RANGE_NOT_SATISFIABLE)
+                self.send_header("Content-Range", f"bytes */{size}")
+                self.send_header("Content-Length", "0")
+                self.end_headers()
+                return
+            status = HTTPStatus.PARTIAL_CONTENT
+        self.send_response(status)
+        kind = "video/mp4" if path.suffix == ".mp4" else mimetypes.guess_type(path.name)[0] or "text/plain"
+        self.send_header(
+            "Content-Type",
+            kind + ("; charset=utf-8" if kind.startswith(("text/", "application/javascript")) else ""),
+        )
+        self.send_header("Content-Length", str(end - start + 1))
+        if ranges:
+            self.send_header("Accept-Ranges", "bytes")
+        if status == HTTPStatus.PARTIAL_CONTENT:
+            self.send_header("Content-Range", f"bytes {start}-{end}/{size}")
+        self.send_header("Cache-Control", "no-cache")
+        self.end_headers()
+        if self.command == "HEAD":
+            return
+        with open(path, "rb") as handle:
+            handle.seek(start)
+            left = end - start + 1
+            while left > 0:
+                chunk = handle.read(min(CHUNK, left))
+                if not chunk:
+                    break
+                self.wfile.write(chunk)
+                left -= len(chunk)
