@@ -27,6 +27,7 @@ from typing import Any, Literal
 import torch
 
 from playseg_core.data.features import FeatureError, Features
+from playseg_core.errors import PlaysegError
 
 
 def file_digest(path: str | Path, suffix: bytes = b"") -> str:
@@ -46,7 +47,7 @@ Kind = Literal["ps", "labeller", "policy", "unloc", "tridet"]
 KINDS: tuple[str, ...] = ("ps", "labeller", "policy", "unloc", "tridet")
 
 
-class CheckpointError(ValueError):
+class CheckpointError(PlaysegError):
     """A file that is not a usable playseg checkpoint; the message names the file."""
 
 
@@ -72,7 +73,7 @@ class Checkpoint:
 def save_checkpoint(path: str | os.PathLike[str], checkpoint: Checkpoint) -> Path:
     """Write ``checkpoint`` to ``path`` atomically (a temporary file renamed into place)."""
     if checkpoint.kind not in KINDS:
-        raise ValueError(f"checkpoint kind must be one of {KINDS}, got {checkpoint.kind!r}")
+        raise PlaysegError(f"checkpoint kind must be one of {KINDS}, got {checkpoint.kind!r}")
     path = Path(path)
     payload = {
         "format": CHECKPOINT_FORMAT,

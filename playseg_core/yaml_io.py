@@ -25,6 +25,8 @@ from typing import Any
 
 import yaml
 
+from playseg_core.errors import PlaysegError
+
 __all__ = ["YamlFileError", "YamlLimits", "load_yaml", "parse_yaml"]
 
 
@@ -41,7 +43,7 @@ class YamlLimits:
 DEFAULT_LIMITS = YamlLimits()
 
 
-class YamlFileError(ValueError):
+class YamlFileError(PlaysegError):
     """A YAML file that cannot be used: ``<what> '<path>'[, key '<entry>']: <detail>``, one line."""
 
     def __init__(self, path: Path | str, key: str | None, detail: str, what: str = "YAML file") -> None:

@@ -15,6 +15,8 @@ import signal
 import sys
 import time
 
+from playseg_core.errors import PlaysegError
+
 EXIT_FAILED = 1
 """The job could not be done (one line on stderr says why)."""
 EXIT_USAGE = 2
@@ -22,9 +24,10 @@ EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
 """Stopped by SIGINT or SIGTERM; partial outputs were removed."""
 
-EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError)
-"""What bad input or output raises: ValueError covers BagError, DatasetError, FeatureError and
-CheckpointError; OSError a missing, unreadable or unwritable path or a full disk."""
+EXPECTED_ERRORS: tuple[type[BaseException], ...] = (PlaysegError, OSError)
+"""What bad input or output raises: PlaysegError (BagError, DatasetError, FeatureError, CheckpointError
+and every other check of playseg's) and OSError (a missing, unreadable or unwritable path, a full disk).
+Anything else is a bug and keeps its traceback."""
 
 SEGMENTATION_METHODS = ("ps", "unloc", "tridet", "random", "changepoint")
 """`--method` of train and segment: the names of playseg_core.baselines.registry.METHODS (listed here so
@@ -118,13 +121,13 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     domain = load_domain(args.domain)
     presets = getattr(domain, "PRESET_NAMES", ())
     if args.preset not in presets:
-        raise ValueError(f"--preset {args.preset!r}: domain {args.domain!r} has {', '.join(presets)}")
+        raise PlaysegError(f"--preset {args.preset!r}: domain {args.domain!r} has {', '.join(presets)}")
     if args.workers < 1:
-        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+        raise PlaysegError(f"--workers must be >= 1, got {args.workers}")
     if args.annotated_share is not None and not 0.0 < args.annotated_share <= 1.0:
-        raise ValueError(f"--annotated-share must be in (0, 1], got {args.annotated_share}")
+        raise PlaysegError(f"--annotated-share must be in (0, 1], got {args.annotated_share}")
     if args.images and not args.bag:
-        raise ValueError(f"--images {args.images}: only with --bag (the dataset itself keeps raw frames)")
+        raise PlaysegError(f"--images {args.images}: only with --bag (the dataset itself keeps raw frames)")
     summary = domain.generate_dataset(
         args.out,
         args.preset,
@@ -494,13 +497,13 @@ def _cmd_convert(args: argparse.Namespace) -> int:
 
     if args.inspect:
         if len(args.bags) != 1 or args.out or args.mapping:
-            raise ValueError("--inspect takes one bag and no --out or --mapping")
+            raise PlaysegError("--inspect takes one bag and no --out or --mapping")
         print(inspect_text(Path(args.bags[0])), end="")
         return 0
     if not args.out:
-        raise ValueError("--out is required (the dataset directory to write)")
+        raise PlaysegError("--out is required (the dataset directory to write)")
     if (args.method or args.keep) and not args.segment:
-        raise ValueError("--method and --keep are about the --segment model; give --segment MODEL")
+        raise PlaysegError("--method and --keep are about the --segment model; give --segment MODEL")
     mapping = load_mapping(args.mapping) if args.mapping else None
     segmentation = (
         SegmentationSpec.of(args.segment, args.method or "ps", keep=args.keep or "label", device=args.device)

@@ -22,6 +22,8 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from playseg_core.errors import PlaysegError
+
 if TYPE_CHECKING:
     from playseg_ros.launch import Graph
 
@@ -98,7 +100,7 @@ def train_babyai_model(annotated_bag: Path, model_path: Path) -> Path:
     annotated = load_annotated(annotated_bag)
     info, episodes = annotated.info, annotated.episodes
     if info.features is None or not info.instructions:
-        raise ValueError(f"{annotated_bag}: the bag declares no features or instructions (make bags)")
+        raise PlaysegError(f"{annotated_bag}: the bag declares no features or instructions (make bags)")
     split = max(1, len(episodes) // 5)
     train, val = episodes[split:], episodes[:split]
     _log(

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import yaml
 
+from playseg_core.errors import PlaysegError
 from playseg_core.yaml_io import load_yaml
 from playseg_ros.wiring import stop_order, wire_waits
 
@@ -69,23 +70,23 @@ def load_graph(path: str | Path) -> GraphSpec:
     path = Path(path)
     raw = load_yaml(path, "graph config")  # YamlFileError (a ValueError) naming the file and entry
     if not isinstance(raw, dict) or not isinstance(raw.get("nodes"), list) or not raw["nodes"]:
-        raise ValueError(f"{path}: expected a mapping with a non-empty 'nodes' list")
+        raise PlaysegError(f"{path}: expected a mapping with a non-empty 'nodes' list")
     nodes, names = [], set()
     for i, entry in enumerate(raw["nodes"]):
         where = f"{path}: nodes[{i}]"
         if not isinstance(entry, dict) or "name" not in entry or "node" not in entry:
-            raise ValueError(f"{where}: each node needs 'name' and 'node'")
+            raise PlaysegError(f"{where}: each node needs 'name' and 'node'")
         if entry["node"] not in NODE_KINDS:
-            raise ValueError(f"{where}: unknown node {entry['node']!r} (one of {', '.join(NODE_KINDS)})")
+            raise PlaysegError(f"{where}: unknown node {entry['node']!r} (one of {', '.join(NODE_KINDS)})")
         if not isinstance(entry["name"], str) or not NODE_NAME.fullmatch(entry["name"]):
-            raise ValueError(f"{where}: name {entry['name']!r}: a ROS node name is letters, digits and '_'")
+            raise PlaysegError(f"{where}: name {entry['name']!r}: a ROS node name is letters, digits and '_'")
         if entry["name"] in names:
-            raise ValueError(f"{where}: duplicate node name {entry['name']!r}")
+            raise PlaysegError(f"{where}: duplicate node name {entry['name']!r}")
         if not isinstance(entry.get("parameters") or {}, dict):
-            raise ValueError(f"{where}: parameters must be a mapping of parameter name to value")
+            raise PlaysegError(f"{where}: parameters must be a mapping of parameter name to value")
         unknown = set(entry) - {"name", "node", "parameters", "exit_ends_graph"}
         if unknown:
-            raise ValueError(f"{where}: unknown keys {sorted(unknown)}")
+            raise PlaysegError(f"{where}: unknown keys {sorted(unknown)}")
         names.add(entry["name"])
         nodes.append(
             NodeSpec(
@@ -99,10 +100,10 @@ def load_graph(path: str | Path) -> GraphSpec:
     if domain_id is not None and (
         isinstance(domain_id, bool) or not isinstance(domain_id, int) or domain_id < 0
     ):
-        raise ValueError(f"{path}: ros_domain_id {domain_id!r}: expected a non-negative integer")
+        raise PlaysegError(f"{path}: ros_domain_id {domain_id!r}: expected a non-negative integer")
     timeout = raw.get("shutdown_timeout_s", 15.0)
     if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or not 0 < timeout < float("inf"):
-        raise ValueError(f"{path}: shutdown_timeout_s {timeout!r}: expected a positive number of seconds")
+        raise PlaysegError(f"{path}: shutdown_timeout_s {timeout!r}: expected a positive number of seconds")
     graph = GraphSpec(nodes, domain_id, float(timeout))
     graph.wired = wire_waits(graph)  # each stream waits for the subscribers this graph will have
     return graph

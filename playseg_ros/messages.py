@@ -29,6 +29,7 @@ import numpy as np
 
 from playseg_core.data.episode import Episode, Segment, SegmentClip, check_segments
 from playseg_core.data.features import DEFAULT_CAMERA, STATE
+from playseg_core.errors import PlaysegError
 from playseg_ros.typestore import playseg_typestore
 
 PLAY_STEP = "playseg_msgs/msg/PlayStep"
@@ -233,7 +234,7 @@ def labelled_segment_of_steps(
 ) -> Any:
     """A LabelledSegment carrying ``steps``, the PlayStep messages start..end (end inclusive)."""
     if len(steps) != segment.length + 1:
-        raise ValueError(
+        raise PlaysegError(
             f"segment [{segment.start}, {segment.end}) needs {segment.length + 1} steps, got {len(steps)}"
         )
     return _labelled_segment(episode_id, segment, model_id, stamp, frame_id, kind, steps=steps)
@@ -253,7 +254,7 @@ def labelled_segment_reference(
     them, ``step_stamps`` are the header stamps of steps start and end."""
     bag, topic = recording
     if not bag or not topic:
-        raise ValueError(f"a reference needs a bag and a topic, got {recording}")
+        raise PlaysegError(f"a reference needs a bag and a topic, got {recording}")
     return _labelled_segment(
         episode_id, segment, model_id, stamp, frame_id, kind, recording_bag=bag, steps_topic=topic,
         first_step_stamp=time_message(step_stamps[0], kind), last_step_stamp=time_message(step_stamps[1], kind),
@@ -289,7 +290,7 @@ def _labelled_segment(
 # --- reading messages (either kind) ---------------------------------------------------------------------
 
 
-class StepError(ValueError):
+class StepError(PlaysegError):
     """A message that cannot be used; names the episode, step and field."""
 
     def __init__(self, episode: str, step: int | None, detail: str) -> None:
@@ -338,18 +339,20 @@ def frame_from_image(
     """
     if int(image.height) == 0 and int(image.width) == 0 and not len(image.data):
         if frame_shape is not None:
-            raise ValueError(f"{field} is empty, expected {frame_shape[0]}x{frame_shape[1]}")
+            raise PlaysegError(f"{field} is empty, expected {frame_shape[0]}x{frame_shape[1]}")
         return None
     if image.encoding != RGB8:
-        raise ValueError(f"{field}.encoding is {image.encoding!r}, expected {RGB8!r}")
+        raise PlaysegError(f"{field}.encoding is {image.encoding!r}, expected {RGB8!r}")
     height, width, row = int(image.height), int(image.width), int(image.step)
     if row != width * 3:
-        raise ValueError(f"{field}.step is {row} bytes, expected {width * 3} for width {width}")
+        raise PlaysegError(f"{field}.step is {row} bytes, expected {width * 3} for width {width}")
     data = _values(image.data, np.uint8)
     if data.size != height * row:
-        raise ValueError(f"{field}.data holds {data.size} bytes, expected {height} x {row} = {height * row}")
+        raise PlaysegError(
+            f"{field}.data holds {data.size} bytes, expected {height} x {row} = {height * row}"
+        )
     if frame_shape is not None and (height, width, 3) != tuple(frame_shape):
-        raise ValueError(f"{field} is {height}x{width}, expected {frame_shape[0]}x{frame_shape[1]}")
+        raise PlaysegError(f"{field} is {height}x{width}, expected {frame_shape[0]}x{frame_shape[1]}")
     return data.reshape(height, width, 3)
 
 
@@ -360,12 +363,12 @@ def _frames(msg: Any, frame_shapes: Mapping[str, tuple[int, ...]] | None) -> dic
     images = [msg.observation, *getattr(msg, "extra_observations", ())]
     if not names:
         if len(images) > 1:
-            raise ValueError(f"{len(images) - 1} extra_observations but no camera_names")
+            raise PlaysegError(f"{len(images) - 1} extra_observations but no camera_names")
         names = [""]
     elif len(names) != len(images):
-        raise ValueError(f"camera_names has {len(names)} names for {len(images)} images")
+        raise PlaysegError(f"camera_names has {len(names)} names for {len(images)} images")
     elif "" in names or len(set(names)) != len(names):
-        raise ValueError(f"camera_names {names}: names must be non-empty and distinct")
+        raise PlaysegError(f"camera_names {names}: names must be non-empty and distinct")
     shapes = frame_shapes or {}
     frames = {}
     for index, (name, image) in enumerate(zip(names, images, strict=True)):
@@ -374,7 +377,7 @@ def _frames(msg: Any, frame_shapes: Mapping[str, tuple[int, ...]] | None) -> dic
             frame = frame_from_image(image, shapes.get(name), field)
         except ValueError as error:
             if len(names) > 1:  # say which camera
-                raise ValueError(f"camera {name}: {error}") from None
+                raise PlaysegError(f"camera {name}: {error}") from None
             raise
         if frame is not None:
             frames[name] = frame
@@ -389,7 +392,7 @@ def _state(msg: Any) -> np.ndarray | None:
             return None
         shape = (state.size,)  # a flat state published without its shape
     if int(np.prod(shape)) != state.size:
-        raise ValueError(f"state has {state.size} values, state_shape {shape}")
+        raise PlaysegError(f"state has {state.size} values, state_shape {shape}")
     return state.reshape(shape)
 
 
@@ -397,12 +400,12 @@ def _action(msg: Any) -> np.ndarray | None:
     action = _values(msg.action, np.float32)
     if msg.episode_end:
         if action.size:
-            raise ValueError("action is not empty on the episode_end step (the last observation has none)")
+            raise PlaysegError("action is not empty on the episode_end step (the last observation has none)")
         return None
     if not action.size:
-        raise ValueError("action is empty but episode_end is false")
+        raise PlaysegError("action is empty but episode_end is false")
     if not np.all(np.isfinite(action)):
-        raise ValueError(f"action contains NaN or inf: {action.tolist()}")
+        raise PlaysegError(f"action contains NaN or inf: {action.tolist()}")
     return action
 
 

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 from playseg_core.data.dataset import INFO_FILE, SEGMENTS_FILE, check_out_apart
 from playseg_core.data.episode import Episode, Segment, SegmentClip
 from playseg_core.data.features import ACTION, Feature, Features
+from playseg_core.errors import PlaysegError
 from playseg_ros.play_bags import DataInfo
 
 if TYPE_CHECKING:
@@ -42,7 +43,7 @@ def _encoder_overrides(items: list[str]) -> dict[str, str]:
     for item in items:
         feature, sep, kind = item.partition("=")
         if not sep or not feature or (kind not in ENCODER_CHOICES and "." not in kind):
-            raise ValueError(
+            raise PlaysegError(
                 f"--encoder {item!r}: expected FEATURE=KIND, KIND one of {', '.join(ENCODER_CHOICES)}"
             )
         overrides[feature] = kind
@@ -63,9 +64,9 @@ def _action_features(choice: str, features: Features) -> tuple[Features, bool]:
     try:
         count = int(choice)
     except ValueError:
-        raise ValueError(f"--actions must be a count, 'none' or 'auto', got {choice!r}") from None
+        raise PlaysegError(f"--actions must be a count, 'none' or 'auto', got {choice!r}") from None
     if count < 1:
-        raise ValueError(f"--actions must be >= 1, got {count}")
+        raise PlaysegError(f"--actions must be >= 1, got {count}")
     return features.with_action(Feature(ACTION, "action", "float32", (1,), num_values=count)), True
 
 
@@ -74,7 +75,7 @@ def _open_dataset(path: str, option: str = "--data") -> PlayDataset:
     from playseg_core.data.dataset import PlayDataset
 
     if _is_bag(Path(path)):
-        raise ValueError(
+        raise PlaysegError(
             f"{option} {path}: a bag; this command reads a playseg dataset (written by `playseg generate`, "
             "`playseg segment` and the trainer's SaveBuffer)"
         )
@@ -132,7 +133,7 @@ def calibrate(
     model.cfg.check_features(dataset.features, f"model {model_path}")
     val_eps = list(dataset.episodes("val"))
     if not any(episode.segments for episode in val_eps):
-        raise ValueError(f"{data}: the val split has no annotated segments to calibrate on")
+        raise PlaysegError(f"{data}: the val split has no annotated segments to calibrate on")
     calibrated = calibrate_ps_model(model, val_eps, label_accuracy)
     model.to("cpu")
     save_model(out or model_path, model, {**extra, **calibrated, "calibrated_on": str(Path(data).resolve())})
@@ -235,29 +236,31 @@ def train(
     budget = {key: value for key, value in (budget or {}).items() if value is not None}
     get_method(method)  # an unknown method fails before anything is read
     if labeller and method != "ps":
-        raise ValueError(f"--labeller: only with --method ps (method {method} writes what it needs to --out)")
+        raise PlaysegError(
+            f"--labeller: only with --method ps (method {method} writes what it needs to --out)"
+        )
     if label_accuracy is not None and method != "ps":
-        raise ValueError(
+        raise PlaysegError(
             f"--label-accuracy: only with --method ps (method {method} keeps no calibrated threshold)"
         )
     label_accuracy = checked_label_accuracy(label_accuracy)
     if label_head and method != "ps":
-        raise ValueError(f"--label-head: only with --method ps, not {method}")
+        raise PlaysegError(f"--label-head: only with --method ps, not {method}")
     if end_lookahead is not None and method != "ps":
-        raise ValueError(f"--end-lookahead: only with --method ps, not {method}")
+        raise PlaysegError(f"--end-lookahead: only with --method ps, not {method}")
     if end_lookahead is not None and not 0 <= end_lookahead <= MAX_END_LOOKAHEAD:
-        raise ValueError(f"--end-lookahead: must be in 0..{MAX_END_LOOKAHEAD}, got {end_lookahead}")
+        raise PlaysegError(f"--end-lookahead: must be in 0..{MAX_END_LOOKAHEAD}, got {end_lookahead}")
     if end_grounding is not None and method != "ps":
-        raise ValueError(f"--end-grounding: only with --method ps, not {method}")
+        raise PlaysegError(f"--end-grounding: only with --method ps, not {method}")
     if end_grounding is not None and not 0 <= end_grounding <= MAX_END_GROUNDING:
-        raise ValueError(f"--end-grounding: must be in 0..{MAX_END_GROUNDING}, got {end_grounding}")
+        raise PlaysegError(f"--end-grounding: must be in 0..{MAX_END_GROUNDING}, got {end_grounding}")
     if encoders_from and method not in ("unloc", "tridet"):
-        raise ValueError(f"--encoders-from: only with --method unloc or tridet, not {method}")
+        raise PlaysegError(f"--encoders-from: only with --method unloc or tridet, not {method}")
     if val_share is not None and not 0.0 <= val_share < 1.0:
-        raise ValueError(f"--val-share: must be in [0, 1), got {val_share}")
+        raise PlaysegError(f"--val-share: must be in [0, 1), got {val_share}")
     dataset = _open_dataset(data)
     if labeller and Path(labeller).resolve() == Path(out).resolve():
-        raise ValueError(
+        raise PlaysegError(
             f"--labeller {labeller}: the same file as --out (the labeller would replace the PS model)"
         )
     # A run killed while training the labeller resumes there: its PS model is already written.
@@ -275,7 +278,7 @@ def train(
     train_eps = list(dataset.episodes("train"))
     val_eps = list(dataset.episodes("val"))
     if not any(episode.segments for episode in train_eps):
-        raise ValueError(f"--data {data}: the train split has no annotated segments to learn from")
+        raise PlaysegError(f"--data {data}: the train split has no annotated segments to learn from")
     share = DEFAULT_VAL_SHARE if val_share is None else val_share
     train_eps, val_eps, held = hold_out_for_validation(train_eps, val_eps, share)
     annotated_val = [episode for episode in val_eps if episode.segments]
@@ -298,12 +301,12 @@ def train(
     )
     features, read_actions = _action_features(actions, dataset.features)
     if augment and read_actions and clip_symmetries_of(dataset.domain) is None:
-        raise ValueError(
+        raise PlaysegError(
             "--augment: only with --actions none (a mirror would swap left and right turns), or for a "
             "domain whose symmetries turn the actions too (its CLIP_SYMMETRIES)"
         )
     if augment and not get_method(method).augments:
-        raise ValueError(f"--augment: only for PS and the labelling model, not {method}")
+        raise PlaysegError(f"--augment: only for PS and the labelling model, not {method}")
     # In a process group (--nproc, torchrun) each process trains on its own device, and on the CPU on
     # its share of the cores; process 0 writes the outputs.
     resolved = distributed.join(resolved)
@@ -481,7 +484,7 @@ def _input_episodes(
 
     unknown = [split for split in splits if split not in SPLITS]
     if unknown:
-        raise ValueError(f"--splits: unknown split {unknown[0]!r} (expected some of {', '.join(SPLITS)})")
+        raise PlaysegError(f"--splits: unknown split {unknown[0]!r} (expected some of {', '.join(SPLITS)})")
     dataset = PlayDataset.open(path)
 
     def episodes() -> Iterator[Episode]:
@@ -545,7 +548,7 @@ def segment(
     from playseg_core.training.device import resolve_device
 
     if min_len is not None and min_len < 1:
-        raise ValueError(f"--min-len must be >= 1, got {min_len}")
+        raise PlaysegError(f"--min-len must be >= 1, got {min_len}")
     source = Path(input_path)
     if not source.exists():
         raise FileNotFoundError(f"--input {source}: no such bag or dataset")
@@ -573,7 +576,7 @@ def segment(
     instructions = info.instructions or tuple(model.instructions)
     unknown = sorted(set(model.instructions) - set(instructions))
     if unknown:
-        raise ValueError(
+        raise PlaysegError(
             f"{source}: model {model_path} labels instructions the data does not list: {unknown[:3]}"
         )
     model_id = Path(model_path).name
@@ -620,12 +623,12 @@ def _check_report_path(path: Path, option: str, suffixes: tuple[str, ...], datas
     if path.is_dir():
         raise IsADirectoryError(f"{option} {path}: is a directory, expected a file")
     if path.suffix.lower() not in suffixes:
-        raise ValueError(f"{option} {path}: expected a {' or '.join(suffixes)} file")
+        raise PlaysegError(f"{option} {path}: expected a {' or '.join(suffixes)} file")
     resolved = path.resolve()
     for root in datasets:
         own_directories = {(Path(root).resolve() / file).parent for file in (INFO_FILE, SEGMENTS_FILE)}
         if any(directory in resolved.parents for directory in own_directories):
-            raise ValueError(
+            raise PlaysegError(
                 f"{option} {path}: lies among the files of the dataset {root}; choose another path"
             )
 
@@ -654,10 +657,10 @@ def evaluate(pred: str, truth: str, out_json: str | None, plot: str | None, num_
         if len(plotted) < num_plot:
             plotted.append(reference.episode(index, truth=True))
     if not truth_by_id:
-        raise ValueError(f"--pred {pred}: none of its episodes is in --truth {truth}")
+        raise PlaysegError(f"--pred {pred}: none of its episodes is in --truth {truth}")
     unknown = sorted(set(pred_by_id) - set(truth_by_id))
     if unknown:  # e.g. --pred and --truth swapped: the truth holds more episodes than were segmented
-        raise ValueError(
+        raise PlaysegError(
             f"--pred {pred}: {len(unknown)} of its episodes are not in --truth {truth} (first {unknown[0]!r}); "
             "give as --truth the dataset it was segmented from"
         )

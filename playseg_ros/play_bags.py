@@ -26,6 +26,7 @@ import numpy as np
 from playseg_core.data.dataset import PlayDataset
 from playseg_core.data.episode import Episode, Segment, SegmentClip
 from playseg_core.data.features import DEFAULT_CAMERA, FeatureError, Features, conform_episode
+from playseg_core.errors import PlaysegError
 from playseg_ros.bag import BagError, BagReader, BagSummary, BagWriter, topic_info
 from playseg_ros.messages import (
     ANNOTATION,
@@ -271,7 +272,7 @@ def iter_play_bag(
     last_step)`` is told.
     """
     if incomplete not in INCOMPLETE_EPISODES:
-        raise ValueError(f"incomplete must be one of {INCOMPLETE_EPISODES}, got {incomplete!r}")
+        raise PlaysegError(f"incomplete must be one of {INCOMPLETE_EPISODES}, got {incomplete!r}")
     segment_topic = GROUND_TRUTH_TOPIC if truth else ANNOTATIONS_TOPIC
     with BagReader(path) as reader:
         info = DataInfo.of_bag(reader)
@@ -447,7 +448,7 @@ def write_generated_bags(
     if hook is not None:
         return list(hook(dataset_dir, out_dir, images=images, workers=workers))
     if images != "raw":
-        raise ValueError(f"--images {images}: play bags (playseg_msgs/PlayStep) hold raw frames only")
+        raise PlaysegError(f"--images {images}: play bags (playseg_msgs/PlayStep) hold raw frames only")
     lines = []
     for name, bag in write_dataset_bags(dataset_dir, out_dir).items():
         size = sum(f.stat().st_size for f in bag.path.rglob("*") if f.is_file())

@@ -22,6 +22,7 @@ from typing import Any
 
 from mcap.records import Channel, Message, Schema
 
+from playseg_core.errors import PlaysegError
 from playseg_ros.bag.mcap_scan import RecordScan, mcap_files, read_record
 from playseg_ros.bag.schema import METADATA_FILE
 from playseg_ros.bag.writer import partial_path
@@ -29,7 +30,7 @@ from playseg_ros.messages import PLAY_STEP, is_reference, stamp_ns, time_ns
 from playseg_ros.typestore import playseg_typestore, typestore_for
 
 
-class StepsNotRecorded(ValueError):
+class StepsNotRecorded(PlaysegError):
     """The bag does not (yet) hold every step a reference names; the message says which are missing.
     ``recording``: the bag is still being recorded (the steps may come with its next chunk)."""
 

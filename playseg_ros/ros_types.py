@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 
+from playseg_core.errors import PlaysegError
 from playseg_ros.typestore import split_type_name
 
 
@@ -14,4 +15,4 @@ def message_class(type_name: str) -> type:
         module = importlib.import_module(f"{package}.msg")
         return getattr(module, name)
     except (ImportError, AttributeError) as exc:
-        raise ValueError(f"message type {type_name!r} is not installed in this environment") from exc
+        raise PlaysegError(f"message type {type_name!r} is not installed in this environment") from exc

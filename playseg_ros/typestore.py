@@ -16,6 +16,8 @@ from typing import Any
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
+from playseg_core.errors import PlaysegError
+
 PLAYSEG_MSG_TYPES = ("PlayStep", "Annotation", "TimedAnnotation", "LabelledSegment", "TrainerStatus")
 _REPO_MSG_DIR = Path(__file__).resolve().parent.parent / "msg_defs" / "playseg_msgs" / "msg"
 
@@ -27,7 +29,7 @@ def split_type_name(type_name: str) -> tuple[str, str]:
         return parts[0], parts[2]
     if len(parts) == 2 and all(parts):
         return parts[0], parts[1]
-    raise ValueError(f"message type name {type_name!r} is not 'package/msg/Type' or 'package/Type'")
+    raise PlaysegError(f"message type name {type_name!r} is not 'package/msg/Type' or 'package/Type'")
 
 
 def msg_dir() -> Path:
@@ -169,7 +171,7 @@ def _empty(where: str, node_type: int, field_type: Any, store: Typestore) -> Any
         return store.types[field_type](
             **{name: _empty(f"{where}.{name}", kind, inner, store) for name, (kind, inner) in fields}
         )
-    raise ValueError(f"{where}: no value for a field earlier definitions lack")
+    raise PlaysegError(f"{where}: no value for a field earlier definitions lack")
 
 
 _BASE, _NAME, _SEQUENCE = 1, 2, 4  # rosbags' Nodetype values of a base type, a message and a sequence
@@ -184,7 +186,7 @@ def as_current_cdr(data: bytes, type_name: str, type_hash: str) -> bytes:
     store = typestore_for(type_name, type_hash)
     current = playseg_typestore()
     if store is None:
-        raise ValueError(f"{type_name}: unknown definition (type hash {type_hash})")
+        raise PlaysegError(f"{type_name}: unknown definition (type hash {type_hash})")
     if store is current:
         return data
     message = _as_current(store.deserialize_cdr(data, type_name), store, current)

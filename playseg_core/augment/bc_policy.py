@@ -44,6 +44,7 @@ from playseg_core.augment.policy import PolicyTrainReport, SequentialDraws, torc
 from playseg_core.checkpoint import Checkpoint, CheckpointError, read_checkpoint, save_checkpoint
 from playseg_core.data.episode import SegmentClip
 from playseg_core.data.features import ACTION, STATE, FeatureError, Features, check_discrete_actions
+from playseg_core.errors import PlaysegError
 from playseg_core.ps.encoders import (
     EncoderSpec,
     StepEncoders,
@@ -132,7 +133,7 @@ def state_mask(features: Features, exclude: str) -> torch.Tensor | None:
     known = list(state.names or ()) if state is not None else []
     unknown = [name for name in names if name not in known]
     if unknown:
-        raise ValueError(
+        raise PlaysegError(
             f"policy {POLICY_NAME}: state_exclude names {unknown}, not dimensions of the state "
             f"(its names: {known or 'none declared'})"
         )
@@ -224,7 +225,7 @@ class BCPolicy(nn.Module):
             }
         )
         if queries and not self.attention:
-            raise ValueError(
+            raise PlaysegError(
                 f"policy {POLICY_NAME}: instruction_attention needs a camera encoder that gives entities; "
                 f"the encoders are {[spec.kind for spec in self.encoders.specs]}"
             )
@@ -442,12 +443,12 @@ def _setting(name: str, kind: type, value: Any) -> Any:
         kind = float
     if kind is bool and isinstance(value, str):
         if value.lower() not in ("true", "false", "1", "0"):
-            raise ValueError(f"policy {POLICY_NAME}: {name} must be true or false, got {value!r}")
+            raise PlaysegError(f"policy {POLICY_NAME}: {name} must be true or false, got {value!r}")
         return value.lower() in ("true", "1")
     try:
         return kind(value)
     except (TypeError, ValueError):
-        raise ValueError(
+        raise PlaysegError(
             f"policy {POLICY_NAME}: {name} must be of type {kind.__name__}, got {value!r}"
         ) from None
 
@@ -485,11 +486,11 @@ class BCPolicyLearner:
         known = {f.name for f in fields(BCTrainConfig)}
         unknown = sorted(set(config) - known)
         if unknown:
-            raise ValueError(f"policy {POLICY_NAME}: unknown settings {unknown} (known: {sorted(known)})")
+            raise PlaysegError(f"policy {POLICY_NAME}: unknown settings {unknown} (known: {sorted(known)})")
         types = {f.name: type(getattr(BCTrainConfig(), f.name)) for f in fields(BCTrainConfig)}
         settings = BCTrainConfig(**{k: _setting(k, types[k], v) for k, v in config.items()})
         if settings.steps <= 0 or settings.batch_size <= 0 or not 0.0 <= settings.val_fraction < 1.0:
-            raise ValueError(
+            raise PlaysegError(
                 f"policy {POLICY_NAME}: steps and batch_size must be > 0, val_fraction in [0, 1)"
             )
         if (
@@ -497,49 +498,49 @@ class BCPolicyLearner:
             or settings.log_every <= 0
             or (settings.max_minutes is not None and not settings.max_minutes > 0)
         ):
-            raise ValueError(
+            raise PlaysegError(
                 f"policy {POLICY_NAME}: eval_every and patience must be >= 0, log_every > 0 and "
                 f"max_minutes > 0 (or unset), got {settings.eval_every}, {settings.patience}, "
                 f"{settings.log_every} and {settings.max_minutes}"
             )
         if settings.action_head not in ("regress", "bins") or settings.action_bins < 2:
-            raise ValueError(
+            raise PlaysegError(
                 f"policy {POLICY_NAME}: action_head must be 'regress' or 'bins' and action_bins >= 2, got "
                 f"{settings.action_head!r} and {settings.action_bins}"
             )
         if features is None:
             raise FeatureError(f"policy {POLICY_NAME} needs the data's declared features (none were given)")
         if settings.action_head != "regress" and features.action.is_discrete:
-            raise ValueError(
+            raise PlaysegError(
                 f"policy {POLICY_NAME}: action_head {settings.action_head!r} needs a continuous action; "
                 f"{features.action.name!r} is discrete"
             )
         if settings.instruction_attention < 0:
-            raise ValueError(
+            raise PlaysegError(
                 f"policy {POLICY_NAME}: instruction_attention must be >= 0, got {settings.instruction_attention}"
             )
         if (
             min(settings.moved_entity_loss, settings.related_entity_loss) < 0
             or settings.moved_entity_threshold <= 0
         ):
-            raise ValueError(
+            raise PlaysegError(
                 f"policy {POLICY_NAME}: moved_entity_loss and related_entity_loss must be >= 0 and "
                 f"moved_entity_threshold > 0, got {settings.moved_entity_loss}, "
                 f"{settings.related_entity_loss} and {settings.moved_entity_threshold}"
             )
         if settings.moved_entity_loss and not settings.instruction_attention:
-            raise ValueError(
+            raise PlaysegError(
                 f"policy {POLICY_NAME}: moved_entity_loss teaches the instruction's attention, which "
                 "instruction_attention=0 turns off"
             )
         if settings.related_entity_loss and settings.instruction_attention < 2:
-            raise ValueError(
+            raise PlaysegError(
                 f"policy {POLICY_NAME}: related_entity_loss teaches the instruction's second query; "
                 f"instruction_attention is {settings.instruction_attention}"
             )
         state_mask(features, settings.state_exclude)  # ValueError naming an unknown dimension
         if settings.augment and sample_symmetry is None:
-            raise ValueError(
+            raise PlaysegError(
                 f"policy {POLICY_NAME}: augment needs the symmetries of the data's world, which only a "
                 "domain's policy declares"
             )
@@ -698,7 +699,7 @@ class BCPolicyLearner:
         (`_validate`) every ``eval_every`` steps and after the last decide which weights are kept and
         whether it stops early (``patience``). Returns (the policy on the CPU, in eval mode, its report)."""
         if not clips:
-            raise ValueError(f"policy {POLICY_NAME}: no clips to train on")
+            raise PlaysegError(f"policy {POLICY_NAME}: no clips to train on")
         s = self.settings
         started = time.perf_counter()
         device = resolve_device(s.device)

@@ -23,6 +23,7 @@ import numpy as np
 
 from playseg_core.data.episode import Segment, SegmentClip
 from playseg_core.data.features import ACTION, DEFAULT_CAMERA, STATE
+from playseg_core.errors import PlaysegError
 
 MAGIC = b"PSB1"
 _PREFIX = struct.Struct("<4sIQI")  # magic, header length, payload length, crc32 of header + payload
@@ -160,7 +161,7 @@ def _read_record(f, path: Path) -> tuple[SegmentClip, int]:
         raise _TornRecord
     magic, header_len, payload_len, crc = _PREFIX.unpack(prefix)
     if magic != MAGIC:
-        raise ValueError(f"{path}: no record at byte {offset} (bad magic {magic!r})")
+        raise PlaysegError(f"{path}: no record at byte {offset} (bad magic {magic!r})")
     body = f.read(header_len + payload_len)
     if len(body) < header_len + payload_len:
         raise _TornRecord
@@ -169,7 +170,7 @@ def _read_record(f, path: Path) -> tuple[SegmentClip, int]:
         # A bad checksum on the very last record is a torn write; earlier it is corruption.
         if f.read(1) == b"":
             raise _TornRecord
-        raise ValueError(f"{path}: record at byte {offset} fails its checksum")
+        raise PlaysegError(f"{path}: record at byte {offset} fails its checksum")
     header = json.loads(header_bytes)
     arrays, cursor = {}, 0
     for name, spec in header.pop("arrays").items():
@@ -196,5 +197,5 @@ def _read_record(f, path: Path) -> tuple[SegmentClip, int]:
             source=header.pop("source", ""),
         )
     except (KeyError, TypeError, ValueError) as error:
-        raise ValueError(f"{path}: record at byte {offset} is not a segment: {error}") from None
+        raise PlaysegError(f"{path}: record at byte {offset} is not a segment: {error}") from None
     return clip, offset + _PREFIX.size + header_len + payload_len

@@ -21,6 +21,7 @@ import torch
 from playseg_core.data.episode import SegmentClip
 from playseg_core.data.features import Features
 from playseg_core.domains import load_domain
+from playseg_core.errors import PlaysegError
 
 
 @dataclass
@@ -65,7 +66,7 @@ def success_difference_noise(before: Sequence[bool], after: Sequence[bool], seed
     per-episode differences, combined with the spread that retraining with another seed gives each
     policy (``seed_std``, the std of one run's success over training seeds; 0 when not known)."""
     if len(before) != len(after) or len(before) == 0:
-        raise ValueError(f"need two evaluations of the same episodes, got {len(before)} and {len(after)}")
+        raise PlaysegError(f"need two evaluations of the same episodes, got {len(before)} and {len(after)}")
     differences = np.asarray(after, np.float64) - np.asarray(before, np.float64)
     paired = differences.std(ddof=1) / np.sqrt(len(differences)) if len(differences) > 1 else 0.0
     return float(np.sqrt(paired**2 + 2.0 * seed_std**2))
@@ -183,11 +184,11 @@ def load_policy_learner(
     domain, _, policy = name.partition(".")
     if not policy:
         if name not in GENERIC_POLICIES:
-            raise ValueError(
+            raise PlaysegError(
                 f"policy {name!r}: not a generic policy ({sorted(GENERIC_POLICIES)}) nor <domain>.<policy>"
             )
         return GENERIC_POLICIES[name](dict(config or {}), features)
     policies = getattr(load_domain(domain), "POLICIES", {})
     if policy not in policies:
-        raise ValueError(f"policy {name!r}: domain {domain!r} has {sorted(policies) or 'no policies'}")
+        raise PlaysegError(f"policy {name!r}: domain {domain!r} has {sorted(policies) or 'no policies'}")
     return policies[policy](dict(config or {}))

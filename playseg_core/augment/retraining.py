@@ -19,6 +19,7 @@ from playseg_core.augment.buffer import AugmentationBuffer
 from playseg_core.augment.policy import PolicyEvaluation, PolicyLearner, PolicyTrainReport
 from playseg_core.data.episode import Episode, SegmentClip
 from playseg_core.data.features import ACTION, STATE, Features
+from playseg_core.errors import PlaysegError
 
 
 def _check_clip(clip: SegmentClip, features: Features, what: str) -> None:
@@ -27,9 +28,9 @@ def _check_clip(clip: SegmentClip, features: Features, what: str) -> None:
     rows = {**clip.images, ACTION: clip.actions, **({} if clip.state is None else {STATE: clip.state})}
     for name, feature in features.by_name.items():
         if name not in rows:
-            raise ValueError(f"{where}: {what} reads {feature.describe()}, the segment has no {name!r}")
+            raise PlaysegError(f"{where}: {what} reads {feature.describe()}, the segment has no {name!r}")
         if rows[name].shape[1:] != feature.shape:
-            raise ValueError(
+            raise PlaysegError(
                 f"{where}: {what} reads {feature.describe()}, the segment's is {list(rows[name].shape[1:])}"
             )
 
@@ -119,7 +120,7 @@ class AugmentationTrainer:
         """Train a new policy version on base + buffer, evaluate it, write its checkpoint."""
         clips = self.training_clips()
         if not clips:
-            raise ValueError("no segments to train on: the buffer and the annotated data are empty")
+            raise PlaysegError("no segments to train on: the buffer and the annotated data are empty")
         model, report = self.learner.train(clips, progress=progress)
         result = self.evaluate(model)
         success = result.success_rate if result else float("nan")
@@ -149,7 +150,7 @@ class AugmentationTrainer:
         """Evaluate ``model`` (default: the latest version) in the domain's simulator; None without one."""
         if model is None:
             if self.latest is None:
-                raise ValueError("no policy trained yet")
+                raise PlaysegError("no policy trained yet")
             model = self.learner.load(Path(self.latest.checkpoint))[0]
         return self.learner.evaluate(model, episodes or self.config.eval_episodes, self.config.eval_seed)
 
@@ -163,7 +164,7 @@ class AugmentationTrainer:
         try:
             return PolicyVersion(**json.loads(path.read_text()))
         except (ValueError, TypeError) as exc:
-            raise ValueError(f"{path}: not a policy version record: {exc}") from exc
+            raise PlaysegError(f"{path}: not a policy version record: {exc}") from exc
 
 
 def evaluation_figure(result: PolicyEvaluation | None, report: PolicyTrainReport) -> tuple[str, float]:

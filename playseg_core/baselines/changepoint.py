@@ -37,6 +37,7 @@ from playseg_core.baselines.labelled_pieces import (
 )
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.data.features import Features
+from playseg_core.errors import PlaysegError
 from playseg_core.ps.metrics import boundary_scores
 from playseg_core.ps.model import LabelModel, PSModel
 
@@ -73,7 +74,7 @@ def step_signal(
 ) -> np.ndarray:
     """(T, width) standardised signal of ``episode``'s steps (see the module docstring)."""
     if signal not in SIGNALS:
-        raise ValueError(f"changepoint signal must be one of {', '.join(SIGNALS)}, got {signal!r}")
+        raise PlaysegError(f"changepoint signal must be one of {', '.join(SIGNALS)}, got {signal!r}")
     steps = episode.num_steps
     parts = []
     if signal in ("state_action", "all"):
@@ -89,7 +90,7 @@ def step_signal(
             parts.append(actions)
     if signal in ("features", "all"):
         if model is None:
-            raise ValueError(f"changepoint signal {signal!r} needs the labelling model's step features")
+            raise PlaysegError(f"changepoint signal {signal!r} needs the labelling model's step features")
         with torch.no_grad():
             parts.append(model.encode_episode(episode)[1:].double().numpy())
     return _standardised(np.concatenate(parts, axis=1))
@@ -193,7 +194,7 @@ def load_changepoint_segmenter(path: str | Path, options: SegmentOptions) -> Cha
     model, meta = load_labeller(path)
     settings = meta.get("baseline", {})
     if settings.get("method") != METHOD:
-        raise ValueError(
+        raise PlaysegError(
             f"checkpoint {path}: no changepoint settings (train it with `playseg train --method changepoint`)"
         )
     return ChangepointSegmenter(

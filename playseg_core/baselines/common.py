@@ -25,6 +25,7 @@ from torch import nn
 
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.data.features import Features
+from playseg_core.errors import PlaysegError
 from playseg_core.ps.calibration import LABEL_ACCURACY_TARGET, check_target_accuracy
 from playseg_core.ps.encoders import EncoderSpec, StepEncoders, as_tensors
 from playseg_core.ps.labelling import KeepRule
@@ -62,7 +63,7 @@ class TrainingData:
     def annotated(self) -> list[Episode]:
         episodes = [episode for episode in self.train if episode.segments]
         if not episodes:
-            raise ValueError("no annotated training episodes (episodes with segments)")
+            raise PlaysegError("no annotated training episodes (episodes with segments)")
         return episodes
 
 
@@ -101,13 +102,13 @@ class TrainOptions:
         for name in ("max_steps", "epochs", "eval_every", "batch_size"):
             value = getattr(self, name)
             if value is not None and value < 1:
-                raise ValueError(f"{name} must be at least 1, got {value}")
+                raise PlaysegError(f"{name} must be at least 1, got {value}")
         if self.patience is not None and self.patience < 0:
-            raise ValueError(f"patience must be 0 (never stop early) or more, got {self.patience}")
+            raise PlaysegError(f"patience must be 0 (never stop early) or more, got {self.patience}")
         if self.max_minutes is not None and not (self.max_minutes > 0 and math.isfinite(self.max_minutes)):
-            raise ValueError(f"max_minutes must be a positive number, got {self.max_minutes}")
+            raise PlaysegError(f"max_minutes must be a positive number, got {self.max_minutes}")
         if self.lr is not None and not (self.lr > 0 and math.isfinite(self.lr)):
-            raise ValueError(f"lr must be a positive number, got {self.lr}")
+            raise PlaysegError(f"lr must be a positive number, got {self.lr}")
 
     def step_cap(self, num_segments: int, batch_size: int, default_steps: int) -> int:
         """The most optimizer steps: ``max_steps``, else ``epochs`` passes over ``num_segments`` in
@@ -223,7 +224,7 @@ def episode_rng(seed: int, episode_id: str) -> np.random.Generator:
 def annotated_lengths(episodes: Iterable[Episode]) -> np.ndarray:
     lengths = np.array([seg.length for episode in episodes for seg in episode.segments], np.int64)
     if lengths.size == 0:
-        raise ValueError("the training episodes have no annotated segments")
+        raise PlaysegError("the training episodes have no annotated segments")
     return lengths
 
 

@@ -25,6 +25,7 @@ from playseg_core.baselines.labelled_pieces import (
     train_labelling_model,
 )
 from playseg_core.data.episode import Episode, Segment
+from playseg_core.errors import PlaysegError
 from playseg_core.ps.model import LabelModel, PSModel
 
 METHOD = "random"
@@ -36,7 +37,7 @@ def random_spans(
     """Back-to-back windows of uniform length in [shortest, longest] covering [0, num_steps); the last
     one is cut at the end."""
     if not 1 <= shortest <= longest:
-        raise ValueError(f"random windows need 1 <= shortest <= longest, got {shortest}, {longest}")
+        raise PlaysegError(f"random windows need 1 <= shortest <= longest, got {shortest}, {longest}")
     spans, start = [], 0
     while start < num_steps:
         end = min(num_steps, start + int(rng.integers(shortest, longest + 1)))

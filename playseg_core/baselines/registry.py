@@ -29,6 +29,7 @@ from playseg_core.baselines.random_windows import load_random_segmenter, train_r
 from playseg_core.baselines.tridet import load_tridet_segmenter, train_tridet
 from playseg_core.baselines.unloc import load_unloc_segmenter, train_unloc
 from playseg_core.data.episode import Episode, Segment
+from playseg_core.errors import PlaysegError
 from playseg_core.ps.model import PSModel, load_model, save_model
 
 
@@ -136,7 +137,7 @@ METHODS: dict[str, Method] = {
 def get_method(name: str) -> Method:
     """The method called ``name``; ValueError listing the known ones otherwise."""
     if name not in METHODS:
-        raise ValueError(f"--method {name!r}: unknown segmentation method (known: {', '.join(METHODS)})")
+        raise PlaysegError(f"--method {name!r}: unknown segmentation method (known: {', '.join(METHODS)})")
     return METHODS[name]
 
 

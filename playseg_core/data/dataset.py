@@ -115,7 +115,7 @@ SEGMENT_DTYPE = np.dtype(
 )
 
 
-class DatasetError(ValueError):
+class DatasetError(PlaysegError):
     """A dataset on disk is missing a file or contradicts its own metadata."""
 
 
@@ -181,7 +181,7 @@ class DatasetWriter:
                 )
         self.instructions = tuple(instructions)
         if len(set(self.instructions)) != len(self.instructions):
-            raise ValueError("DatasetWriter: instructions contain duplicates")
+            raise PlaysegError("DatasetWriter: instructions contain duplicates")
         self._instruction_index = {text: i for i, text in enumerate(self.instructions)}
         self.meta = dict(meta or {})
         self.features = features
@@ -237,9 +237,9 @@ class DatasetWriter:
             raise RuntimeError(f"{self.path}: DatasetWriter is closed")
         name = f"episode {episode.episode_id!r}"
         if split not in SPLITS:
-            raise ValueError(f"{name}: unknown split {split!r} (expected one of {SPLITS})")
+            raise PlaysegError(f"{name}: unknown split {split!r} (expected one of {SPLITS})")
         if episode.episode_id in self._ids:
-            raise ValueError(f"{name}: episode_id already written to this dataset")
+            raise PlaysegError(f"{name}: episode_id already written to this dataset")
         if self.features is None:
             self.features = infer_features(episode)
         episode = conform_episode(episode, self.features)
@@ -252,7 +252,7 @@ class DatasetWriter:
             elif seg.instruction in self._instruction_index:
                 labels.append(self._instruction_index[seg.instruction])
             else:
-                raise ValueError(
+                raise PlaysegError(
                     f"{name}: segment [{seg.start}, {seg.end}) field 'instruction' {seg.instruction!r} "
                     "is not in the dataset's instruction list"
                 )
@@ -307,7 +307,7 @@ class DatasetWriter:
 
     def _finish(self) -> None:
         if not self._ids or self.features is None:
-            raise ValueError(f"{self.path}: no episodes were added; refusing to write an empty dataset")
+            raise PlaysegError(f"{self.path}: no episodes were added; refusing to write an empty dataset")
         for handle in [*self._files.values(), self._episodes_file]:
             handle.flush()
             os.fsync(handle.fileno())

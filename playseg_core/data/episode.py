@@ -33,7 +33,7 @@ class Segment:
 
     def __post_init__(self) -> None:
         if not 0 <= self.start < self.end:
-            raise ValueError(f"segment [{self.start}, {self.end}) must satisfy 0 <= start < end")
+            raise PlaysegError(f"segment [{self.start}, {self.end}) must satisfy 0 <= start < end")
 
     @property
     def length(self) -> int:
@@ -100,7 +100,9 @@ class SegmentClip:
         seg = self.segment
         name = f"episode {self.episode_id!r} segment [{seg.start}, {seg.end})"
         if self.actions.ndim < 2 or self.actions.shape[0] != seg.length:
-            raise ValueError(f"{name}: actions must be ({seg.length}, action_dim), got {self.actions.shape}")
+            raise PlaysegError(
+                f"{name}: actions must be ({seg.length}, action_dim), got {self.actions.shape}"
+            )
         _check_observations(name, self.images, self.state, seg.length + 1)
 
     @classmethod
@@ -133,18 +135,18 @@ def _check_observations(
 ) -> None:
     for camera, frames in images.items():
         if frames.ndim != 4 or frames.shape[0] != rows or frames.shape[-1] != 3 or frames.dtype != np.uint8:
-            raise ValueError(
+            raise PlaysegError(
                 f"{name}: images[{camera!r}] must be ({rows}, H, W, 3) uint8, got {frames.shape} {frames.dtype}"
             )
     if state is not None and state.shape[:1] != (rows,):
-        raise ValueError(f"{name}: state must have {rows} rows, got shape {state.shape}")
+        raise PlaysegError(f"{name}: state must have {rows} rows, got shape {state.shape}")
 
 
 def check_episode(episode: Episode) -> None:
     """Raise ValueError naming the episode and field when the arrays or segments are inconsistent."""
     name = f"episode {episode.episode_id!r}"
     if episode.actions.ndim < 2:
-        raise ValueError(f"{name}: actions must be (T, action_dim), got shape {episode.actions.shape}")
+        raise PlaysegError(f"{name}: actions must be (T, action_dim), got shape {episode.actions.shape}")
     _check_observations(name, episode.images, episode.state, episode.num_steps + 1)
     times = episode.timestamps
     if times is not None and (
@@ -164,11 +166,11 @@ def check_segments(segments: Sequence[Segment], num_steps: int, name: str) -> No
     previous_end = 0
     for seg in segments:
         if seg.end > num_steps:
-            raise ValueError(
+            raise PlaysegError(
                 f"{name}: segment [{seg.start}, {seg.end}) ends after the episode ({num_steps} steps)"
             )
         if seg.start < previous_end:
-            raise ValueError(
+            raise PlaysegError(
                 f"{name}: segment [{seg.start}, {seg.end}) overlaps or precedes the previous one"
             )
         previous_end = seg.end

@@ -24,6 +24,7 @@ from typing import Any, Literal, NotRequired, TypedDict
 import numpy as np
 
 from playseg_core.data.episode import Episode
+from playseg_core.errors import PlaysegError
 
 IMAGE_PREFIX = "observation.images."
 STATE = "observation.state"
@@ -35,7 +36,7 @@ without a declared schema)."""
 Kind = Literal["image", "state", "action"]
 
 
-class FeatureError(ValueError):
+class FeatureError(PlaysegError):
     """Data that contradicts a feature schema; the message names the feature."""
 
 

@@ -25,6 +25,7 @@ from playseg_core.data.dataset import DatasetWriter
 from playseg_core.data.episode import Episode
 from playseg_core.data.features import Features
 from playseg_core.data.splits import SPLITS, SplitAssigner, SplitTargets
+from playseg_core.errors import PlaysegError
 
 SEED_STRIDE = 10**9
 """Episode seeds of one run are ``base_seed * SEED_STRIDE + index``."""
@@ -43,7 +44,7 @@ class Preset(Generic[PlayT]):
     targets: SplitTargets
 
 
-class UnknownPresetError(KeyError, ValueError):
+class UnknownPresetError(PlaysegError, KeyError):
     """A preset name a domain does not know (a KeyError for lookups, a ValueError for the CLI)."""
 
     def __str__(self) -> str:  # KeyError would print the message quoted
@@ -93,7 +94,7 @@ class GenerateSummary:
 def episode_seed(base_seed: int, index: int) -> int:
     """Seed of episode ``index`` in a run with ``base_seed``."""
     if base_seed < 0 or not 0 <= index < SEED_STRIDE:
-        raise ValueError(f"seed {base_seed} must be >= 0 and episode index {index} in [0, {SEED_STRIDE})")
+        raise PlaysegError(f"seed {base_seed} must be >= 0 and episode index {index} in [0, {SEED_STRIDE})")
     return base_seed * SEED_STRIDE + index
 
 
@@ -119,7 +120,7 @@ def episode_stream(
     little is generated past the last episode needed.
     """
     if workers < 1 or chunk_size < 1 or chunks_per_worker < 1:
-        raise ValueError(
+        raise PlaysegError(
             f"workers, chunk_size and chunks_per_worker must be >= 1, got {workers}, {chunk_size}, "
             f"{chunks_per_worker}"
         )

@@ -11,6 +11,8 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
+from playseg_core.errors import PlaysegError
+
 SPLITS: tuple[str, ...] = ("train", "val", "play", "test")
 ANNOTATED_SPLITS: tuple[str, ...] = ("train", "val")
 """Splits whose episodes come with their segments; ``play`` and ``test`` hide them unless truth=True."""
@@ -32,9 +34,9 @@ class SplitTargets:
 
     def __post_init__(self) -> None:
         if min(self.test_segments, self.annotated_segments, self.play_segments) < 0:
-            raise ValueError("SplitTargets: segment targets must be >= 0")
+            raise PlaysegError("SplitTargets: segment targets must be >= 0")
         if not 0.0 <= self.val_fraction < 1.0:
-            raise ValueError(f"SplitTargets.val_fraction must be in [0, 1), got {self.val_fraction}")
+            raise PlaysegError(f"SplitTargets.val_fraction must be in [0, 1), got {self.val_fraction}")
 
     @classmethod
     def from_share(
@@ -42,7 +44,7 @@ class SplitTargets:
     ) -> SplitTargets:
         """``annotated_share`` of ``total_segments`` annotated (train+val), the rest play."""
         if not 0.0 < annotated_share <= 1.0:
-            raise ValueError(f"annotated_share must be in (0, 1], got {annotated_share}")
+            raise PlaysegError(f"annotated_share must be in (0, 1], got {annotated_share}")
         annotated = round(total_segments * annotated_share)
         return cls(test_segments, annotated, total_segments - annotated, val_fraction)
 
@@ -106,7 +108,7 @@ def held_out_ids(episode_ids: Iterable[str], share: float = DEFAULT_VAL_SHARE) -
     the lowest by `episode_rank`; none when fewer than two (one episode cannot be both trained on and
     held out) or ``share`` is 0."""
     if not 0.0 <= share < 1.0:
-        raise ValueError(f"val share must be in [0, 1), got {share}")
+        raise PlaysegError(f"val share must be in [0, 1), got {share}")
     ids = sorted(set(episode_ids), key=lambda episode_id: (episode_rank(episode_id), episode_id))
     if len(ids) < 2 or share == 0.0:
         return set()

@@ -31,14 +31,16 @@ import importlib
 import re
 from types import ModuleType
 
+from playseg_core.errors import PlaysegError
+
 
 def load_domain(name: str) -> ModuleType:
     """The domain package ``name``; ValueError naming it when there is none."""
     if not re.fullmatch(r"[a-z][a-z0-9_]*", name or ""):
-        raise ValueError(f"invalid domain name {name!r}")
+        raise PlaysegError(f"invalid domain name {name!r}")
     try:
         return importlib.import_module(f"{__name__}.{name}")
     except ModuleNotFoundError as error:
         if error.name != f"{__name__}.{name}":
             raise
-        raise ValueError(f"unknown domain {name!r} (no package playseg_core.domains.{name})") from None
+        raise PlaysegError(f"unknown domain {name!r} (no package playseg_core.domains.{name})") from None

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from playseg_core.data.episode import Episode, Segment
+from playseg_core.errors import PlaysegError
 
 GT_MULTIPLES = {"gt_2x": 2, "gt_4x": 4}
 SEGMENTER_CONDITIONS = {"ps": "ps", "random_relabel": "random", "unloc": "unloc", "tridet": "tridet"}
@@ -113,7 +114,7 @@ def check_conditions(names: Sequence[str]) -> list[str]:
     unknown = [name for name in expanded if name not in KNOWN_CONDITIONS]
     if unknown:
         known = [*CONDITION_GROUPS, *KNOWN_CONDITIONS]
-        raise ValueError(f"unknown conditions {unknown} (known: {', '.join(known)})")
+        raise PlaysegError(f"unknown conditions {unknown} (known: {', '.join(known)})")
     return list(dict.fromkeys(expanded))
 
 
@@ -167,7 +168,7 @@ def balance_labels(added: AddedSegments, condition: str, start: Sequence[Episode
     start_counts = Counter(s.instruction for episode in start for s in episode.segments)
     total = sum(start_counts.values())
     if total == 0:
-        raise ValueError("balance_labels needs a start split with annotated segments")
+        raise PlaysegError("balance_labels needs a start split with annotated segments")
     caps = {label: math.ceil(count * added.count / total) for label, count in start_counts.items()}
     ranked = sorted(
         (

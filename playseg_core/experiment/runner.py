@@ -37,6 +37,7 @@ from playseg_core.data.dataset import PlayDataset, is_dataset
 from playseg_core.data.episode import Episode
 from playseg_core.data.features import Features
 from playseg_core.domains import load_domain
+from playseg_core.errors import PlaysegError
 from playseg_core.experiment.conditions import (
     BALANCED,
     CONDITIONS,
@@ -104,12 +105,12 @@ class ExperimentSpec:
     def of_domain(cls, domain: str) -> ExperimentSpec:
         spec = getattr(load_domain(domain), "EXPERIMENT", None)
         if not isinstance(spec, cls):
-            raise ValueError(f"domain {domain!r} has no experiment (its package defines no EXPERIMENT)")
+            raise PlaysegError(f"domain {domain!r} has no experiment (its package defines no EXPERIMENT)")
         return spec
 
     def scale(self, name: str) -> ExperimentScale:
         if name not in self.scales:
-            raise ValueError(f"--scale {name!r}: this domain has {', '.join(self.scales)}")
+            raise PlaysegError(f"--scale {name!r}: this domain has {', '.join(self.scales)}")
         return self.scales[name]
 
 
@@ -179,7 +180,7 @@ def run_experiment(
     resolve_device(device)  # DeviceError (one line) before any work
 
     if seeds < 1 or workers < 1:
-        raise ValueError(f"--seeds and --workers must be >= 1, got {seeds} and {workers}")
+        raise PlaysegError(f"--seeds and --workers must be >= 1, got {seeds} and {workers}")
     spec = ExperimentSpec.of_domain(domain)
     scale = spec.scale(scale_name)
     conditions = check_conditions(conditions)
@@ -260,7 +261,7 @@ def _check_same_experiment(out: Path, settings: dict[str, Any]) -> None:
             held["spec"] = {k: defaults[k] for k in defaults.keys() - held_spec.keys()} | held_spec
         if held != recorded:
             changed = sorted(k for k in recorded if held.get(k) != recorded[k])
-            raise ValueError(
+            raise PlaysegError(
                 f"--out {out}: holds another experiment ({', '.join(changed)} differ); use a new --out"
             )
         return
@@ -305,9 +306,9 @@ def _check_made_from(out: Path, path: Path, made_from: dict[str, str] | None, re
     for name, digest in (made_from or {}).items():
         source = out / name
         if not source.exists():
-            raise ValueError(f"{path}: made from {source}, which is missing; {redo}")
+            raise PlaysegError(f"{path}: made from {source}, which is missing; {redo}")
         if file_digest(source) != digest:
-            raise ValueError(f"{path}: made from another {source} than the one there now; {redo}")
+            raise PlaysegError(f"{path}: made from another {source} than the one there now; {redo}")
 
 
 def load_cached_segments(out: Path, path: Path) -> AddedSegments:

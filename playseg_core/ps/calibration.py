@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from playseg_core.data.episode import Episode, Segment
+from playseg_core.errors import PlaysegError
 from playseg_core.ps.decoding import decode_segments
 from playseg_core.ps.labelling import label_segments, segment_probability
 from playseg_core.ps.metrics import BoundaryCounts, match_boundaries
@@ -68,7 +69,7 @@ def calibrate_end_bias(
     ``model.end_bias`` to the result's bias to segment with it (`calibrate_ps_model` does).
     """
     if not candidates:
-        raise ValueError("calibrate_end_bias needs at least one candidate bias")
+        raise PlaysegError("calibrate_end_bias needs at least one candidate bias")
     model.eval()
     raw_logits, true_ends = [], []
     for episode in episodes:
@@ -79,7 +80,7 @@ def calibrate_end_bias(
         )
         true_ends.append([seg.end for seg in episode.segments])
     if not raw_logits:
-        raise ValueError("calibrate_end_bias needs annotated episodes; none of the given ones has segments")
+        raise PlaysegError("calibrate_end_bias needs annotated episodes; none of the given ones has segments")
     allowed = sorted({float(b) for b in candidates})
     scores: dict[float, BoundaryCounts] = {}
     for bias in sorted(set(allowed) | {0.0}):  # 0.0 too, for f1_without_bias
@@ -117,7 +118,7 @@ def check_target_accuracy(target: float, what: str = "target_accuracy") -> float
     """``target`` when it is a label accuracy a threshold can be chosen for, in (0, 1]; else ValueError
     naming ``what`` (the option or field it came from)."""
     if not 0.0 < target <= 1.0:
-        raise ValueError(f"{what} must be in (0, 1], got {target}")
+        raise PlaysegError(f"{what} must be in (0, 1], got {target}")
     return target
 
 
@@ -133,7 +134,7 @@ def calibrate_threshold(
     conf = np.asarray(confidences, dtype=np.float64)
     hits = np.asarray(correct, dtype=bool)
     if conf.shape != hits.shape or conf.ndim != 1:
-        raise ValueError(f"confidences {conf.shape} and correct {hits.shape} must be equal-length 1-D")
+        raise PlaysegError(f"confidences {conf.shape} and correct {hits.shape} must be equal-length 1-D")
     check_target_accuracy(target_accuracy)
     if conf.size == 0:
         return math.inf
@@ -164,7 +165,7 @@ class LabelCalibration:
         """The threshold on ``scores`` for ``target_accuracy`` (`calibrate_threshold`) and what it keeps;
         ValueError saying the held-out episodes have no ``what`` when there are no scores."""
         if not scores:
-            raise ValueError(f"calibration needs {what}; the held-out episodes have none")
+            raise PlaysegError(f"calibration needs {what}; the held-out episodes have none")
         threshold = calibrate_threshold(scores, correct, target_accuracy)
         score, hits = np.asarray(scores), np.asarray(correct)
         kept = score >= threshold

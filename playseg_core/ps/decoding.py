@@ -21,6 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from playseg_core.errors import PlaysegError
+
 __all__ = [
     "Commit",
     "Decoded",
@@ -69,13 +71,13 @@ def log_sigmoid(z: np.ndarray) -> np.ndarray:
 def _check_end_logits(end_logits: np.ndarray) -> np.ndarray:
     logits = np.asarray(end_logits, dtype=np.float64)
     if logits.ndim != 2:
-        raise ValueError(f"end_logits must be a 2-D (T, L_max) array, got shape {logits.shape}")
+        raise PlaysegError(f"end_logits must be a 2-D (T, L_max) array, got shape {logits.shape}")
     num_steps, max_len = logits.shape
     if num_steps < 1 or max_len < 1:
-        raise ValueError(f"end_logits must have at least one step and one length, got shape {logits.shape}")
+        raise PlaysegError(f"end_logits must have at least one step and one length, got shape {logits.shape}")
     valid = _valid_mask(num_steps, max_len)
     if np.isnan(logits[valid]).any():
-        raise ValueError("end_logits contains NaN in a used entry (one with start + k + 1 <= T)")
+        raise PlaysegError("end_logits contains NaN in a used entry (one with start + k + 1 <= T)")
     return logits
 
 
@@ -88,18 +90,18 @@ def _valid_mask(num_steps: int, max_len: int) -> np.ndarray:
 
 def check_lengths(min_len: int, max_len: int, available: int) -> None:
     if not isinstance(min_len, int | np.integer) or min_len < 1:
-        raise ValueError(f"min_len must be an integer >= 1, got {min_len!r}")
+        raise PlaysegError(f"min_len must be an integer >= 1, got {min_len!r}")
     if not isinstance(max_len, int | np.integer) or max_len < min_len:
-        raise ValueError(f"max_len must be an integer >= min_len ({min_len}), got {max_len!r}")
+        raise PlaysegError(f"max_len must be an integer >= min_len ({min_len}), got {max_len!r}")
     if max_len > available:
-        raise ValueError(f"max_len ({max_len}) exceeds the number of score columns L_max ({available})")
+        raise PlaysegError(f"max_len ({max_len}) exceeds the number of score columns L_max ({available})")
 
 
 def check_feasible(num_steps: int, min_len: int, max_len: int) -> None:
     """Some number of segments K with K*min_len <= T <= K*max_len must exist."""
     smallest_count = -(-num_steps // max_len)
     if smallest_count * min_len > num_steps:
-        raise ValueError(
+        raise PlaysegError(
             f"no segmentation of T={num_steps} steps into segments of length "
             f"min_len={min_len}..max_len={max_len} exists"
         )
@@ -163,7 +165,7 @@ def decode_segments(end_logits: np.ndarray, min_len: int = 1, max_len: int | Non
 
     total = float(values[num_steps + max_len])
     if total == -np.inf:
-        raise ValueError("end_logits: every feasible segmentation has log-score -inf")
+        raise PlaysegError("end_logits: every feasible segmentation has log-score -inf")
     segments = _backtrack(back, num_steps, stop=0)
     seg_scores = [float(by_end[end - 1, start - end + max_len]) for start, end in segments]
     return Decoded(segments=segments, log_score=total, segment_log_scores=seg_scores)
@@ -188,7 +190,7 @@ def end_columns(end_logits: np.ndarray) -> np.ndarray:
     """
     logits = np.asarray(end_logits, dtype=np.float64)
     if logits.ndim != 2:
-        raise ValueError(f"end_logits must be a 2-D (T, L_max) array, got shape {logits.shape}")
+        raise PlaysegError(f"end_logits must be a 2-D (T, L_max) array, got shape {logits.shape}")
     num_steps, max_len = logits.shape
     steps = np.arange(1, num_steps + 1)[:, None]
     k = np.arange(max_len)[None, :]
@@ -244,7 +246,7 @@ class OnlineDecoder:
             raise RuntimeError("OnlineDecoder.push after finish(); call reset() to start a new episode")
         column = np.asarray(end_column, dtype=np.float64)
         if column.ndim != 1 or column.shape[0] < self.max_len:
-            raise ValueError(
+            raise PlaysegError(
                 f"end_column must be a 1-D array of at least max_len={self.max_len} logits, "
                 f"got shape {column.shape}"
             )
@@ -252,7 +254,7 @@ class OnlineDecoder:
         usable = min(t, self.max_len)  # k < usable <=> start t-k-1 >= 0
         column = column[: self.max_len].copy()
         if np.isnan(column[:usable]).any():
-            raise ValueError(f"end_column at step {t} contains NaN in a used entry")
+            raise PlaysegError(f"end_column at step {t} contains NaN in a used entry")
         column[usable:] = 0.0
 
         scores = self._not_ending + log_sigmoid(column)
@@ -317,10 +319,12 @@ class OnlineDecoder:
         if self.finished:
             raise RuntimeError("OnlineDecoder.finish called twice; call reset() to start a new episode")
         if self.t == 0:
-            raise ValueError("OnlineDecoder.finish: no step was pushed (an episode needs at least one step)")
+            raise PlaysegError(
+                "OnlineDecoder.finish: no step was pushed (an episode needs at least one step)"
+            )
         check_feasible(self.t, self.min_len, self.max_len)
         if self._recent[-1] == -np.inf:
-            raise ValueError("end_column stream: every feasible segmentation has log-score -inf")
+            raise PlaysegError("end_column stream: every feasible segmentation has log-score -inf")
         self.finished = True
         segments = self._commit_to(self.t, decided_at=self.t)
         self._back.clear()

@@ -25,6 +25,7 @@ from torch import nn
 from playseg_core.data.episode import Episode
 from playseg_core.data.features import ACTION, Feature, FeatureError, Features, check_discrete_actions
 from playseg_core.domains import load_domain
+from playseg_core.errors import PlaysegError
 
 
 @dataclass(frozen=True)
@@ -126,7 +127,7 @@ def register_encoder(kind: str) -> Callable[[EncoderFactory], EncoderFactory]:
 
     def register(factory: EncoderFactory) -> EncoderFactory:
         if kind in _REGISTRY and _REGISTRY[kind] is not factory:
-            raise ValueError(f"step encoder kind {kind!r} is registered twice")
+            raise PlaysegError(f"step encoder kind {kind!r} is registered twice")
         _REGISTRY[kind] = factory
         return factory
 
@@ -138,7 +139,7 @@ def build_encoder(spec: EncoderSpec, feature: Feature) -> StepEncoder:
     if spec.kind not in _REGISTRY and "." in spec.kind:
         load_domain(spec.kind.split(".", 1)[0])  # a domain registers its encoders on import
     if spec.kind not in _REGISTRY:
-        raise ValueError(f"unknown step encoder kind {spec.kind!r} (known: {', '.join(sorted(_REGISTRY))})")
+        raise PlaysegError(f"unknown step encoder kind {spec.kind!r} (known: {', '.join(sorted(_REGISTRY))})")
     return _REGISTRY[spec.kind](feature, dict(spec.config))
 
 
@@ -170,7 +171,7 @@ def _normaliser(config: dict[str, Any], size: int, name: str) -> tuple[torch.Ten
     mean = torch.tensor(config.get("mean", [0.0] * size), dtype=torch.float32)
     std = torch.tensor(config.get("std", [1.0] * size), dtype=torch.float32)
     if mean.shape != (size,) or std.shape != (size,) or bool((std <= 0).any()):
-        raise ValueError(f"step encoder of {name!r}: mean/std must be {size} values (std > 0)")
+        raise PlaysegError(f"step encoder of {name!r}: mean/std must be {size} values (std > 0)")
     return mean, std
 
 
@@ -269,7 +270,7 @@ class StepEncoders(nn.Module):
     def __init__(self, specs: Sequence[EncoderSpec], features: Features) -> None:
         super().__init__()
         if not specs:
-            raise ValueError("a model needs at least one step encoder")
+            raise PlaysegError("a model needs at least one step encoder")
         self.specs = list(specs)
         self.encoders = nn.ModuleList(build_encoder(spec, features[spec.feature]) for spec in specs)
 
@@ -424,7 +425,7 @@ def feature_statistics(
     stats = {}
     for name in names:
         if not counts[name]:
-            raise ValueError(f"statistics of feature {name!r}: no values in the training episodes")
+            raise PlaysegError(f"statistics of feature {name!r}: no values in the training episodes")
         mean = sums[name] / counts[name]
         std = np.sqrt(np.maximum(squares[name] / counts[name] - np.square(mean), 0.0))
         stats[name] = {"mean": mean.tolist(), "std": np.where(std > 1e-6, std, 1.0).tolist()}
@@ -439,7 +440,9 @@ def _default_spec(kind: str, feature: Feature, statistics: dict[str, dict[str, l
     config: dict[str, Any] = {}
     if kind in ("state_mlp", "continuous_action"):
         if feature.name not in statistics:
-            raise ValueError(f"step encoder {kind} of {feature.name!r} needs the training data's statistics")
+            raise PlaysegError(
+                f"step encoder {kind} of {feature.name!r} needs the training data's statistics"
+            )
         config.update(statistics[feature.name])
     return EncoderSpec(kind, feature.name, config)
 

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from playseg_core.data.episode import Episode
+from playseg_core.errors import PlaysegError
 from playseg_core.ps.encoders import ObservationEncoder, StepEncoders
 
 if TYPE_CHECKING:
@@ -67,7 +68,7 @@ class FixedFeatureCache:
         self, episode: Episode, symmetry: int, symmetries: ClipSymmetries | None
     ) -> dict[str, torch.Tensor]:
         if symmetry and symmetries is None:
-            raise ValueError(f"symmetry {symmetry} asked of the cache without the symmetries")
+            raise PlaysegError(f"symmetry {symmetry} asked of the cache without the symmetries")
         parts: dict[str, list[torch.Tensor]] = {feature: [] for feature in self.fixed}
         for first in range(0, episode.num_steps + 1, ENCODE_ROWS):  # a chunk in memory at a time
             last = min(first + ENCODE_ROWS, episode.num_steps + 1) - 1

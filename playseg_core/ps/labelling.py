@@ -22,6 +22,7 @@ from typing import Any
 import torch
 
 from playseg_core.data.episode import Episode, Segment
+from playseg_core.errors import PlaysegError
 from playseg_core.ps.model import LabelModel, PSModel
 
 
@@ -75,7 +76,7 @@ class KeepRule:
 
     def __post_init__(self) -> None:
         if self.kind not in KEEP_RULES:
-            raise ValueError(f"keep rule must be one of {', '.join(KEEP_RULES)}, got {self.kind!r}")
+            raise PlaysegError(f"keep rule must be one of {', '.join(KEEP_RULES)}, got {self.kind!r}")
 
     def score(self, segment: Segment) -> float:
         return segment_probability(segment) if self.kind == "own_cuts" else segment.confidence
@@ -102,7 +103,7 @@ class KeepRule:
         rule = cls(kind)  # checks the kind
         record = KEEP_RULES[kind][0]
         if kind == "own_cuts" and "threshold" not in meta.get(record, {}):
-            raise ValueError(
+            raise PlaysegError(
                 f"{source}: records no own-cut calibration (a PS checkpoint calibrated on a val split does; "
                 "`playseg calibrate` adds it); keep by 'label' instead"
             )

@@ -19,6 +19,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from playseg_core.data.episode import Segment, check_segments
+from playseg_core.errors import PlaysegError
 
 __all__ = [
     "TOLERANCES",
@@ -113,7 +114,7 @@ def match_boundaries(pred: Sequence[int], truth: Sequence[int], tolerance: int =
     in reach; optimal because all reach windows have the same width.
     """
     if tolerance < 0:
-        raise ValueError(f"tolerance must be >= 0, got {tolerance}")
+        raise PlaysegError(f"tolerance must be >= 0, got {tolerance}")
     matched = p = t = 0
     while p < len(pred) and t < len(truth):
         if truth[t] < pred[p] - tolerance:
@@ -145,7 +146,7 @@ def boundary_scores(
     true_ends = [seg.end for seg in truth]
     if not include_final:
         if num_steps is None:
-            raise ValueError("num_steps is required when include_final=False (the final boundary is T)")
+            raise PlaysegError("num_steps is required when include_final=False (the final boundary is T)")
         pred_ends = [end for end in pred_ends if end != num_steps]
         true_ends = [end for end in true_ends if end != num_steps]
     return BoundaryCounts(match_boundaries(pred_ends, true_ends, tolerance), len(pred_ends), len(true_ends))
@@ -158,7 +159,7 @@ def label_accuracy(pred: Sequence[Segment], truth: Sequence[Segment], num_steps:
     step no prediction covers counts as wrong.
     """
     if num_steps < 0:
-        raise ValueError(f"num_steps must be >= 0, got {num_steps}")
+        raise PlaysegError(f"num_steps must be >= 0, got {num_steps}")
     _check(pred, "pred", num_steps)
     _check(truth, "truth", num_steps)
     predicted: list[str | None] = [None] * num_steps
@@ -196,10 +197,10 @@ def evaluate(
     """
     unknown = sorted(set(pred_by_episode) - set(truth_by_episode))
     if unknown:
-        raise ValueError(f"pred_by_episode has episodes without ground truth: {unknown[:5]}")
+        raise PlaysegError(f"pred_by_episode has episodes without ground truth: {unknown[:5]}")
     missing = sorted(set(truth_by_episode) - set(num_steps_by_episode))
     if missing:
-        raise ValueError(f"num_steps_by_episode lacks episodes: {missing[:5]}")
+        raise PlaysegError(f"num_steps_by_episode lacks episodes: {missing[:5]}")
 
     variants = [(tol, final) for tol in tolerances for final in (True, False)]
     boundaries = {variant: BoundaryCounts(0, 0, 0) for variant in variants}
@@ -214,7 +215,7 @@ def evaluate(
             labels += label_accuracy(pred, truth, num_steps)
             segments += segment_matches(pred, truth)
         except ValueError as error:
-            raise ValueError(f"episode {episode_id!r}: {error}") from error
+            raise PlaysegError(f"episode {episode_id!r}: {error}") from error
 
     results: dict[str, float | int] = {
         "episodes": len(truth_by_episode),

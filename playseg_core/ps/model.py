@@ -25,6 +25,7 @@ from torch import nn
 from playseg_core.checkpoint import Checkpoint, CheckpointError, read_checkpoint, save_checkpoint
 from playseg_core.data.episode import Episode
 from playseg_core.data.features import Features
+from playseg_core.errors import PlaysegError
 from playseg_core.ps.encoders import EncoderSpec, StepEncoders, as_tensors
 from playseg_core.training.device import to_device
 
@@ -71,11 +72,11 @@ class ModelConfig:
 
     def __post_init__(self) -> None:
         if self.label_head not in LABEL_HEADS:
-            raise ValueError(f"unknown label head {self.label_head!r} (known: {', '.join(LABEL_HEADS)})")
+            raise PlaysegError(f"unknown label head {self.label_head!r} (known: {', '.join(LABEL_HEADS)})")
         if not 0 <= self.end_lookahead <= MAX_END_LOOKAHEAD:
-            raise ValueError(f"end_lookahead must be in 0..{MAX_END_LOOKAHEAD}, got {self.end_lookahead}")
+            raise PlaysegError(f"end_lookahead must be in 0..{MAX_END_LOOKAHEAD}, got {self.end_lookahead}")
         if not 0 <= self.end_grounding <= MAX_END_GROUNDING:
-            raise ValueError(f"end_grounding must be in 0..{MAX_END_GROUNDING}, got {self.end_grounding}")
+            raise PlaysegError(f"end_grounding must be in 0..{MAX_END_GROUNDING}, got {self.end_grounding}")
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -227,7 +228,7 @@ def _class_names(instructions: list[str] | None, num_classes: int) -> list[str]:
     """The instruction string of each class (placeholders when none are given)."""
     names = [f"class {i}" for i in range(num_classes)] if instructions is None else list(instructions)
     if len(names) != num_classes:
-        raise ValueError(f"{len(names)} instructions for a model with {num_classes} classes")
+        raise PlaysegError(f"{len(names)} instructions for a model with {num_classes} classes")
     return names
 
 
@@ -440,7 +441,7 @@ class PSModel(StepModel):
         if cfg.end_grounding:
             slots = self.encoders.position_slots
             if not slots:
-                raise ValueError(
+                raise PlaysegError(
                     "end_grounding: none of the model's step encoders gives things' positions "
                     f"(position_slots); its encoders: {', '.join(s.kind for s in cfg.encoders)}"
                 )
@@ -483,7 +484,9 @@ class PSModel(StepModel):
         if self.grounded_end is None:
             return end
         if windows is None:
-            raise ValueError("a PS model with a grounded end head scores ends from the windows' features too")
+            raise PlaysegError(
+                "a PS model with a grounded end head scores ends from the windows' features too"
+            )
         with torch.no_grad():  # the label loss trains the label head, not the ends
             probability = torch.softmax(self.label_head(hidden[:, : end.shape[1]]), dim=-1)
             top, candidates = probability.topk(min(GROUNDED_LABELS, probability.shape[-1]), dim=-1)
@@ -501,7 +504,7 @@ class PSModel(StepModel):
         """As `raw_end_logits`, the grounded end told each window's label (B,) instead of marginalised:
         end + grounded_label (training, where an annotated segment starts the window)."""
         if self.grounded_end is None:
-            raise ValueError("told_end_logits: this PS model has no grounded end head")
+            raise PlaysegError("told_end_logits: this PS model has no grounded end head")
         read, end = self._end_head_input(hidden)
         told = labels[:, None, None].expand(-1, end.shape[1], 1)
         return end + self.grounded_end(read, windows, told).squeeze(-1)
@@ -582,7 +585,7 @@ class PSModel(StepModel):
     def label_logits(self, features: torch.Tensor, start: int, end: int) -> torch.Tensor:
         """(T+1, step_dim) features, segment [start, end) -> (num_classes,) label logits at its end."""
         if not 0 < end - start <= self.max_len:
-            raise ValueError(f"segment [{start}, {end}) must have 1..{self.max_len} steps")
+            raise PlaysegError(f"segment [{start}, {end}) must have 1..{self.max_len} steps")
         hidden = self.trunk(
             features[start : end + 1].unsqueeze(0), torch.tensor([start == 0], device=features.device)
         )
@@ -615,7 +618,7 @@ class LabelModel(StepModel):
     def label_logits(self, features: torch.Tensor, start: int, end: int) -> torch.Tensor:
         """(T+1, d) features, segment [start, end) -> (num_classes,)."""
         if not 0 < end - start <= self.max_len:
-            raise ValueError(f"segment [{start}, {end}) must have 1..{self.max_len} steps")
+            raise PlaysegError(f"segment [{start}, {end}) must have 1..{self.max_len} steps")
         window = features[start : end + 1].unsqueeze(0)
         device = features.device
         lengths, starts = (

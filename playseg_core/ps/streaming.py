@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from playseg_core.data.episode import Segment
+from playseg_core.errors import PlaysegError
 from playseg_core.ps.decoding import OnlineDecoder, decode_segments
 from playseg_core.ps.encoders import as_tensors
 from playseg_core.ps.model import PSModel
@@ -53,7 +54,7 @@ class StreamingSegmenter:
         """
         where = f"step {self.num_observations}"
         if self._next_action_inputs is None:
-            raise ValueError(f"observation {self.num_observations}: the previous step carried no action")
+            raise PlaysegError(f"observation {self.num_observations}: the previous step carried no action")
         inputs = {**self.model.encoders.observation_inputs(observation, where), **self._next_action_inputs}
         self._next_action_inputs = None
         if not self.model.reads_actions:

@@ -18,6 +18,7 @@ from playseg_core.data.episode import Episode
 from playseg_core.data.features import Features
 from playseg_core.data.splits import DEFAULT_VAL_SHARE, held_out_ids
 from playseg_core.domains import load_domain
+from playseg_core.errors import PlaysegError
 from playseg_core.ps.encoders import StepEncoders, choose_encoders, feature_statistics
 from playseg_core.ps.fixed_features import FixedFeatureCache
 from playseg_core.ps.model import LabelModel, ModelConfig, PSModel, TrunkConfig
@@ -106,7 +107,7 @@ def segment_bounds(
     if not measured:
         lengths = np.array([seg.length for ep in episodes for seg in ep.segments])
         if lengths.size == 0:
-            raise ValueError("segment bounds: the training episodes have no annotated segments")
+            raise PlaysegError("segment bounds: the training episodes have no annotated segments")
         measured = {
             "min_len": max(1, int(lengths.min()) // 2),
             "max_len": max(2, int(np.ceil(1.25 * lengths.max()))),
@@ -117,7 +118,7 @@ def segment_bounds(
     if any(given[key] is not None for key in given):
         source += ", command line"
     if not 1 <= bounds["min_len"] <= bounds["max_len"] or bounds["k_max"] < 1:
-        raise ValueError(f"segment bounds need 1 <= min_len <= max_len and k_max >= 1, got {bounds}")
+        raise PlaysegError(f"segment bounds need 1 <= min_len <= max_len and k_max >= 1, got {bounds}")
     return SegmentBounds(**bounds, source=source)
 
 
@@ -283,7 +284,7 @@ def training_symmetries(cfg: TrainConfig, encoders: StepEncoders) -> ClipSymmetr
     if symmetries is not None:
         return symmetries
     if encoders.reads_actions:
-        raise ValueError(
+        raise PlaysegError(
             "augment: the camera frames' rotations leave the actions as they are; only for models that "
             "read no actions, or for a domain whose symmetries turn them too (its CLIP_SYMMETRIES)"
         )
@@ -401,7 +402,7 @@ def _fit(model, loss_fn, train_eps, val_eps, instructions, cfg: TrainConfig, nam
     classes = label_index(instructions)
     train_eps, val_eps = _annotated(train_eps), _annotated(val_eps)
     if not train_eps:
-        raise ValueError("no annotated training episodes (episodes with segments)")
+        raise PlaysegError("no annotated training episodes (episodes with segments)")
     device = resolve_device(cfg.device)
     items = [(ep, seg) for ep in train_eps for seg in ep.segments]
     val_items = [(ep, seg) for ep in val_eps for seg in ep.segments]

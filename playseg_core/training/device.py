@@ -14,10 +14,12 @@ from typing import Any, TypeVar
 
 import torch
 
+from playseg_core.errors import PlaysegError
+
 DEVICE_CHOICES_HELP = "auto (CUDA when torch sees one, else the CPU), cpu, cuda or cuda:N"
 
 
-class DeviceError(ValueError):
+class DeviceError(PlaysegError):
     """A device that cannot be used here (no CUDA, no such card, not a device name)."""
 
 

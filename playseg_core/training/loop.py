@@ -36,6 +36,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from playseg_core.errors import PlaysegError
 from playseg_core.training import distributed
 from playseg_core.training.device import mixed_precision, to_device
 
@@ -119,7 +120,7 @@ class LoopResult:
         )
 
 
-class ResumeError(ValueError):
+class ResumeError(PlaysegError):
     """A resume file that is missing, unreadable or of another run; the message names it."""
 
 
@@ -253,7 +254,7 @@ def train_loop(task: TrainingTask, cfg: LoopConfig) -> LoopResult:
     model holds the best evaluated weights (the last ones without an evaluation), in eval mode. In a
     process group, process 0's model is the one to keep."""
     if cfg.steps < 1:
-        raise ValueError(f"{task.name}: a run needs at least one step, got a cap of {cfg.steps}")
+        raise PlaysegError(f"{task.name}: a run needs at least one step, got a cap of {cfg.steps}")
     processes, rank = distributed.world()
     main = rank == 0
     model = task.model.to(cfg.device)

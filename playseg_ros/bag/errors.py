@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from playseg_core.errors import PlaysegError
 
-class BagError(ValueError):
+
+class BagError(PlaysegError):
     """A bag that cannot be read or written as asked; the message names where (bag, file, topic, episode,
     step) on one line."""
 

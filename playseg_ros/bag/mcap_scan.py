@@ -52,6 +52,8 @@ from mcap.records import (
 )
 from mcap.stream_reader import get_chunk_data_stream
 
+from playseg_core.errors import PlaysegError
+
 MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEAD = struct.Struct("<BQ")  # opcode, length of the record body
 _OPCODES = frozenset(int(opcode) for opcode in Opcode)
@@ -93,7 +95,7 @@ def _parse(opcode: int, body: bytes, exact: bool = False) -> list[McapRecord]:
         return [Message.read(stream, len(body))]
     record = _READERS[Opcode(opcode)](stream)
     if exact and stream.count != len(body):
-        raise ValueError(f"the record uses {stream.count} of its {len(body)} bytes")
+        raise PlaysegError(f"the record uses {stream.count} of its {len(body)} bytes")
     if isinstance(record, Chunk):
         return [record, *_chunk_records(record)]  # the chunk itself marks its offset
     return [record]
@@ -114,7 +116,7 @@ def _chunk_records(chunk: Chunk) -> list[McapRecord]:
             raise EndOfFile()
         opcode, length = _RECORD_HEAD.unpack(stream.read(_RECORD_HEAD.size))
         if length > size - stream.count:
-            raise ValueError(
+            raise PlaysegError(
                 f"the record at byte {at} inside it claims {length} bytes, {size - stream.count} left"
             )
         body = stream.read(length)
@@ -180,12 +182,12 @@ class RecordScan:
                             if self.resync and opcode == Opcode.MESSAGE and chunked:
                                 # a chunked file keeps its messages in chunks: this is another record
                                 # with a damaged opcode (a message index read as a message)
-                                raise ValueError("a message record outside the chunks of a chunked file")
+                                raise PlaysegError("a message record outside the chunks of a chunked file")
                             chunked = chunked or opcode == Opcode.CHUNK
                         except Exception as error:  # noqa: BLE001 -- damaged bytes make any parser error possible
-                            problem = (
-                                f"damaged {kind} record at byte {offset}: {type(error).__name__}: {error}"
-                            )
+                            # a parser's error is named (struct.error, ...); this module's says what it is
+                            named = "" if isinstance(error, PlaysegError) else f"{type(error).__name__}: "
+                            problem = f"damaged {kind} record at byte {offset}: {named}{error}"
                 if (
                     problem is not None
                     and self.resync

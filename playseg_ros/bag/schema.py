@@ -19,6 +19,7 @@ import yaml
 from mcap.records import Channel, Schema
 from rosbags.typesys.store import Typestore
 
+from playseg_core.errors import PlaysegError
 from playseg_core.yaml_io import parse_yaml
 from playseg_ros.typestore import msg_dir, playseg_typestore, split_type_name
 
@@ -52,7 +53,7 @@ def msg_file_text(type_name: str) -> str:
         path = directory / f"{name}.msg"
         if path.is_file():
             return path.read_text()
-    raise ValueError(f"no .msg file for {type_name!r} in {[str(d) for d in _msg_search_dirs(package)]}")
+    raise PlaysegError(f"no .msg file for {type_name!r} in {[str(d) for d in _msg_search_dirs(package)]}")
 
 
 def _msg_dependencies(text: str, package: str) -> list[str]:

@@ -22,6 +22,7 @@ from types import TracebackType
 import yaml
 from mcap.writer import CompressionType, Writer
 
+from playseg_core.errors import PlaysegError
 from playseg_ros.bag.errors import BagError
 from playseg_ros.bag.lock import BagLock, holder, is_locked
 from playseg_ros.bag.schema import PARTIAL_SUFFIX, ROS_DISTRO, BagSummary, FileStats, TopicInfo
@@ -124,7 +125,7 @@ class BagWriter:
         custom_data: dict[str, str] | None = None,
     ) -> None:
         if compression not in ("zstd", "none"):
-            raise ValueError(f"compression must be 'zstd' or 'none', got {compression!r}")
+            raise PlaysegError(f"compression must be 'zstd' or 'none', got {compression!r}")
         self.path = Path(path)
         self.directory = partial_path(self.path)
         for existing in (self.path, self.directory):

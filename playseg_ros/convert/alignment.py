@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from playseg_core.errors import PlaysegError
 from playseg_ros.convert.mapping import AlignMethod
 
 
@@ -49,7 +50,7 @@ def align(step_ns: np.ndarray, sample_ns: np.ndarray, method: AlignMethod, toler
         zeros = np.zeros(n, dtype=np.int64)
         return Alignment(zeros, zeros, np.zeros(n), none)
     if np.any(np.diff(samples) < 0):
-        raise ValueError("align: sample times must be sorted")
+        raise PlaysegError("align: sample times must be sorted")
     last = len(samples) - 1
     # at_or_before: the latest sample with time <= step (-1 if none)
     at_or_before = np.searchsorted(samples, steps, side="right") - 1
@@ -76,4 +77,4 @@ def align(step_ns: np.ndarray, sample_ns: np.ndarray, method: AlignMethod, toler
         weight = np.where(bracketed & ~exact, distance_before / span, 0.0)
         hi = np.where(exact, before, after)
         return Alignment(before, hi, weight, exact | bracketed)
-    raise ValueError(f"align: unknown method {method!r}")
+    raise PlaysegError(f"align: unknown method {method!r}")

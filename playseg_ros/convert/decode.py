@@ -20,6 +20,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from playseg_core.errors import PlaysegError
+
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 IMAGE_TYPES = (IMAGE, COMPRESSED_IMAGE)
@@ -32,7 +34,7 @@ DEPTH_ENCODINGS = ("16UC1", "mono16")
 _INDEXED = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*)\[(\d+)\]$")
 
 
-class DecodeError(ValueError):
+class DecodeError(PlaysegError):
     """A message that does not give the feature asked for; ``field`` names the part at fault."""
 
     def __init__(self, detail: str, field: str | None = None) -> None:

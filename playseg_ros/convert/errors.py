@@ -4,12 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from playseg_core.errors import PlaysegError
+
 
 def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-class MappingError(ValueError):
+class MappingError(PlaysegError):
     """A mapping file that cannot be used; the message names the file and the key (``features.action.topic``)."""
 
     def __init__(self, mapping: Path | str, key: str | None, detail: str, what: str = "mapping") -> None:
@@ -18,7 +20,7 @@ class MappingError(ValueError):
         super().__init__(f"{where}: {self.detail}")
 
 
-class ConvertError(ValueError):
+class ConvertError(PlaysegError):
     """A bag that cannot be converted with its mapping; the message names the bag and, where known, the
     topic, field and message time (seconds since the epoch)."""
 

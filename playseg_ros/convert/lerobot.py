@@ -42,6 +42,7 @@ import pyarrow.parquet as pq
 
 from playseg_core.data.dataset import PlayDataset
 from playseg_core.data.episode import Episode, Segment
+from playseg_core.errors import PlaysegError
 
 CODEBASE_VERSION = "v3.0"
 CHUNKS_SIZE = 1000
@@ -302,13 +303,13 @@ def export_lerobot(dataset: PlayDataset, out: Path, overwrite: bool = False) -> 
 def _write(dataset: PlayDataset, root: Path) -> LeRobotSummary:
     fps = dataset.features.fps
     if not fps:
-        raise ValueError(f"{dataset.path}: the dataset declares no fps; LeRobot needs one")
+        raise PlaysegError(f"{dataset.path}: the dataset declares no fps; LeRobot needs one")
     cameras = dataset.features.cameras
     numeric = [name for name in ("observation.state", "action") if name in dataset.features]
     for camera in cameras:
         height, width, _ = dataset.features[camera].shape
         if height % 2 or width % 2:
-            raise ValueError(
+            raise PlaysegError(
                 f"feature {camera!r}: {width}x{height}; {PIX_FMT} video needs even sizes (resize it)"
             )
     tasks: dict[str, int] = {}
@@ -396,7 +397,7 @@ def _write(dataset: PlayDataset, root: Path) -> LeRobotSummary:
         episode_rows.append(record)
         frames_so_far += num_frames
     if not episode_rows:
-        raise ValueError(f"{dataset.path}: no episode with an action; nothing to export")
+        raise PlaysegError(f"{dataset.path}: no episode with an action; nothing to export")
     flush_data()
     for video in videos.values():
         video.close()

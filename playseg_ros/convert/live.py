@@ -30,6 +30,7 @@ import numpy as np
 
 from playseg_core.data.episode import Segment
 from playseg_core.data.features import STATE
+from playseg_core.errors import PlaysegError
 from playseg_ros.convert.annotations import TimedLabel, check_label_type, label_of, segments_of_episodes
 from playseg_ros.convert.errors import ConvertError
 from playseg_ros.convert.mapping import ConvertMapping
@@ -73,7 +74,7 @@ class LiveMapping:
         first_episode: int = 0,
     ) -> None:
         if not max_lag_s > 0:
-            raise ValueError(f"max_lag_s must be > 0, got {max_lag_s}")
+            raise PlaysegError(f"max_lag_s must be > 0, got {max_lag_s}")
         self.mapping, self.prefix, self.source = mapping, episode_id, source
         self.max_lag_ns = round(max_lag_s * 1e9)
         self.episodes_done = first_episode  # episodes of earlier streams (and earlier mappings of a node)

@@ -37,6 +37,7 @@ from playseg_core.data.dataset import DatasetWriter, PlayDataset, check_out_apar
 from playseg_core.data.episode import Episode
 from playseg_core.data.features import Features
 from playseg_core.data.splits import ANNOTATED_SPLITS, DEFAULT_VAL_SHARE, annotated_splits
+from playseg_core.errors import PlaysegError
 from playseg_ros.convert.build import convert_bag
 from playseg_ros.convert.errors import ConvertError
 from playseg_ros.convert.mapping import ConvertMapping
@@ -250,15 +251,15 @@ def convert(
     it changed or ``out`` is missing."""
     started = time.perf_counter()
     if workers < 1:
-        raise ValueError(f"--workers must be >= 1, got {workers}")
+        raise PlaysegError(f"--workers must be >= 1, got {workers}")
     if engine not in ENGINES:
-        raise ValueError(f"--engine {engine!r}: expected one of {', '.join(ENGINES)}")
+        raise PlaysegError(f"--engine {engine!r}: expected one of {', '.join(ENGINES)}")
     if address is not None and engine != "ray":
-        raise ValueError("--address is the Ray cluster to join: give --engine ray")
+        raise PlaysegError("--address is the Ray cluster to join: give --engine ray")
     if output_format not in OUTPUT_FORMATS:
-        raise ValueError(f"--format {output_format!r}: expected one of {', '.join(OUTPUT_FORMATS)}")
+        raise PlaysegError(f"--format {output_format!r}: expected one of {', '.join(OUTPUT_FORMATS)}")
     if not 0.0 <= val_share < 1.0:  # also NaN
-        raise ValueError(f"--val-share must be in [0, 1), got {val_share}")
+        raise PlaysegError(f"--val-share must be in [0, 1), got {val_share}")
     from playseg_ros.convert.lerobot import export_lerobot, is_lerobot_dataset  # PyAV, pyarrow: only here
 
     export_to = Path(out).resolve() if output_format == "lerobot" else None
@@ -267,7 +268,7 @@ def convert(
     out = playseg_copy(export_to) if export_to is not None else Path(out).resolve()
     bags = find_bags(inputs)
     if not bags:
-        raise ValueError(f"{', '.join(map(str, inputs))}: no bags found")
+        raise PlaysegError(f"{', '.join(map(str, inputs))}: no bags found")
     written = [out] if export_to is None else [out, export_to]
     for bag in bags:  # writing (or --overwrite replacing) the output would delete a bag inside it
         for directory in written:
@@ -342,14 +343,14 @@ def _previous_dataset(
         )
     digest = mapping.digest if mapping else None
     if meta.get("mapping_digest") != digest:
-        raise ValueError(
+        raise PlaysegError(
             f"{out}: converted with another mapping ({meta.get('mapping')}); convert again with --overwrite, "
             "or choose another --out"
         )
     earlier = (meta.get("segmentation") or {}).get("digest")
     if earlier != _digest(segmentation):
         what = f"segmented by {meta['segmentation']['model']}" if earlier else "not segmented by a model"
-        raise ValueError(
+        raise PlaysegError(
             f"{out}: {what} ({'--segment differs' if segmentation else 'no --segment given'}); convert "
             "again with --overwrite, or choose another --out"
         )

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 
 from playseg_core.data.episode import Episode
 from playseg_core.data.features import Features
+from playseg_core.errors import PlaysegError
 from playseg_ros.convert.errors import ConvertError
 
 if TYPE_CHECKING:
@@ -66,7 +67,7 @@ class SegmentationSpec:
         try:
             KeepRule(keep)
         except ValueError as error:
-            raise ValueError(f"--keep: {error}") from None
+            raise PlaysegError(f"--keep: {error}") from None
         path = Path(model).resolve()
         if not path.is_file():
             what = "is a directory, not a checkpoint file" if path.is_dir() else "no such checkpoint file"

@@ -19,6 +19,7 @@ import numpy as np
 from rosbags.highlevel import AnyReader
 from rosbags.typesys.store import Typestore
 
+from playseg_core.errors import PlaysegError
 from playseg_core.yaml_io import YamlFileError, load_yaml
 from playseg_ros.bag.mcap_scan import damage_of
 from playseg_ros.bag.schema import METADATA_FILE
@@ -58,7 +59,7 @@ def find_bags(inputs: Sequence[str | Path]) -> list[Path]:
         elif path.is_dir():
             found.extend(_bags_under(path))
         else:
-            raise ValueError(f"{path}: not a bag (expected a rosbag2 directory, .mcap, .db3 or .bag)")
+            raise PlaysegError(f"{path}: not a bag (expected a rosbag2 directory, .mcap, .db3 or .bag)")
     unique = list(dict.fromkeys(p.resolve() for p in found))
     return unique
 

@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 
 from playseg_core.data.features import ACTION, Feature, Features
+from playseg_core.errors import PlaysegError
 from playseg_ros.convert.alignment import Alignment, align
 from playseg_ros.convert.decode import IMAGE_TYPES, DecodeError, NumericDecoder, decode_image
 from playseg_ros.convert.errors import ConvertError
@@ -369,7 +370,7 @@ class StepBuilder:
         if buffer is None or not stamps:
             return
         if buffer.stamps:
-            raise ValueError(f"add_sorted: topic {topic} has samples already")
+            raise PlaysegError(f"add_sorted: topic {topic} has samples already")
         stamp_filter = self.filters[topic]
         order = np.argsort(np.asarray(arrival), kind="stable") if arrival is not None else range(len(stamps))
         kept = np.zeros(len(stamps), dtype=bool)

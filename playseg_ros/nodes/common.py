@@ -20,6 +20,7 @@ from rclpy.publisher import Publisher
 from rclpy.signals import SignalHandlerOptions
 from rclpy.subscription import Subscription
 
+from playseg_core.errors import PlaysegError
 from playseg_ros.launch import NODE_NAME
 
 RCLError = _rclpy.RCLError
@@ -113,12 +114,12 @@ def declare(node: Node, name: str, default: Any, description: str) -> Any:
         descriptor = ParameterDescriptor(description=description, dynamic_typing=True)
         value = node.declare_parameter(name, default, descriptor).value
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ValueError(f"{node.get_name()}: parameter {name!r} must be a number, got {value!r}")
+            raise PlaysegError(f"{node.get_name()}: parameter {name!r} must be a number, got {value!r}")
         return float(value)
     try:
         return node.declare_parameter(name, default, ParameterDescriptor(description=description)).value
     except InvalidParameterTypeException as exc:
-        raise ValueError(f"{node.get_name()}: invalid parameter: {exc}") from exc
+        raise PlaysegError(f"{node.get_name()}: invalid parameter: {exc}") from exc
 
 
 def require(condition: bool, node: Node, message: str) -> None:
@@ -129,7 +130,7 @@ def require(condition: bool, node: Node, message: str) -> None:
     node's one logged line) from a configure that failed otherwise (exit 1)."""
     if not condition:
         node.bad_parameter = message  # type: ignore[attr-defined]
-        raise ValueError(f"{node.get_name()}: invalid parameter: {message}")
+        raise PlaysegError(f"{node.get_name()}: invalid parameter: {message}")
 
 
 def ros_arguments_error(argv: list[str]) -> str | None:

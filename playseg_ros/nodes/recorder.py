@@ -26,6 +26,7 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 from rclpy.qos import DurabilityPolicy
 from rclpy.subscription import Subscription
 
+from playseg_core.errors import PlaysegError
 from playseg_ros import qos
 from playseg_ros.bag import BagError, BagWriter, QosProfile, partial_path, topic_info
 from playseg_ros.nodes.common import StartGaps, declare, require, run_node, take_queued
@@ -113,7 +114,7 @@ class RecorderNode(LifecycleNode):
         try:
             return self.resolve_topic_name(topic)
         except Exception as exc:  # rclpy's name validation errors are not ValueErrors
-            raise ValueError(f"{self.get_name()}: invalid parameter: topics: {topic!r}: {exc}") from None
+            raise PlaysegError(f"{self.get_name()}: invalid parameter: topics: {topic!r}: {exc}") from None
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         for timer in self._own_timers:

@@ -38,6 +38,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock as ClockMessage
 
+from playseg_core.errors import PlaysegError
 from playseg_ros import qos
 from playseg_ros.convert.errors import MappingError
 from playseg_ros.convert.live import DEFAULT_MAX_LAG_S, LiveMapping, LiveOutput, ReplayStamps
@@ -120,7 +121,7 @@ class TopicAdapterNode(ReleasingLifecycleNode):
             try:
                 mapping = load_mapping(self.mapping_path)
             except MappingError as error:
-                raise ValueError(f"{self.get_name()}: {error}") from None
+                raise PlaysegError(f"{self.get_name()}: {error}") from None
             given = {}
             for item in (t for t in self.topic_types if t):
                 topic, sep, type_name = item.partition("=")

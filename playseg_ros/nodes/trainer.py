@@ -38,6 +38,7 @@ from playseg_core.augment.retraining import (
     annotated_clips,
     export_buffer_dataset,
 )
+from playseg_core.errors import PlaysegError
 from playseg_core.training.device import resolve_device
 from playseg_ros import qos
 from playseg_ros.messages import clip_from_labelled
@@ -418,7 +419,7 @@ class TrainerNode(ReleasingLifecycleNode):
         try:
             latest = trainer.latest  # one version throughout, though a retraining may replace it meanwhile
             if latest is None:
-                raise ValueError("no policy trained yet")
+                raise PlaysegError("no policy trained yet")
             model = trainer.learner.load(Path(latest.checkpoint))[0]
             result = trainer.evaluate(model, episodes=request.episodes or None)
             response.policy_version = latest.version

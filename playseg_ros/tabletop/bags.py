@@ -57,6 +57,7 @@ from playseg_core.domains.tabletop.robot_log import (
     replay_dataset_episode,
 )
 from playseg_core.domains.tabletop.spec import DEFAULT_IMAGE_SIZE, DOMAIN
+from playseg_core.errors import PlaysegError
 from playseg_ros.play_bags import DATASET_BAGS
 from playseg_ros.typestore import playseg_typestore
 
@@ -131,7 +132,7 @@ class _Messages:
             ".jpg", cv2.cvtColor(frame, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY]
         )
         if not ok:
-            raise ValueError("tabletop bag: OpenCV could not encode a camera frame as jpeg")
+            raise PlaysegError("tabletop bag: OpenCV could not encode a camera frame as jpeg")
         msg = self.types[COMPRESSED_IMAGE](
             header=self.header(ns, CAMERA_FRAME), format="jpeg", data=jpeg.reshape(-1)
         )
@@ -178,7 +179,7 @@ def write_robot_bag(
     """Write ``log`` as one rosbag2 bag at ``path`` (which must not exist) plus its ground-truth file."""
     _check_images(images)
     if storage not in ("mcap", "sqlite3"):
-        raise ValueError(f"tabletop bag: storage must be mcap or sqlite3, got {storage!r}")
+        raise PlaysegError(f"tabletop bag: storage must be mcap or sqlite3, got {storage!r}")
     path = Path(path)
     if path.exists():
         raise FileExistsError(f"{path}: exists; a bag is written only into a new directory")
@@ -234,7 +235,7 @@ def write_robot_bag(
 
 def _numbers(values: Sequence[float] | None) -> str:
     if values is None:
-        raise ValueError("tabletop bag mapping: the action declares no low/high bounds")
+        raise PlaysegError("tabletop bag mapping: the action declares no low/high bounds")
     return f"[{', '.join(f'{value:g}' for value in values)}]"
 
 
@@ -243,7 +244,7 @@ def mapping_yaml(features: Features, images: str, annotations: str) -> str:
     config's or the dataset's: step rate, camera, state, action bounds); ``annotations``: a topic or
     sidecar file entry."""
     if features.fps is None or features.state is None or len(features.cameras) != 1:
-        raise ValueError("tabletop bag mapping: the features must declare fps, one camera and a state")
+        raise PlaysegError("tabletop bag mapping: the features must declare fps, one camera and a state")
     camera = features.cameras[0]
     topic = COMPRESSED_TOPIC if images == "jpeg" else CAMERA_TOPIC
     action = features.action
@@ -274,7 +275,7 @@ def _write_mappings(out: Path, features: Features, images: str) -> None:
 
 def _check_images(images: str) -> None:
     if images not in IMAGE_CHOICES:
-        raise ValueError(f"tabletop bag: images must be one of {', '.join(IMAGE_CHOICES)}, got {images!r}")
+        raise PlaysegError(f"tabletop bag: images must be one of {', '.join(IMAGE_CHOICES)}, got {images!r}")
 
 
 def write_sample_bags(
@@ -295,7 +296,7 @@ def write_sample_bags(
     them carry the annotations topic."""
     _check_images(images)
     if episodes < 1 or not 0 <= annotated <= episodes:
-        raise ValueError(
+        raise PlaysegError(
             f"tabletop sample bags: need episodes >= 1 and 0 <= annotated <= episodes, got {episodes}, {annotated}"
         )
     out = Path(out)
@@ -399,7 +400,7 @@ def write_dataset_bags(
     """
     _check_images(images)
     if workers < 1:
-        raise ValueError(f"tabletop bags: workers must be >= 1, got {workers}")
+        raise PlaysegError(f"tabletop bags: workers must be >= 1, got {workers}")
     dataset = PlayDataset.open(dataset_dir)
     config = dataset_play_config(dataset)
     out = Path(out_dir)

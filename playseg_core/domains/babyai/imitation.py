@@ -30,6 +30,7 @@ from playseg_core.domains.babyai.policy import (
     PolicyNet,
     encode_instructions,
 )
+from playseg_core.errors import PlaysegError
 from playseg_core.training.device import resolve_device
 from playseg_core.training.loop import LoopConfig, TrainingTask, train_loop
 
@@ -86,14 +87,14 @@ class FlatSegments:
 def flatten_segments(segments: Sequence[Demonstration], max_words: int = 16) -> FlatSegments:
     """Check and concatenate segments; the boundary state o_end is not a training input (no action)."""
     if not segments:
-        raise ValueError("train_policy needs at least one segment")
+        raise PlaysegError("train_policy needs at least one segment")
     states, actions, lengths, instruction_index = [], [], [], []
     unique: dict[str, int] = {}
     for index, (instruction, segment_states, segment_actions) in enumerate(segments):
         segment_actions = np.asarray(segment_actions).reshape(-1)
         length = segment_actions.shape[0]
         if length < 1 or segment_states.shape[0] != length + 1 or segment_states.shape[-1] != 3:
-            raise ValueError(
+            raise PlaysegError(
                 f"segment {index}: need states (L+1, H, W, 3) and actions (L,) with L >= 1, "
                 f"got {segment_states.shape} and {np.asarray(segment_actions).shape}"
             )
@@ -101,7 +102,7 @@ def flatten_segments(segments: Sequence[Demonstration], max_words: int = 16) -> 
         if not np.all((action_ids >= 0) & (action_ids < NUM_ACTIONS)) or np.any(
             action_ids != segment_actions
         ):
-            raise ValueError(f"segment {index}: actions must be integers in [0, {NUM_ACTIONS})")
+            raise PlaysegError(f"segment {index}: actions must be integers in [0, {NUM_ACTIONS})")
         states.append(np.asarray(segment_states[:length], dtype=np.uint8))
         actions.append(action_ids)
         lengths.append(length)

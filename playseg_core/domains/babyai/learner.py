@@ -22,13 +22,14 @@ from playseg_core.domains.babyai.policy import (
     policy_features,
     save_policy,
 )
+from playseg_core.errors import PlaysegError
 
 
 def demonstration(clip: SegmentClip) -> Demonstration:
     """(instruction, grid states o_start..o_end, actions a_start..a_end-1) of a clip."""
     seg = clip.segment
     if clip.state is None:
-        raise ValueError(
+        raise PlaysegError(
             f"segment {clip.episode_id}[{seg.start}, {seg.end}): the policy needs states, it has none"
         )
     return seg.instruction, np.asarray(clip.state), np.asarray(clip.actions)
@@ -52,15 +53,15 @@ class FilmPolicyLearner:
         known = {f.name for f in fields(PolicyTrainConfig)} - {"policy"}
         unknown = sorted(set(config) - known)
         if unknown:
-            raise ValueError(f"policy {POLICY_NAME}: unknown settings {unknown} (known: {sorted(known)})")
+            raise PlaysegError(f"policy {POLICY_NAME}: unknown settings {unknown} (known: {sorted(known)})")
         train = PolicyTrainConfig(**config)
         if network.get("channels", 1) < 1 or network.get("relevance_maps", 0) < 0:
-            raise ValueError(
+            raise PlaysegError(
                 f"policy {POLICY_NAME}: need channels >= 1 and relevance_maps >= 0, got {network}"
             )
         train = replace(train, policy=replace(train.policy, **network))
         if eval_max_steps <= 0:
-            raise ValueError(f"policy {POLICY_NAME}: eval_max_steps must be > 0, got {eval_max_steps}")
+            raise PlaysegError(f"policy {POLICY_NAME}: eval_max_steps must be > 0, got {eval_max_steps}")
         return cls(train, eval_max_steps)
 
     @property

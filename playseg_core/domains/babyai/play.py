@@ -28,6 +28,7 @@ from playseg_core.domains.babyai.spec import (
     OBJECT_TYPES,
     STEPS_PER_SECOND,
 )
+from playseg_core.errors import PlaysegError
 
 # pygame (imported by minigrid) prints a banner to stdout on import unless told not to.
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
@@ -57,13 +58,13 @@ class PlayConfig:
 
     def __post_init__(self) -> None:
         if self.room_size < 4:
-            raise ValueError(f"PlayConfig.room_size must be >= 4, got {self.room_size}")
+            raise PlaysegError(f"PlayConfig.room_size must be >= 4, got {self.room_size}")
         if self.num_objects < 2:
-            raise ValueError(
+            raise PlaysegError(
                 f"PlayConfig.num_objects must be >= 2 (goals must change), got {self.num_objects}"
             )
         if self.max_tasks < 1 or self.max_task_steps < 1 or self.tile_size < 1:
-            raise ValueError("PlayConfig.max_tasks, max_task_steps and tile_size must be >= 1")
+            raise PlaysegError("PlayConfig.max_tasks, max_task_steps and tile_size must be >= 1")
 
     @property
     def frame_shape(self) -> tuple[int, int, int]:
@@ -143,7 +144,7 @@ def set_goal(env: GoToLocal, obj_type: str, colour: str) -> str:
     instruction = unwrapped.instrs.surface(unwrapped)
     unwrapped.mission = instruction
     if instruction not in INSTRUCTIONS:
-        raise ValueError(f"goal produced instruction {instruction!r}, which is not one of INSTRUCTIONS")
+        raise PlaysegError(f"goal produced instruction {instruction!r}, which is not one of INSTRUCTIONS")
     return instruction
 
 

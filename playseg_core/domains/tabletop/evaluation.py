@@ -25,6 +25,7 @@ from playseg_core.domains.tabletop.play import draw_task
 from playseg_core.domains.tabletop.render import Renderer
 from playseg_core.domains.tabletop.sim import Scene, TabletopSim
 from playseg_core.domains.tabletop.spec import CAMERA, DEFAULT_IMAGE_SIZE, EVAL_STEP_BUDGET, MAX_SPEED
+from playseg_core.errors import PlaysegError
 
 EVALUATION_STREAM = 7_000_001
 """Second word of an evaluation episode's seed sequence: keeps its layouts apart from play's."""
@@ -88,7 +89,7 @@ def evaluate_policy(
     """Success rate of ``policy`` on the evaluation episodes of seeds ``seed .. seed + num_episodes - 1``,
     ``batch_episodes`` at a time; ValueError on a non-positive count, budget or batch."""
     if num_episodes < 1 or max_steps < 1 or batch_episodes < 1:
-        raise ValueError(
+        raise PlaysegError(
             f"tabletop evaluation: num_episodes, max_steps and batch_episodes must be >= 1, got "
             f"{num_episodes}, {max_steps}, {batch_episodes}"
         )

@@ -23,6 +23,7 @@ from playseg_core.domains.tabletop.spec import (
     EVAL_STEP_BUDGET,
     STATE_NAMES,
 )
+from playseg_core.errors import PlaysegError
 from playseg_core.ps.encoders import EncoderSpec
 
 POLICY_NAME = f"{DOMAIN}.bc"
@@ -99,16 +100,16 @@ class TabletopPolicyLearner:
         keypoints = int(config.pop("camera_keypoints", ObjectMapConfig.keypoints))
         eval_max_steps = int(config.pop("eval_max_steps", EVAL_STEP_BUDGET))
         if eval_max_steps <= 0:
-            raise ValueError(f"policy {POLICY_NAME}: eval_max_steps must be > 0, got {eval_max_steps}")
+            raise PlaysegError(f"policy {POLICY_NAME}: eval_max_steps must be > 0, got {eval_max_steps}")
         features = PlayConfig(image_size=image_size).features  # ValueError naming a bad image size
         if camera not in CAMERA_ENCODERS or keypoints < 1:
-            raise ValueError(
+            raise PlaysegError(
                 f"policy {POLICY_NAME}: camera_encoder must be one of {list(CAMERA_ENCODERS)} and "
                 f"camera_keypoints >= 1, got {camera!r} and {keypoints}"
             )
         pooling = CAMERA_ENCODERS[camera]
         if pooling == "keypoints" and int(config.get("instruction_attention", 0)) > 0:
-            raise ValueError(
+            raise PlaysegError(
                 f"policy {POLICY_NAME}: camera_encoder 'keypoints' gives no entities for "
                 "instruction_attention; set instruction_attention=0 or another camera_encoder"
             )

@@ -25,6 +25,7 @@ from playseg_core.domains.tabletop.spec import (
     EFFECTOR_RGB,
     TABLE_SIZE,
 )
+from playseg_core.errors import PlaysegError
 
 VIEW_BORDER = EFFECTOR_REACH + EFFECTOR_RADIUS + 0.002
 """Width of the floor shown around the table (m): the effector stays in view at the edge of its reach."""
@@ -42,7 +43,7 @@ class Renderer:
 
     def __init__(self, size: int = DEFAULT_IMAGE_SIZE) -> None:
         if not isinstance(size, int) or isinstance(size, bool) or size < _MIN_SIZE:
-            raise ValueError(f"tabletop image size must be an integer >= {_MIN_SIZE} pixels, got {size!r}")
+            raise PlaysegError(f"tabletop image size must be an integer >= {_MIN_SIZE} pixels, got {size!r}")
         self.size = size
         self.pixels_per_metre = size / (TABLE_SIZE + 2 * VIEW_BORDER)
         self._background = np.empty((size, size, 3), np.uint8)

@@ -38,6 +38,7 @@ from playseg_core.domains.tabletop.spec import (
     PHYSICS_SUBSTEPS,
     TABLE_SIZE,
 )
+from playseg_core.errors import PlaysegError
 
 GRAVITY = 9.81
 PHYSICS_DT = 1.0 / (CONTROL_HZ * PHYSICS_SUBSTEPS)
@@ -107,10 +108,10 @@ def _clip_command(action: np.ndarray | tuple[float, float]) -> tuple[float, floa
     """The command as applied: clipped to the bounds, rounded to float32 (as datasets store actions, so
     replaying recorded actions reproduces the recorded run exactly)."""
     if len(action) != 2:
-        raise ValueError(f"tabletop action {action!r}: expected 2 velocities (x, y)")
+        raise PlaysegError(f"tabletop action {action!r}: expected 2 velocities (x, y)")
     vx, vy = float(action[0]), float(action[1])
     if not (math.isfinite(vx) and math.isfinite(vy)):
-        raise ValueError(f"tabletop action {action!r}: velocities must be finite numbers")
+        raise PlaysegError(f"tabletop action {action!r}: velocities must be finite numbers")
     clipped = np.array([min(MAX_SPEED, max(-MAX_SPEED, vx)), min(MAX_SPEED, max(-MAX_SPEED, vy))], np.float32)
     return (float(clipped[0]), float(clipped[1]))
 
@@ -182,14 +183,14 @@ class TabletopSim:
         """Put the blocks (8 centres) and the effector at rest where given; ValueError if off the table."""
         blocks = np.asarray(blocks, dtype=np.float64)
         if blocks.shape != (len(BLOCKS), 2):
-            raise ValueError(
+            raise PlaysegError(
                 f"tabletop blocks must be {len(BLOCKS)} (x, y) centres, got shape {blocks.shape}"
             )
         if np.any(blocks < 0.0) or np.any(blocks > TABLE_SIZE):
-            raise ValueError(f"tabletop blocks must lie on the table [0, {TABLE_SIZE}]^2")
+            raise PlaysegError(f"tabletop blocks must lie on the table [0, {TABLE_SIZE}]^2")
         ex, ey = float(effector[0]), float(effector[1])
         if not (EFFECTOR_LOW <= ex <= EFFECTOR_HIGH and EFFECTOR_LOW <= ey <= EFFECTOR_HIGH):
-            raise ValueError(f"tabletop effector ({ex}, {ey}) outside [{EFFECTOR_LOW}, {EFFECTOR_HIGH}]^2")
+            raise PlaysegError(f"tabletop effector ({ex}, {ey}) outside [{EFFECTOR_LOW}, {EFFECTOR_HIGH}]^2")
         angles = np.zeros(len(BLOCKS)) if angles is None else np.asarray(angles, dtype=np.float64)
         for body, (x, y), angle in zip(self.blocks, blocks, angles, strict=True):
             body.position = (float(x), float(y))
@@ -239,7 +240,7 @@ class TabletopSim:
         """`step`, also reading the effector's state (x, y, velocity x, velocity y) after every ``every``
         physics substeps: a state sensor faster than the control rate. Same physics as `step`."""
         if every < 1 or PHYSICS_SUBSTEPS % every:
-            raise ValueError(
+            raise PlaysegError(
                 f"tabletop state sampling: every must divide {PHYSICS_SUBSTEPS} substeps, got {every}"
             )
         command = _clip_command(action)

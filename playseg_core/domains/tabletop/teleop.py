@@ -33,6 +33,7 @@ from playseg_core.domains.tabletop.spec import (
     MAX_SPEED,
     TABLE_SIZE,
 )
+from playseg_core.errors import PlaysegError
 
 CONTACT_MARGIN = 0.003
 """The effector aims this far behind the block's back face when pushing (m)."""
@@ -82,12 +83,12 @@ class TeleopConfig:
         for name in ("approach_speed", "push_speed", "steering", "responsiveness"):
             low, high = getattr(self, name)
             if not 0.0 < low <= high:
-                raise ValueError(f"TeleopConfig.{name} must be a range 0 < low <= high, got {(low, high)}")
+                raise PlaysegError(f"TeleopConfig.{name} must be a range 0 < low <= high, got {(low, high)}")
         if self.responsiveness[1] > 1.0 or max(self.approach_speed[1], self.push_speed[1]) > MAX_SPEED:
-            raise ValueError("TeleopConfig: responsiveness must be <= 1 and speeds <= MAX_SPEED")
+            raise PlaysegError("TeleopConfig: responsiveness must be <= 1 and speeds <= MAX_SPEED")
         for name in ("hesitation_chance", "pause_chance"):
             if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"TeleopConfig.{name} must be in [0, 1], got {getattr(self, name)}")
+                raise PlaysegError(f"TeleopConfig.{name} must be in [0, 1], got {getattr(self, name)}")
 
 
 Vec = tuple[float, float]
@@ -247,7 +248,7 @@ class Teleoperator:
             self._bearing = bearings[best]
             return block, candidates[best]
         else:
-            raise ValueError(f"tabletop teleoperator: no plan for family {task.family!r}")
+            raise PlaysegError(f"tabletop teleoperator: no plan for family {task.family!r}")
         return block, candidates[self._clearest(scene, block, candidates)]
 
     def _clearest(self, scene: Scene, block: int, goals: list[np.ndarray], exclude: int = -1) -> int:
@@ -326,7 +327,7 @@ class Teleoperator:
         """Start an unlabelled stretch: ``"pause"`` (the hand rests on the stick) or ``"wander"``
         (aimless moves)."""
         if kind not in ("pause", "wander"):
-            raise ValueError(f"tabletop teleoperator: unknown idle kind {kind!r} (pause, wander)")
+            raise PlaysegError(f"tabletop teleoperator: unknown idle kind {kind!r} (pause, wander)")
         self._task = None
         self._idle_kind = kind
         self._responsiveness = self._draw(self.config.responsiveness)
