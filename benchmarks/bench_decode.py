@@ -26,10 +26,10 @@ import resource
 import time
 
 import torch
-from reference_style import reference_style_segment
 
 from playseg_core.data.episode import Episode
 from playseg_core.ps.model import ModelConfig, PSModel, load_model
+from playseg_core.ps.reference_style import reference_style_segment
 from playseg_core.ps.segmentation import segment_episode
 from playseg_core.ps.training import TrainConfig, model_config_for, train_ps
 

@@ -12,7 +12,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from reference_style import reference_style_decode
 
 from playseg_core.ps.decoding import (
     OnlineDecoder,
@@ -20,6 +19,7 @@ from playseg_core.ps.decoding import (
     end_columns,
     segment_log_scores,
 )
+from playseg_core.ps.reference_style import reference_style_decode
 
 
 @dataclass

@@ -29,11 +29,11 @@ import time
 
 import numpy as np
 import torch
-from reference_style import reference_style_segment
 
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.data.features import ACTION, STATE, Feature, Features
 from playseg_core.ps.model import PSModel
+from playseg_core.ps.reference_style import reference_style_segment
 from playseg_core.ps.segmentation import segment_episode
 from playseg_core.ps.training import TrainConfig, model_config_for, segment_bounds, step_cap, train_ps
 from playseg_core.training.device import resolve_device

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from reference_style import reference_style_decode
 
 from playseg_core.ps.decoding import (
     OnlineDecoder,
@@ -16,6 +15,7 @@ from playseg_core.ps.decoding import (
     end_columns,
     segment_log_scores,
 )
+from playseg_core.ps.reference_style import reference_style_decode
 
 
 def scalar_log_sigmoid(z: float) -> float:

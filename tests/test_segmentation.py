@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 import torch
-from reference_style import reference_style_segment
 from test_models import INSTRUCTIONS, synthetic_episode, tiny_ps_model
 
 from playseg_core.data.episode import Episode, Segment
@@ -25,6 +24,7 @@ from playseg_core.ps.calibration import (
 from playseg_core.ps.decoding import OnlineDecoder
 from playseg_core.ps.labelling import KeepRule, label_segments, segment_probability
 from playseg_core.ps.metrics import evaluate
+from playseg_core.ps.reference_style import reference_style_segment
 from playseg_core.ps.segmentation import segment_episode
 
 torch.set_num_threads(1)

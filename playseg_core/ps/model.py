@@ -355,12 +355,17 @@ def make_label_head(kind: str, in_dim: int, instructions: list[str]) -> nn.Modul
     return nn.Linear(in_dim, len(instructions))
 
 
-ENCODE_PIXELS = 512 * 64 * 64
-"""Camera pixels per encoder pass when encoding an episode (about 2 million: more small frames, fewer large)."""
+FLOAT_BYTES = 4
 
-SCORE_ROWS = 2048 * 26
-"""Window rows (windows x positions) per trunk pass when scoring an episode: bounds memory on long
-episodes and with long windows (2,048 windows of 26 positions; fewer, longer ones for a larger L_max)."""
+ENCODE_INPUT_BYTES = 24 * 2**20
+"""Camera frames per encoder pass when encoding an episode, in bytes as the encoders read them (float32):
+the rows per pass follow from the frames' shapes (many small frames, few large ones), bounding the
+encoders' activations."""
+
+SCORE_HIDDEN_BYTES = 13 * 2**20
+"""Trunk hidden states per pass when scoring an episode (windows x positions x hidden_dim, float32): the
+windows per pass follow from the window length and the trunk's width, so memory stays bounded on long
+episodes, long windows and wide trunks."""
 
 
 def episode_windows(features: torch.Tensor, window_len: int) -> torch.Tensor:
@@ -406,19 +411,26 @@ class StepModel(nn.Module):
 
     @torch.no_grad()
     def encode_episode(self, episode: Episode, chunk: int | None = None) -> torch.Tensor:
-        """(T+1, step_dim) step features of ``episode``, ``chunk`` rows at a time (default: about
-        `ENCODE_PIXELS` camera pixels per pass, which bounds the encoders' activations)."""
+        """(T+1, step_dim) step features of ``episode``, ``chunk`` rows at a time (default: the rows whose
+        camera frames fill `ENCODE_INPUT_BYTES`)."""
         inputs = self.encoders.episode_inputs(episode)
         rows = episode.num_steps + 1
         if chunk is None:
-            pixels = sum(int(np.prod(inputs[name].shape[1:3])) for name in self.encoders.cameras)
-            chunk = max(1, ENCODE_PIXELS // max(1, pixels))
+            row_bytes = (
+                sum(int(np.prod(inputs[name].shape[1:])) for name in self.encoders.cameras) * FLOAT_BYTES
+            )
+            chunk = max(1, ENCODE_INPUT_BYTES // max(1, row_bytes))
         return torch.cat(
             [
                 self.encode_steps(to_device(as_tensors(inputs, slice(c, c + chunk)), self.device))
                 for c in range(0, rows, chunk)
             ]
         )
+
+    def score_chunk(self, window_len: int) -> int:
+        """Windows of ``window_len`` positions per trunk pass: those whose hidden states fill
+        `SCORE_HIDDEN_BYTES`."""
+        return max(1, SCORE_HIDDEN_BYTES // (window_len * self.cfg.trunk.hidden_dim * FLOAT_BYTES))
 
     @property
     def device(self) -> torch.device:
@@ -513,13 +525,13 @@ class PSModel(StepModel):
         """(T+1, d) -> (T, L_max): [i, k] = logit that the segment [i, i+k+1) ends at i+k+1, end bias
         included.
 
-        The windows go through the trunk ``chunk`` starts at a time (default: `SCORE_ROWS` rows), so
+        The windows go through the trunk ``chunk`` starts at a time (default: `score_chunk`), so
         memory is bounded by the chunk, not the episode (an episode of 100,000 steps needs only its
         (T, L_max) logits). Entries with i+k+1 > T are computed on zero padding and must be ignored
         (decoding.py does); an end's lookahead past o_T reads the same zero padding as in training.
         """
         width = self.max_len + 1 + self.lookahead
-        chunk = chunk or max(1, SCORE_ROWS // width)
+        chunk = chunk or self.score_chunk(width)
         num_steps = features.shape[0] - 1
         parts = []
         for lo in range(0, num_steps, chunk):
@@ -539,7 +551,7 @@ class PSModel(StepModel):
     ) -> torch.Tensor:
         """(T+1, d) features, segments [start, end) -> (len(spans), num_classes) label logits at their ends,
         ``chunk`` segments per trunk pass (each read from the window of its start, as `label_logits`)."""
-        chunk = chunk or max(1, SCORE_ROWS // (self.max_len + 1))
+        chunk = chunk or self.score_chunk(self.max_len + 1)
         rows = []
         for lo in range(0, len(spans), chunk):
             batch = spans[lo : lo + chunk]

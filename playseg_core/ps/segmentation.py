@@ -1,8 +1,8 @@
 """End-to-end Play Segmentation of an episode: encode steps once, score all windows, decode, label.
 
 `segment_episode`: T step encodings, batched trunk passes over the T windows (in chunks: time and memory
-linear in T), the exact O(T * L_max) decoder of decoding.py, then the label head at each chosen end. (The reference's cost model, for
-comparison, is in benchmarks/reference_style.py.)
+linear in T), the exact O(T * L_max) decoder of decoding.py, then the label head at each chosen end.
+(The reference's cost model, for comparison, is in reference_style.py.)
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""The reference implementation's way of segmenting, for benchmarks and equivalence tests only.
+"""The reference implementation's way of segmenting: the oracle of the equivalence tests and the baseline
+of the decoding benchmarks.
 
 `reference_style_decode`: the paper's DP over (number of segments, end) with Python loops.
 `reference_style_segment`: the whole model (encoder included) re-run on every prefix o_i..o_j, one pass
@@ -14,6 +15,7 @@ import numpy as np
 import torch
 
 from playseg_core.data.episode import Episode, Segment
+from playseg_core.errors import PlaysegError
 from playseg_core.ps.decoding import Decoded, check_feasible, check_lengths, log_sigmoid
 from playseg_core.ps.encoders import as_tensors
 from playseg_core.ps.model import PSModel
@@ -32,7 +34,7 @@ def reference_style_decode(
     segmentation too unless several segmentations tie (after rounding), where the two tie rules differ.
     """
     if not isinstance(num_steps, int | np.integer) or num_steps < 1:
-        raise ValueError(f"num_steps must be an integer >= 1, got {num_steps!r}")
+        raise PlaysegError(f"num_steps must be an integer >= 1, got {num_steps!r}")
     check_lengths(min_len, max_len, max_len)
     check_feasible(num_steps, min_len, max_len)
     score: dict[tuple[int, int], float] = {}
@@ -56,7 +58,7 @@ def reference_style_decode(
     count = max(range(1, max_count + 1), key=lambda n: (best[n][num_steps], -n))
     total = best[count][num_steps]
     if total == neg_inf:
-        raise ValueError("score_segment: every feasible segmentation has log-score -inf")
+        raise PlaysegError("score_segment: every feasible segmentation has log-score -inf")
     segments: list[tuple[int, int]] = []
     end = num_steps
     for n in range(count, 0, -1):
@@ -76,7 +78,7 @@ def reference_style_segment(model: PSModel, episode: Episode, min_len: int = 1) 
     """
     model.eval()
     if model.lookahead:
-        raise ValueError("the reference reads no step past an end: use a model with end_lookahead 0")
+        raise PlaysegError("the reference reads no step past an end: use a model with end_lookahead 0")
     num_steps = episode.num_steps
     if num_steps == 0:
         return []
