@@ -93,3 +93,17 @@ def test_a_calvin_dataset_lists_the_set_and_replays_from_its_seeds(tmp_path: Pat
     assert meta["play_config"]["task_set"] == "calvin"
     log = replay_dataset_episode(data, 0)  # the replay reads the task set from the dataset's meta
     assert log.segments == truth[0]
+
+
+def test_the_policy_evaluation_gives_the_task_set_of_its_config() -> None:
+    from playseg_core.domains.tabletop.evaluation import evaluation_episodes
+    from playseg_core.domains.tabletop.learner import TabletopPolicyLearner
+    from playseg_core.errors import PlaysegError
+
+    calvin = {e.task.text for e in evaluation_episodes(60, 9, CALVIN)}
+    every = {e.task.text for e in evaluation_episodes(60, 9)}
+    assert calvin <= set(CALVIN.instructions) and len(calvin) >= 20
+    assert not every <= set(CALVIN.instructions)  # the default is all 197
+    assert TabletopPolicyLearner.from_config({"task_set": "calvin", "steps": 1}).task_set == "calvin"
+    with pytest.raises(PlaysegError, match="task_set must be one of"):
+        TabletopPolicyLearner.from_config({"task_set": "nope"})

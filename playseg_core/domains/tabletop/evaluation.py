@@ -1,7 +1,8 @@
 """Evaluation of an instruction-following policy in the tabletop simulator.
 
-Episode k of an evaluation with ``seed`` starts from a random layout and one task drawn as play draws
-them (a family uniformly among those with a task that may be given, then one of its tasks), both from
+Episode k of an evaluation with ``seed`` starts from a random layout and one task of the task set drawn
+as play draws them (instructions.py `TaskSet`: for ``all``, a family uniformly among those with a task
+that may be given, then one of its tasks; for ``calvin``, one of its tasks uniformly), both from
 the generator ``default_rng([seed + k, EVALUATION_STREAM])``: a stream of its own, never a play
 episode's layout. The policy sees what the dataset recorded (the rendered camera frame and the state
 vector, the same features) and its action drives the simulator for one control step; the episode
@@ -20,7 +21,7 @@ import numpy as np
 
 from playseg_core.augment.policy import InstructionPolicy, PolicyEvaluation, torch_threads
 from playseg_core.data.features import STATE
-from playseg_core.domains.tabletop.instructions import Task, is_done
+from playseg_core.domains.tabletop.instructions import TASK_SETS, Task, TaskSet, is_done
 from playseg_core.domains.tabletop.play import draw_task
 from playseg_core.domains.tabletop.render import Renderer
 from playseg_core.domains.tabletop.sim import Scene, TabletopSim
@@ -39,20 +40,22 @@ class EvaluationEpisode:
     task: Task
 
 
-def evaluation_start(seed: int) -> tuple[TabletopSim, EvaluationEpisode]:
-    """The simulator at the start of the evaluation episode of ``seed``, and its task."""
+def evaluation_start(seed: int, tasks: TaskSet = TASK_SETS["all"]) -> tuple[TabletopSim, EvaluationEpisode]:
+    """The simulator at the start of the evaluation episode of ``seed``, and its task (of ``tasks``)."""
     rng = np.random.default_rng([seed, EVALUATION_STREAM])
     while True:  # a layout always has tasks to give; the loop only guards a (never seen) empty draw
         sim = TabletopSim()
         sim.place_randomly(rng)
-        task = draw_task(sim.scene(), rng)
+        task = draw_task(sim.scene(), rng, tasks=tasks)
         if task is not None:
             return sim, EvaluationEpisode(seed, task)
 
 
-def evaluation_episodes(num_episodes: int, seed: int) -> list[EvaluationEpisode]:
+def evaluation_episodes(
+    num_episodes: int, seed: int, tasks: TaskSet = TASK_SETS["all"]
+) -> list[EvaluationEpisode]:
     """The starts ``seed``, ``seed + 1``, ... of an evaluation (to report what it asks per family)."""
-    return [evaluation_start(seed + k)[1] for k in range(num_episodes)]
+    return [evaluation_start(seed + k, tasks)[1] for k in range(num_episodes)]
 
 
 @dataclass
@@ -67,9 +70,9 @@ class TabletopEvaluation(PolicyEvaluation):
 class _Running:
     """One evaluation episode being run."""
 
-    def __init__(self, index: int, seed: int, renderer: Renderer) -> None:
+    def __init__(self, index: int, seed: int, renderer: Renderer, tasks: TaskSet) -> None:
         self.index = index
-        self.sim, self.episode = evaluation_start(seed)
+        self.sim, self.episode = evaluation_start(seed, tasks)
         self.start: Scene = self.sim.scene()
         self.renderer = renderer
 
@@ -85,9 +88,11 @@ def evaluate_policy(
     image_size: int = DEFAULT_IMAGE_SIZE,
     batch_episodes: int = 64,
     num_threads: int = 1,
+    tasks: TaskSet = TASK_SETS["all"],
 ) -> TabletopEvaluation:
-    """Success rate of ``policy`` on the evaluation episodes of seeds ``seed .. seed + num_episodes - 1``,
-    ``batch_episodes`` at a time; ValueError on a non-positive count, budget or batch."""
+    """Success rate of ``policy`` on the evaluation episodes of seeds ``seed .. seed + num_episodes - 1``
+    (tasks of ``tasks``), ``batch_episodes`` at a time; ValueError on a non-positive count, budget or
+    batch."""
     if num_episodes < 1 or max_steps < 1 or batch_episodes < 1:
         raise PlaysegError(
             f"tabletop evaluation: num_episodes, max_steps and batch_episodes must be >= 1, got "
@@ -101,7 +106,8 @@ def evaluate_policy(
     families: dict[str, list[int]] = {}
     for wave in range(0, num_episodes, batch_episodes):
         running = [
-            _Running(k, seed + k, renderer) for k in range(wave, min(wave + batch_episodes, num_episodes))
+            _Running(k, seed + k, renderer, tasks)
+            for k in range(wave, min(wave + batch_episodes, num_episodes))
         ]
         for run in running:
             families.setdefault(run.episode.task.family, [0, 0])[1] += 1

@@ -69,13 +69,16 @@ class TabletopPolicyLearner:
     image_size: int = DEFAULT_IMAGE_SIZE
     eval_max_steps: int = EVAL_STEP_BUDGET
     name: str = POLICY_NAME
+    task_set: str = "all"  # the instructions the evaluation gives (instructions.py TASK_SETS)
 
     @classmethod
     def from_config(cls, config: dict[str, Any]) -> TabletopPolicyLearner:
         """From plain settings: ``image_size`` (the dataset's camera side, default 96), ``eval_max_steps``
-        (default spec.EVAL_STEP_BUDGET), ``camera_encoder`` (CAMERA_ENCODERS) and ``camera_keypoints``, and
+        (default spec.EVAL_STEP_BUDGET), ``task_set`` (the evaluation's instructions: ``all`` or ``calvin``,
+        as the data's play), ``camera_encoder`` (CAMERA_ENCODERS) and ``camera_keypoints``, and
         any setting of the ``bc`` policy (BCTrainConfig, ``channels`` =
         ``hidden``); ValueError naming an unknown or bad one."""
+        from playseg_core.domains.tabletop.instructions import TASK_SETS
         from playseg_core.domains.tabletop.play import PlayConfig  # the physics: only when built
         from playseg_core.domains.tabletop.symmetry import random_symmetry
 
@@ -99,6 +102,11 @@ class TabletopPolicyLearner:
         camera = str(config.pop("camera_encoder"))
         keypoints = int(config.pop("camera_keypoints", ObjectMapConfig.keypoints))
         eval_max_steps = int(config.pop("eval_max_steps", EVAL_STEP_BUDGET))
+        tasks = str(config.pop("task_set", "all"))
+        if tasks not in TASK_SETS:
+            raise PlaysegError(
+                f"policy {POLICY_NAME}: task_set must be one of {list(TASK_SETS)}, got {tasks!r}"
+            )
         if eval_max_steps <= 0:
             raise PlaysegError(f"policy {POLICY_NAME}: eval_max_steps must be > 0, got {eval_max_steps}")
         features = PlayConfig(image_size=image_size).features  # ValueError naming a bad image size
@@ -125,7 +133,7 @@ class TabletopPolicyLearner:
             }
 
         bc = BCPolicyLearner.from_config(config, features, encoder_choice, random_symmetry)
-        return cls(bc, image_size, eval_max_steps)
+        return cls(bc, image_size, eval_max_steps, task_set=tasks)
 
     @property
     def features(self) -> Features:
@@ -138,10 +146,11 @@ class TabletopPolicyLearner:
 
     def evaluate(self, policy: BCPolicy, num_episodes: int, seed: int) -> Any:
         from playseg_core.domains.tabletop.evaluation import evaluate_policy
+        from playseg_core.domains.tabletop.instructions import TASK_SETS
 
         return evaluate_policy(
             policy, num_episodes, seed, self.eval_max_steps, self.image_size,
-            num_threads=self.bc.settings.num_threads,
+            num_threads=self.bc.settings.num_threads, tasks=TASK_SETS[self.task_set],
         )  # fmt: skip
 
     def save(self, path: Path, policy: BCPolicy, meta: dict[str, Any]) -> None:
