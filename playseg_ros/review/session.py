@@ -133,16 +133,17 @@ class ReviewSession:
         return sorted(rows, key=_queue_key)
 
     def open_proposals(self, index: int, state: dict[str, Any] | None = None) -> list[Proposal]:
-        """Proposals not rejected and not already a label."""
+        """Proposals not rejected and not overlapping a label."""
         state = self.store.state() if state is None else state
         rejected = {
             tuple(r) for r in state.get(self.dataset.records[index].episode_id, {}).get("rejected", [])
         }
-        labelled = {(label.start, label.end) for label in self.store.initial_labels(index)}
+        labels = self.store.initial_labels(index)
         return [
             p
             for p in self.proposals.get(index, [])
-            if (p.start, p.end, p.instruction) not in rejected and (p.start, p.end) not in labelled
+            if (p.start, p.end, p.instruction) not in rejected
+            and not any(label.start < p.end and p.start < label.end for label in labels)
         ]
 
     def episode(self, index: int) -> dict[str, Any]:
@@ -249,15 +250,14 @@ class ReviewSession:
         return job
 
     def propose(self, job: Job, indices: list[int] | None = None) -> dict[str, Any]:
-        """Segment the episodes that have no labels and are not reviewed with the model."""
+        """Propose segments for the episodes not yet reviewed (the page shows those outside their labels)."""
         if self.segmenter is None:
             raise PlaysegError("no model: start `playseg review` with --model PS.pt, or retrain")
         state = self.store.state()
         todo = [
             i
             for i in (range(len(self.dataset)) if indices is None else indices)
-            if not self.store.initial_labels(i)
-            and not state.get(self.dataset.records[i].episode_id, {}).get("reviewed")
+            if not state.get(self.dataset.records[i].episode_id, {}).get("reviewed")
         ]
         provenance = model_provenance(self.model_path) if self.model_path else "model"
         for done, index in enumerate(todo):

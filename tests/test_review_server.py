@@ -1,0 +1,237 @@
+# ruff: noqa: F811 (a test takes the imported fixture `bags` as an argument)
+"""`playseg review`'s server without a browser: the bad inputs of issue 40 (a dataset without images, an
+episode of 100,000 steps, a hand-edited labels file with an error, a model of other features, a port in
+use) and HTTP range requests on the cached video."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import socket
+import subprocess
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from test_convert_segment import untrained_model
+from test_review_times import bags  # noqa: F401 (the fixture: two robot bags and their mapping)
+
+from playseg_core.data.dataset import DatasetWriter, PlayDataset
+from playseg_core.data.episode import Episode, Segment
+from playseg_ros.review.app import review_dir, start
+from playseg_ros.review.server import ReviewServer
+
+LONG = 100_000
+
+
+def write_dataset(path: Path, steps: tuple[int, ...], images: bool) -> Path:
+    rng = np.random.default_rng(0)
+    with DatasetWriter(path, ["reach", "wave"]) as writer:
+        for k, n in enumerate(steps):
+            episode = Episode(
+                f"run:{k}",
+                rng.standard_normal((n, 2)).astype(np.float32),
+                images={"observation.images.top": moving_square(n + 1)} if images else {},
+                state=rng.standard_normal((n + 1, 3)).astype(np.float32),
+                segments=[Segment(0, min(n, 6), "reach")] if k == 0 else [],
+            )
+            writer.add(episode, "train" if k == 0 else "play")
+    return path
+
+
+def moving_square(frames: int) -> np.ndarray:
+    """A bright square moving over a dark background: each frame tells which one it is."""
+    video = np.full((frames, 16, 20, 3), 30, np.uint8)
+    for k in range(frames):
+        video[k, 4:12, k % 12 : k % 12 + 8] = 220
+    return video
+
+
+def review_cli(*args: str) -> tuple[int, str]:
+    """`playseg review ...` as a user runs it; (exit code, stderr). A refusal exits at once."""
+    done = subprocess.run(
+        [sys.executable, "-m", "playseg_ros.cli", "review", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    return done.returncode, done.stderr.strip()
+
+
+@pytest.fixture
+def serve() -> Iterator[Any]:
+    servers: list[ReviewServer] = []
+
+    def run(dataset: Path, **options: Any) -> str:
+        server, url = start(dataset, port=0, **options)
+        servers.append(server)
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        return url
+
+    yield run
+    for server in servers:
+        server.shutdown()
+        server.server_close()
+
+
+def get(url: str, headers: dict[str, str] | None = None) -> tuple[int, dict[str, str], bytes]:
+    request = urllib.request.Request(url, headers=headers or {})
+    try:
+        with urllib.request.urlopen(request, timeout=30) as response:
+            return response.status, dict(response.headers), response.read()
+    except urllib.error.HTTPError as error:
+        return error.code, dict(error.headers), error.read()
+
+
+def test_video_is_encoded_once_and_served_in_ranges(tmp_path: Path, serve: Any) -> None:
+    data = write_dataset(tmp_path / "d", (12, 8), images=True)
+    url = serve(data)
+    status, headers, whole = get(url + "api/episode/0/video/observation.images.top")
+    assert status == 200 and headers["Content-Type"] == "video/mp4" and whole[4:8] == b"ftyp"
+    status, headers, part = get(url + "api/episode/0/video/observation.images.top", {"Range": "bytes=10-99"})
+    assert status == 206 and part == whole[10:100]
+    assert headers["Content-Range"] == f"bytes 10-99/{len(whole)}"
+    status, _, tail = get(url + "api/episode/0/video/observation.images.top", {"Range": "bytes=-16"})
+    assert status == 206 and tail == whole[-16:]
+    assert (
+        get(url + "api/episode/0/video/observation.images.top", {"Range": f"bytes={len(whole)}-"})[0] == 416
+    )
+    cached = list((review_dir(data) / "video").glob("*.mp4"))
+    assert len(cached) == 1
+    mtime = cached[0].stat().st_mtime_ns
+    get(url + "api/episode/0/video/observation.images.top")
+    assert cached[0].stat().st_mtime_ns == mtime  # served from the cache, not encoded again
+    import av
+
+    with av.open(str(cached[0])) as container:
+        frames = [frame.to_ndarray(format="rgb24") for frame in container.decode(video=0)]
+    assert len(frames) == 13  # one frame per observation
+    original = PlayDataset.open(data).episode(0).images["observation.images.top"]
+    errors = [np.abs(frames[5][:16, :20].astype(int) - original[k].astype(int)).mean() for k in range(13)]
+    assert int(np.argmin(errors)) == 5 and errors[5] < 10  # lossy, but that frame
+
+
+def test_dataset_without_images_and_a_long_episode_load_in_windows(tmp_path: Path, serve: Any) -> None:
+    data = write_dataset(tmp_path / "d", (30, LONG), images=False)
+    url = serve(data)
+    status, _, body = get(url + "api/episode/1")
+    episode = json.loads(body)
+    assert status == 200 and episode["cameras"] == [] and episode["num_steps"] == LONG
+    assert len(body) < 10_000  # no per-step array in the episode itself
+    status, _, body = get(url + "api/episode/1/signals?start=0&end=100001&points=800")
+    signals = json.loads(body)
+    assert status == 200 and len(signals["steps"]) <= 800 and signals["steps"][-1] > 99_000
+    assert signals["names"] == ["state.0", "state.1", "state.2", "action.0", "action.1"]
+    status, _, body = get(url + "api/episode/1/signals?start=50000&end=50010&points=800")
+    window = json.loads(body)
+    assert window["steps"] == list(range(50000, 50010))
+    state = PlayDataset.open(data).episode(1).state
+    np.testing.assert_allclose(window["values"][0], state[50000:50010, 0], atol=1e-5)
+    status, _, body = get(url + "api/episode/1/video/observation.images.top")
+    assert status == 400 and "no camera" in json.loads(body)["error"]
+
+
+def test_a_token_guards_a_server_bound_beyond_localhost(tmp_path: Path) -> None:
+    data = write_dataset(tmp_path / "d", (10,), images=False)
+    server, url = start(data, host="0.0.0.0", port=0)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        assert "?token=" in url
+        port = server.server_address[1]
+        assert get(f"http://127.0.0.1:{port}/api/info")[0] == 403
+        assert get(f"http://127.0.0.1:{port}/api/info?token={url.split('token=')[1]}")[0] == 200
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_bad_labels_file_names_its_line(tmp_path: Path) -> None:
+    data = write_dataset(tmp_path / "d", (10,), images=False)
+    labels = review_dir(data) / "labels"
+    labels.mkdir(parents=True)
+    (labels / "run:0.yaml").write_text(
+        "times: from_start\nannotations:\n  - {start: 0.0, end: 0.4, instruction: reach}\n"
+        "  - {start: 0.5, end: zero, instruction: wave}\n"
+    )
+    code, err = review_cli(str(data), "--port", "0")
+    assert code == 1 and err.count("\n") == 0
+    assert "run:0.yaml', line 4: key 'end': must be a number" in err
+
+
+def test_a_model_of_other_features_is_refused_at_start(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with_images = PlayDataset.open(write_dataset(tmp_path / "images", (12,), images=True))
+    model = untrained_model(tmp_path / "ps.pt", with_images.features, with_images.episode(0))
+    data = write_dataset(tmp_path / "d", (10,), images=False)
+    code, err = review_cli(str(data), "--model", str(model), "--port", "0")
+    assert code == 1 and err.count("\n") == 0 and "observation.images.top" in err and "ps.pt" in err
+
+
+def test_a_port_in_use_is_one_line(tmp_path: Path) -> None:
+    data = write_dataset(tmp_path / "d", (10,), images=False)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        code, err = review_cli(str(data), "--port", str(port))
+    assert code == 1 and err.count("\n") == 0 and f"--port {port}: cannot listen on 127.0.0.1:{port}" in err
+
+
+def post(url: str, body: dict[str, Any]) -> dict[str, Any]:
+    request = urllib.request.Request(url, json.dumps(body).encode(), {"Content-Type": "application/json"})
+    with urllib.request.urlopen(request, timeout=30) as response:
+        return json.loads(response.read())
+
+
+def finished(url: str, job: str) -> dict[str, Any]:
+    """Poll a background job until it is no longer running (bounded: a hung job fails the test)."""
+    for _ in range(1200):
+        state = json.loads(get(url + "api/jobs")[2])[job]
+        if state["state"] != "running":
+            return state
+        time.sleep(0.25)
+    raise AssertionError(f"{job} still running: {state}")
+
+
+def test_retrain_reproposes_and_export_writes_lerobot(
+    bags: dict[str, Path], tmp_path: Path, serve: Any
+) -> None:
+    from test_convert_segment import convert_cli
+
+    assert convert_cli([bags["play"], bags["annotated"]], tmp_path / "data", bags["mapping"]) == 0
+    url = serve(tmp_path / "data")
+    info = json.loads(get(url + "api/info")[2])
+    play = next(row["index"] for row in info["episodes"] if row["episode_id"] == "play:0")
+    assert info["model"] is None and json.loads(get(url + f"api/episode/{play}")[2])["proposals"] == []
+    # the reviewer labels the start of the play episode, then retrains
+    page = json.loads(get(url + f"api/episode/{play}")[2])
+    post(
+        url + f"api/episode/{play}/save",
+        {"labels": [{"start": 0, "end": 9, "instruction": "wave"}], "version": page["version"]},
+    )
+    assert post(url + "api/retrain", {"steps": 12})["state"] == "running"
+    job = finished(url, "retrain")
+    assert job["state"] == "done", job
+    model = Path(job["result"]["model"])
+    assert model.is_file()
+    proposals = json.loads(get(url + f"api/episode/{play}")[2])["proposals"]
+    assert proposals and all(p["start"] >= 9 for p in proposals)  # none over the reviewer's label
+    digest = proposals[0]["provenance"].removeprefix("model:")
+    assert len(digest) == 12 and digest in hashlib.sha256(model.read_bytes()).hexdigest()
+    # export: the preview shows the language rows; the export is LeRobot v3.0
+    preview = json.loads(get(url + "api/export/preview")[2])["episodes"]
+    contents = {row["content"] for episode in preview for row in episode["rows"]}
+    assert {"wave", "pick up the cup", "put the cup down"} <= contents
+    post(url + "api/export", {"out": str(tmp_path / "lerobot")})
+    job = finished(url, "export")
+    assert job["state"] == "done", job
+    exported = json.loads((tmp_path / "lerobot" / "meta" / "info.json").read_text())
+    assert exported["codebase_version"] == "v3.0" and exported["total_episodes"] == 2
