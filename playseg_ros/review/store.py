@@ -119,7 +119,10 @@ def read_labels_file(path: Path) -> list[SidecarLabelYaml]:
             raise LabelFileError(
                 f"labels file {str(path)!r}, line {lines[int(found.group(1))]}: {detail}"
             ) from None
-        raise LabelFileError(message.replace(f"bag {str(path)!r}, ", "", 1)) from None
+        # convert names the bag first; here the labels file is the whole story
+        raise LabelFileError(
+            re.sub(r"^bag '[^']*'[,:] ", "", message).replace("annotations file", "labels file", 1)
+        ) from None
     raw = yaml.safe_load(path.read_text(encoding="utf-8"))
     entries = raw.get("annotations", []) if isinstance(raw, dict) else raw
     return [dict(entry) for entry in entries or []]  # type: ignore[misc]
