@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 import socket
 import subprocess
 import sys
@@ -235,3 +236,40 @@ def test_retrain_reproposes_and_export_writes_lerobot(
     assert job["state"] == "done", job
     exported = json.loads((tmp_path / "lerobot" / "meta" / "info.json").read_text())
     assert exported["codebase_version"] == "v3.0" and exported["total_episodes"] == 2
+
+
+def test_bags_are_converted_on_the_fly_and_cached(bags: dict[str, Path], tmp_path: Path) -> None:
+    both = [str(tmp_path / "bags" / name) for name in ("play", "annotated")]
+    shutil.copytree(bags["play"], both[0])
+    shutil.copytree(bags["annotated"], both[1])
+
+    def run() -> tuple[list[str], dict[str, Any]]:
+        command = [
+            sys.executable,
+            "-m",
+            "playseg_ros.cli",
+            "review",
+            *both,
+            "--mapping",
+            str(bags["mapping"]),
+            "--port",
+            "0",
+        ]
+        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        assert process.stdout is not None
+        try:
+            lines = [process.stdout.readline()]
+            while lines[-1] and not lines[-1].startswith("playseg review: http"):
+                lines.append(process.stdout.readline())
+            assert lines[-1], process.stderr.read() if process.stderr else ""
+            return lines, json.loads(get(lines[-1].split()[2] + "api/info")[2])
+        finally:
+            process.terminate()
+            process.wait(timeout=10)
+
+    lines, info = run()
+    assert "2 converted, 0 skipped" in lines[0]
+    assert sorted(row["episode_id"] for row in info["episodes"]) == ["annotated:0", "play:0"]
+    assert info["dataset"] == str(tmp_path / "bags" / "play.review" / "data")
+    lines, _ = run()
+    assert "0 converted, 2 skipped" in lines[0]  # the cached conversion

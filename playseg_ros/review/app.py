@@ -132,6 +132,29 @@ class ReviewActions:
         return {"out": str(out), "summary": str(summary)}
 
 
+def dataset_of(inputs: list[Path], mapping: Path | None) -> tuple[Path, Path]:
+    """The dataset to review and the review's directory: ``inputs`` when it is one dataset; else bags,
+    converted (through ``mapping``, or as playseg play bags) into ``<first input>.review/data``. A rerun
+    converts only the bags that are new or changed (`playseg convert` resumes)."""
+    if len(inputs) == 1 and is_dataset(inputs[0]):
+        if mapping is not None:
+            raise PlaysegError(f"--mapping is for bags; {inputs[0]} is a dataset already")
+        return inputs[0], review_dir(inputs[0])
+    from playseg_ros.convert import convert, load_mapping
+
+    missing = [path for path in inputs if not path.exists()]
+    if missing:
+        raise FileNotFoundError(f"{missing[0]}: no such dataset or bag")
+    work = review_dir(inputs[0])
+    summary = convert(inputs, work / "data", load_mapping(mapping) if mapping else None, progress=False)
+    for report in summary.failed:
+        print(f"playseg review: failed: {report.error}", file=sys.stderr)
+    if not is_dataset(work / "data"):
+        raise PlaysegError(f"{inputs[0]}: no bag converted (give --mapping MAP.yaml for robot bags)")
+    print(summary.text(), flush=True)
+    return work / "data", work
+
+
 def start(
     dataset: Path,
     model: Path | None = None,
@@ -139,10 +162,11 @@ def start(
     host: str = "127.0.0.1",
     port: int = 8765,
     token: str | None = None,
+    work: Path | None = None,
 ) -> tuple[ReviewServer, str]:
     """The server (not yet serving) and its URL. A host other than localhost gets a random token in the URL
-    unless ``token`` is given."""
-    work = review_dir(dataset)
+    unless ``token`` is given. ``work`` holds labels, videos and models (default `review_dir`)."""
+    work = work or review_dir(dataset)
     session = ReviewSession(dataset, labels or work / "labels", work / "video", model)
     if token is None and host not in LOCAL_HOSTS:
         token = secrets.token_urlsafe(16)
@@ -157,12 +181,14 @@ def start(
     return server, url
 
 
-def review(dataset: str, model: str | None, labels: str | None, host: str, port: int) -> int:
+def review(
+    inputs: list[str], model: str | None, labels: str | None, host: str, port: int, mapping: str | None = None
+) -> int:
     """`playseg review`: serve until interrupted."""
-    path = Path(dataset)
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such dataset")
-    server, url = start(path, Path(model) if model else None, Path(labels) if labels else None, host, port)
+    path, work = dataset_of([Path(p) for p in inputs], Path(mapping) if mapping else None)
+    server, url = start(
+        path, Path(model) if model else None, Path(labels) if labels else None, host, port, work=work
+    )
     if server.session.segmenter is not None:
         server.session.start_job("propose", server.session.propose)
     print(f"playseg review: {url}  (labels in {server.session.labels_dir}; Ctrl-C stops)", flush=True)

@@ -11,9 +11,15 @@ def add_review_command(sub: argparse._SubParsersAction) -> None:
         "review", help="annotate play and review a model's proposals in the browser (docs/review.md)"
     )
     review.add_argument(
-        "dataset", metavar="DATASET", help="a playseg dataset (`playseg convert`, `generate`)"
+        "inputs",
+        nargs="+",
+        metavar="DATASET_OR_BAGS",
+        help="a playseg dataset, or bags (directories of bags) converted on the fly with --mapping (cached)",
     )
-    review.add_argument("--model", help="a PS checkpoint: propose segments for the episodes without labels")
+    review.add_argument(
+        "--mapping", help="the `playseg convert` mapping of the bags (not for playseg play bags)"
+    )
+    review.add_argument("--model", help="a PS checkpoint: propose segments for the episodes not yet reviewed")
     review.add_argument(
         "--labels", metavar="DIR", help="where the labels are kept (default DATASET.review/labels)"
     )
@@ -29,4 +35,4 @@ def add_review_command(sub: argparse._SubParsersAction) -> None:
 def _cmd_review(args: argparse.Namespace) -> int:
     from playseg_ros.review.app import review
 
-    return review(args.dataset, args.model, args.labels, args.host, args.port)
+    return review(args.inputs, args.model, args.labels, args.host, args.port, args.mapping)
