@@ -89,3 +89,34 @@ def test_an_episode_shorter_than_l_min_is_one_segment_live_as_offline(end_lookah
         ]
         assert [s.log_prob for s in live] == pytest.approx([s.log_prob for s in offline], abs=1e-4)
         assert [s.confidence for s in live] == pytest.approx([s.confidence for s in offline], abs=1e-5)
+
+
+@pytest.mark.parametrize("end_lookahead", [0, 2])
+def test_incremental_end_scores_equal_end_column(end_lookahead):
+    """Each step's column from the windows' advanced state equals `end_column` on the kept rows, before
+    and after the caller drops committed rows, and over zero rows past the episode's end."""
+    from playseg_core.ps.incremental import IncrementalEndScorer
+
+    torch.manual_seed(7)
+    model = babyai_model(read_actions=False, end_lookahead=end_lookahead).eval()
+    with torch.no_grad():
+        model.end_bias.fill_(0.25)
+    steps = model.max_len * 3
+    features = torch.randn(steps, model.encoders.step_dim)
+    if end_lookahead:  # zero rows past the episode's end, as `finish` pushes them
+        features[-end_lookahead:] = 0.0
+    scorer, first_kept, compared = IncrementalEndScorer(model), 0, 0
+    for t in range(steps):
+        scorer.push(features[t])
+        if t == model.max_len + 10:
+            first_kept = t - 12  # the caller committed everything before this row
+        if t + 1 < 2 + end_lookahead:
+            continue
+        first_row = max(first_kept, t - (model.max_len + end_lookahead))
+        expected = model.end_column(features[first_row : t + 1], first_row == 0)
+        column = scorer.column(first_kept)
+        assert torch.equal(torch.isfinite(column), torch.isfinite(expected)), t
+        finite = torch.isfinite(expected)
+        torch.testing.assert_close(column[finite], expected[finite], atol=1e-5, rtol=1e-5)
+        compared += int(finite.sum())
+    assert compared > steps * model.max_len // 2  # most of each column was scored

@@ -1,9 +1,10 @@
 """Play Segmentation of a stream: one episode fed step by step, segments emitted as soon as decided.
 
 Each observation is encoded once; at step t the PS model scores every segment that could end at
-e = t - lookahead (one column of the end-logit matrix, from the last L_max+1+lookahead step features;
-a model whose end head reads past the end decides each end that many steps later, and at the episode's
-end reads zero rows there, as offline) and the online decoder commits boundaries once every surviving
+e = t - lookahead (one column of the end-logit matrix, from the last L_max+1+lookahead step features,
+each window's trunk state advanced by the new step: incremental.py; a model whose end head reads past
+the end decides each end that many steps later, and at the episode's end reads zero rows there, as
+offline) and the online decoder commits boundaries once every surviving
 best path passes through them. The output equals `segment_episode` on the whole episode (same model,
 same decoder recursion and tie rule).
 """
@@ -19,6 +20,7 @@ from playseg_core.data.episode import Segment
 from playseg_core.errors import PlaysegError
 from playseg_core.ps.decoding import OnlineDecoder, decode_segments
 from playseg_core.ps.encoders import as_tensors
+from playseg_core.ps.incremental import IncrementalEndScorer
 from playseg_core.ps.model import PSModel
 from playseg_core.ps.segmentation import labelled_segment
 from playseg_core.training.device import to_device
@@ -31,6 +33,7 @@ class StreamingSegmenter:
         model.eval()
         self.model = model
         self.decoder = OnlineDecoder(max_len=model.max_len, min_len=min_len)
+        self._scorer = IncrementalEndScorer(model)  # each step's column of end scores
         self._features: list[torch.Tensor] = []  # the last L_max+1+lookahead are needed; older dropped
         self._offset = 0  # step index of self._features[0]
         # The action encoders' inputs for the next observation, from the action pushed with the last one.
@@ -65,16 +68,15 @@ class StreamingSegmenter:
             )
         feature = self.model.encode_steps(to_device(as_tensors(inputs), self.model.device))[0]
         self._features.append(feature)
+        self._scorer.push(feature)
         if self.num_observations < 2 + self.model.lookahead:
             return []
-        return self._label(self.decoder.push(self._end_column(self._features)))
+        return self._label(self.decoder.push(self._end_column()))
 
-    def _end_column(self, features: list[torch.Tensor]) -> np.ndarray:
-        """The column of ends ``lookahead`` rows before the last of ``features`` (the kept rows, with zero
-        rows appended past the episode's end)."""
-        window = torch.stack(features[-(self.model.max_len + 1 + self.model.lookahead) :])
-        starts_episode = self._offset == 0 and len(features) == len(window)
-        return self.model.end_column(window, starts_episode).double().cpu().numpy()
+    def _end_column(self) -> np.ndarray:
+        """The column of ends ``lookahead`` rows before the last pushed (`PSModel.end_column` of the kept
+        rows)."""
+        return self._scorer.column(self._offset).double().cpu().numpy()
 
     @torch.no_grad()
     def finish(self) -> list[Segment]:
@@ -89,9 +91,9 @@ class StreamingSegmenter:
         # Ends the lookahead has kept waiting: score them reading zero rows past the last observation.
         decided, zero = [], torch.zeros_like(self._features[0])
         for end in range(max(1, self.num_observations - self.model.lookahead), self.num_observations):
-            rows_to_lookahead = end + self.model.lookahead + 1 - self._offset
-            padding = [zero] * (rows_to_lookahead - len(self._features))
-            decided += self.decoder.push(self._end_column(self._features + padding))
+            while self._scorer.t < end + self.model.lookahead:  # zero rows up to the end's lookahead
+                self._scorer.push(zero)
+            decided += self.decoder.push(self._end_column())
         return self._label(decided + self.decoder.finish())
 
     def _whole_episode(self, num_steps: int) -> Segment:
