@@ -294,6 +294,9 @@ def _cmd_segment(args: argparse.Namespace) -> int:
         args.seed,
         args.keep,
         args.device,
+        args.engine,
+        args.workers,
+        args.address,
     )
     return _labels_out(args.out, args.labels_out, args.model) if code == 0 else code
 
@@ -477,6 +480,17 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     segment.add_argument("--keep", default="label", choices=KEEP_RULE_CHOICES, help=KEEP_HELP)
     segment.add_argument("--labels-out", metavar="DIR", help=LABELS_OUT_HELP)
     add_device_argument(segment)
+    segment.add_argument(
+        "--engine",
+        default="local",
+        choices=["local", "ray"],
+        help="local: this process; ray: episodes segmented by --workers Ray actors (a local Ray instance, "
+        "or --address), the same output",
+    )
+    segment.add_argument("--workers", type=int, default=1, help="with --engine ray: actors (one CPU each)")
+    segment.add_argument(
+        "--address", help="with --engine ray: the Ray cluster to join (e.g. ray://head:10001)"
+    )
     segment.set_defaults(func=_cmd_segment)
     evaluate = sub.add_parser("evaluate", help="metrics of segmented play against the ground truth")
     evaluate.add_argument("--pred", required=True, help="output of `playseg segment`")

@@ -532,6 +532,9 @@ def segment(
     seed: int = 0,
     keep: str = "label",
     device: str = "auto",
+    engine: str = "local",
+    workers: int = 1,
+    address: str | None = None,
 ) -> int:
     """Segment every episode of the input; write a dataset of labelled segments (and a bag for bags).
 
@@ -539,7 +542,9 @@ def segment(
     ``seed`` draws the random windows of the methods that use them. The dataset holds every segment (with
     its label confidence and log-score, for `evaluate`); the segment bag only those the ``keep`` rule
     (ps/labelling.py `KEEP_RULES`) keeps, which the dataset's meta records.
-    Streams: one episode in memory at a time, the segment bag written as the segments come.
+    Streams: one episode in memory at a time, the segment bag written as the segments come. ``engine``
+    "ray" segments the episodes on ``workers`` Ray actors (``address``: a cluster to join;
+    playseg_ros/segment_ray.py), with the same output; a few episodes per actor are then in memory.
     """
     from playseg_core.baselines.common import SegmentOptions
     from playseg_core.baselines.registry import load_segmenter
@@ -549,14 +554,19 @@ def segment(
 
     if min_len is not None and min_len < 1:
         raise PlaysegError(f"--min-len must be >= 1, got {min_len}")
+    if engine not in ("local", "ray"):
+        raise PlaysegError(f"--engine {engine!r}: expected local or ray")
+    if address is not None and engine != "ray":
+        raise PlaysegError("--address is the Ray cluster to join: give --engine ray")
+    if workers < 1:
+        raise PlaysegError(f"--workers must be >= 1, got {workers}")
     source = Path(input_path)
     if not source.exists():
         raise FileNotFoundError(f"--input {source}: no such bag or dataset")
     check_out_apart(out, source)
     resolved = resolve_device(device)
-    model = load_segmenter(
-        method, model_path, SegmentOptions(min_len=min_len, seed=seed, device=str(resolved))
-    )
+    options = SegmentOptions(min_len=min_len, seed=seed, device=str(resolved))
+    model = load_segmenter(method, model_path, options)
     rule = model.keep_rule(keep)
     if method == "ps" and not is_calibrated(model.checkpoint_meta):
         print(uncalibrated_warning(f"model {model_path}"), file=sys.stderr)
@@ -590,8 +600,13 @@ def segment(
         def kept_clips() -> Iterator[SegmentClip]:
             """Segment episode by episode, writing each to the dataset; yield the clips the rule keeps."""
             nonlocal steps, count, kept
-            for episode in episodes:
-                segments = model.segment(episode)
+            if engine == "ray":
+                from playseg_ros.segment_ray import segment_on_ray  # Ray: only with this engine
+
+                segmented = segment_on_ray(episodes, method, model_path, options, workers, address)
+            else:
+                segmented = ((episode, model.segment(episode)) for episode in episodes)
+            for episode, segments in segmented:
                 writer.add(episode.with_segments(segments), "play", extra={"source": kind})
                 steps += episode.num_steps
                 count += len(segments)

@@ -1,0 +1,93 @@
+"""`playseg segment --engine ray`: Ray actors segment the episodes and the output equals the local
+engine's, byte for byte, from a dataset and from a play bag (a local Ray instance with 2 CPUs)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from playseg_core.data.dataset import PlayDataset
+from playseg_ros.cli import main
+
+
+def files_of(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> tuple[Path, Path]:
+    root = tmp_path_factory.mktemp("ray-segment")
+    data, model = root / "tiny", root / "ps.pt"
+    assert main(["generate", "--preset", "tiny", "--seed", "5", "--out", str(data), "--quiet"]) == 0
+    assert main(["train", "--data", str(data), "--out", str(model), "--epochs", "1"]) == 0
+    return data, model
+
+
+def test_ray_engine_segments_a_dataset_and_a_bag_as_the_local_engine_does(
+    trained: tuple[Path, Path], tmp_path: Path, capsys
+) -> None:
+    data, model = trained
+    from playseg_ros.play_bags import write_play_bag
+
+    dataset = PlayDataset.open(data)
+    play = [dataset.episode(i) for i in dataset.episode_indices("play")[:5]]
+    write_play_bag(tmp_path / "play-bag", play, annotated=False)
+    for name, source in (("dataset", data), ("bag", tmp_path / "play-bag")):
+        outputs = {}
+        for engine in ("local", "ray"):
+            out = tmp_path / f"{name}-{engine}"
+            argv = [
+                "segment",
+                "--model",
+                str(model),
+                "--input",
+                str(source),
+                "--out",
+                str(out),
+                "--keep",
+                "all",
+            ]
+            assert main([*argv, "--engine", engine, "--workers", "2"]) == 0, capsys.readouterr().err
+            outputs[engine] = files_of(out)
+        local, ray = outputs["local"], outputs["ray"]
+        assert sorted(local) == sorted(ray) and "data/segments.npy" in local
+        for file in local:
+            if "segments_bag" not in file:  # the bag's MCAP records when it was written
+                assert local[file] == ray[file], (name, file)
+        segmented = PlayDataset.open(tmp_path / f"{name}-ray")
+        assert len(segmented) == (
+            len(play)
+            if name == "bag"
+            else len(dataset.episode_indices("play")) + len(dataset.episode_indices("test"))
+        )
+        assert sum(len(segmented.segments(i, truth=True)) for i in range(len(segmented))) > 0
+    bag_local = tmp_path / "bag-local" / "segments_bag"
+    bag_ray = tmp_path / "bag-ray" / "segments_bag"
+    from playseg_ros.bag.reader import BagReader
+
+    def messages(bag: Path) -> list[tuple[str, int, bytes]]:
+        return [(m.topic, m.log_time_ns, m.data) for m in BagReader(bag).messages()]
+
+    assert messages(bag_local) == messages(bag_ray) and messages(bag_ray)
+
+
+def test_engine_options_are_checked_and_the_local_engine_never_imports_ray(
+    trained: tuple[Path, Path], tmp_path: Path
+) -> None:
+    data, model = trained
+    argv = ["segment", "--model", str(model), "--input", str(data), "--splits", "test"]
+    script = (
+        "import sys\n"
+        "from playseg_ros.cli import main\n"
+        f"assert main({[*argv, '--out', str(tmp_path / 'x'), '--address', 'auto']!r}) == 1\n"
+        f"assert main({[*argv, '--out', str(tmp_path / 'w'), '--engine', 'ray', '--workers', '0']!r}) == 1\n"
+        f"assert main({[*argv, '--out', str(tmp_path / 'y')]!r}) == 0\n"
+        "assert 'ray' not in sys.modules, 'ray imported'\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "playseg segment: --address is the Ray cluster to join: give --engine ray" in done.stderr
+    assert "playseg segment: --workers must be >= 1, got 0" in done.stderr
