@@ -17,6 +17,7 @@ from typing import Any
 
 import pytest
 import yaml
+from selenium.common.exceptions import StaleElementReferenceException
 from test_convert import write_mapping
 from test_convert_segment import convert_cli, untrained_model
 from test_review_times import bags  # noqa: F401 (the fixture: two robot bags and their mapping)
@@ -89,6 +90,13 @@ def wait_for(driver: Any, script: str, what: str) -> Any:
     raise AssertionError(f"timed out waiting for {what}: {driver.find_element('id', 'status').text!r}")
 
 
+def queue(driver: Any) -> list[str]:
+    """The queue's items as the user reads them, top to bottom (read at once: it may be redrawn)."""
+    return driver.execute_script(
+        "return Array.from(document.querySelectorAll('#episodes li')).map(li => li.innerText)"
+    )
+
+
 def state(driver: Any) -> dict[str, Any]:
     return driver.execute_script(
         "const s = window.review.state; return {labels: s.labels, proposals: s.proposals, step: s.step, ep: s.ep, selected: s.selected};"
@@ -97,11 +105,22 @@ def state(driver: Any) -> dict[str, Any]:
 
 def open_episode(driver: Any, url: str, episode_id: str) -> None:
     driver.get(url)
-    wait_for(driver, "return window.review && window.review.state.ep", "the queue's first episode")
-    driver.find_element("xpath", f"//ul[@id='episodes']/li[div[text()[contains(., '{episode_id}')]]]").click()
+    opened = wait_for(
+        driver,
+        "return window.review && window.review.state.ep && window.review.state.opened",
+        "the queue's first episode",
+    )
+    for _ in range(5):  # the queue is redrawn when a background job ends: find the item again then
+        try:
+            driver.find_element(
+                "xpath", f"//ul[@id='episodes']/li[div[text()[contains(., '{episode_id}')]]]"
+            ).click()
+            break
+        except StaleElementReferenceException:
+            time.sleep(0.2)
     wait_for(
         driver,
-        f"return window.review.state.ep && window.review.state.ep.episode_id === '{episode_id}'",
+        f"return window.review.state.opened > {opened} && window.review.state.ep.episode_id === '{episode_id}'",
         episode_id,
     )
 
@@ -148,9 +167,9 @@ def saved(driver: Any) -> str:
 def test_queue_puts_the_proposals_of_lowest_confidence_first(browser: Any, server: str) -> None:
     browser.get(server)
     wait_for(browser, "return window.review && window.review.state.ep", "the first episode")
-    items = browser.find_elements("css selector", "#episodes li")
-    assert [item.text.split("\n")[0] for item in items] == ["play:0", "annotated:0"]
-    assert "min conf" in items[0].text and "76% labelled" in items[1].text
+    items = queue(browser)
+    assert [item.split("\n")[0] for item in items] == ["play:0", "annotated:0"]
+    assert "min conf" in items[0] and "76% labelled" in items[1]
     assert state(browser)["ep"]["episode_id"] == "play:0"  # the queue's first is opened
     ready = wait_for(
         browser,
@@ -260,7 +279,7 @@ def test_accept_reject_accept_above_undo_and_save_proposals(
     # the queue now puts the reviewed episode last
     browser.refresh()
     wait_for(browser, "return window.review.state.info", "the episode list")
-    assert browser.find_elements("css selector", "#episodes li")[-1].text.startswith("play:0")
+    assert queue(browser)[-1].startswith("play:0")
 
 
 def test_two_tabs_never_overwrite_each_other(browser: Any, server: str) -> None:

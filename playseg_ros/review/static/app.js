@@ -18,7 +18,7 @@ async function api(path, body) {
 const S = {
   info: null, ep: null, labels: [], proposals: [], rejected: [], selected: null, inPoint: null,
   step: 0, view: { start: 0, end: 1 }, undo: [], redo: [], dirty: false, playing: false, timer: null,
-  signals: null, drag: null,
+  signals: null, drag: null, opened: 0,
 };
 
 // ------------------------------------------------------------------------------------------------
@@ -86,6 +86,7 @@ async function openEpisode(index) {
   seek(0);
   renderQueue();
   loadSignals();
+  S.opened += 1;  // tests wait on this: the episode is shown
 }
 
 // ------------------------------------------------------------------------------------------------
@@ -513,14 +514,15 @@ function renderJobs(jobs) {
 }
 
 async function startJob(path, body) {
-  try { await api(path, body || {}); pollJobs(); } catch (error) { status(error.message, "error"); }
+  try { await api(path, body || {}); pollJobs(true); } catch (error) { status(error.message, "error"); }
 }
 
-async function pollJobs() {
+async function pollJobs(started) {
+  // while a job runs, poll it; when one has ended, the queue and proposals may have changed
   const jobs = await api("/api/jobs");
   renderJobs(jobs);
-  if (Object.values(jobs).some((j) => j.state === "running")) setTimeout(pollJobs, 1000);
-  else await refreshInfo();
+  if (Object.values(jobs).some((j) => j.state === "running")) setTimeout(() => pollJobs(true), 1000);
+  else if (started) await refreshInfo();
 }
 
 async function exportPreview() {
