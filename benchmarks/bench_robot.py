@@ -12,7 +12,9 @@ states and actions are random, segments 20-100 steps long.
 
 throughput: a randomly initialised model at L_max 100; `segment_episode` on one long episode (steps/s,
 one core) and `reference_style_segment` (the whole model re-run on every prefix, the paper's DP with
-Python loops) on a shorter one; both must give the same segmentation on the shorter episode. The ratio is
+Python loops) on a shorter one; both must give the same segmentation on the shorter episode. Then the
+live way, one step at a time (`StreamingSegmenter`, as the segmenter node runs it), and its incremental
+scoring against `PSModel.end_column` scoring every window from scratch at each step. The ratio is
 a lower bound: on an episode shorter than L_max the reference's way runs fewer and shorter prefixes per
 step than it would on a long one (its cost per step grows with L_max squared).
 train: `train_ps` for ``--epochs`` epochs over the segments (16 per batch); the seconds per optimiser step
@@ -32,11 +34,14 @@ import torch
 
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.data.features import ACTION, STATE, Feature, Features
+from playseg_core.ps.encoders import as_tensors
+from playseg_core.ps.incremental import IncrementalEndScorer
 from playseg_core.ps.model import PSModel
 from playseg_core.ps.reference_style import reference_style_segment
 from playseg_core.ps.segmentation import segment_episode
+from playseg_core.ps.streaming import StreamingSegmenter
 from playseg_core.ps.training import TrainConfig, model_config_for, segment_bounds, step_cap, train_ps
-from playseg_core.training.device import resolve_device
+from playseg_core.training.device import resolve_device, to_device
 
 CAMERA = "observation.images.front"
 FEATURES = Features.of(
@@ -98,6 +103,7 @@ def throughput(args: argparse.Namespace) -> None:
         f"ours: {long_episode.num_steps} steps at L_max {args.max_len} in {ours:.1f} s = {ours_rate:.0f} steps/s "
         f"on {args.threads} thread(s), device {model.device} (target >= 1,000); peak RSS {peak_rss_mb()} MB"
     )
+    streaming(model, long_episode, args.stream_steps)
     if args.skip_reference:
         return
     began = time.perf_counter()
@@ -117,6 +123,40 @@ def throughput(args: argparse.Namespace) -> None:
     )
     print(
         f"ratio (ours on the long episode / reference way): {ours_rate / reference_rate:.0f}x (target >= 100x)"
+    )
+
+
+def streaming(model: PSModel, episode: Episode, steps: int) -> None:
+    """The segmenter node's way: one step at a time (`StreamingSegmenter`), and its scoring alone against
+    `PSModel.end_column` scoring every window from scratch at each step."""
+    steps = min(steps, episode.num_steps)
+    stream = StreamingSegmenter(model, model.cfg.min_len)
+    began = time.perf_counter()
+    for t in range(steps + 1):
+        observation = {CAMERA: episode.images[CAMERA][t], STATE: episode.state[t]}
+        stream.push(observation, episode.actions[t])
+    pushed = time.perf_counter() - began
+    with torch.no_grad():
+        features = model.encode_steps(
+            to_device(as_tensors(model.encoders.episode_inputs(episode)), model.device)
+        )[: steps + 1]
+    scorer = IncrementalEndScorer(model)
+    began = time.perf_counter()
+    for t in range(steps + 1):
+        scorer.push(features[t])
+        scorer.column(0)
+    incremental = time.perf_counter() - began
+    began = time.perf_counter()
+    with torch.no_grad():
+        for t in range(1, steps + 1):
+            model.end_column(
+                features[max(0, t - model.max_len - model.lookahead) : t + 1], t <= model.max_len
+            )
+    from_scratch = time.perf_counter() - began
+    print(
+        f"streaming (StreamingSegmenter, {steps} steps): {steps / pushed:.0f} steps/s = {pushed / steps * 1e3:.2f} "
+        f"ms/step; its scoring {incremental / steps * 1e3:.2f} ms/step, end_column from scratch "
+        f"{from_scratch / steps * 1e3:.2f} ms/step ({from_scratch / incremental:.0f}x)"
     )
 
 
@@ -160,6 +200,7 @@ def main() -> None:
     speed.add_argument("--steps", type=int, default=3000)
     speed.add_argument("--reference-steps", type=int, default=150)
     speed.add_argument("--max-len", type=int, default=100)
+    speed.add_argument("--stream-steps", type=int, default=600, help="steps pushed one at a time")
     speed.add_argument("--threads", type=int, default=1)
     speed.add_argument("--device", default="cpu", help="auto, cpu, cuda or cuda:N")
     speed.add_argument(
