@@ -17,7 +17,7 @@ into the adapter's part (last input -> PlayStep here) and the segmenter's (that 
 here); segments decided by an episode's end are counted apart (the stream's end is the adapter's idle
 timeout). Also the CPU each kind of process used (percent of one core over the streaming window).
 
-    ROS_DOMAIN_ID=151 .venv/bin/python benchmarks/bench_fleet.py [--robots 1,2,5,10] [--seconds 20] [--shared]
+    ROS_DOMAIN_ID=151 .venv/bin/python benchmarks/bench_fleet.py [--robots 1,2,5,10] [--seconds 20] [--shared] [--reference]
 
 The model: PS trained by `playseg train` (at most --train-minutes) on five 30 s bags of the same kind of
 play with every skill labelled, saved to --model and reused by later runs.
@@ -362,7 +362,7 @@ def decisions(model, episodes: list) -> dict:
     return decided
 
 
-def run_fleet(robots: int, seconds: float, shared: bool, model: Path, work: Path) -> dict:
+def run_fleet(robots: int, seconds: float, shared: bool, reference: bool, model: Path, work: Path) -> dict:
     from playseg_ros.launch import Graph, GraphSpec, NodeSpec
     from playseg_ros.messages import EpisodeBuilder
 
@@ -378,12 +378,13 @@ def run_fleet(robots: int, seconds: float, shared: bool, model: Path, work: Path
             "mapping": str(path), "episode_id": robot, "steps_topic": steps,
             "wait_for_subscribers": 3, "idle_timeout_s": 2.0,
         }))  # fmt: skip
+    recorded = work / "recorded"
+    form = {"segment_form": "reference", "recording_bag": str(recorded)} if reference else {}
     for i, steps in enumerate(steps_topics):
         nodes.append(NodeSpec(f"segmenter{i}", "segmenter", {
             "model": str(model), "steps_topic": steps, "segments_topic": segments_topics[i],
-            "wait_for_subscribers": 2,
+            "wait_for_subscribers": 2, **form,
         }))  # fmt: skip
-    recorded = work / "recorded"
     nodes.append(
         NodeSpec("recorder", "recorder", {"output": str(recorded), "topics": steps_topics + segments_topics})
     )
@@ -490,13 +491,19 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=20.0, help="how long each robot streams")
     parser.add_argument("--shared", action="store_true", help="one segmenter for every robot")
     parser.add_argument(
+        "--reference",
+        action="store_true",
+        help="reference-form segments (no steps inside; the recorder has them)",
+    )
+    parser.add_argument(
         "--model", default="build/bench_fleet/fleet-ps.pt", help="the PS checkpoint (trained here if missing)"
     )
     parser.add_argument("--train-minutes", type=float, default=3.0, help="the training's --max-minutes")
     args = parser.parse_args()
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
-    print(f"{'shared segmenter' if args.shared else 'one segmenter per robot'}; {args.seconds:.0f} s per robot; "
+    form = "reference" if args.reference else "embedded"
+    print(f"{'shared segmenter' if args.shared else 'one segmenter per robot'}, {form} segments; {args.seconds:.0f} s per robot; "
           f"{os.cpu_count()} CPUs")  # fmt: skip
     with tempfile.TemporaryDirectory() as tmp:
         model = Path(args.model)
@@ -506,7 +513,7 @@ def main() -> None:
         for robots in (int(n) for n in args.robots.split(",")):
             work = Path(tmp) / f"n{robots}"
             work.mkdir()
-            r = run_fleet(robots, args.seconds, args.shared, model, work)
+            r = run_fleet(robots, args.seconds, args.shared, args.reference, model, work)
             cpu = r["cpu"]
             p99 = np.percentile(r["latency_ms"], 99) if r["latency_ms"] else float("inf")
             verdict = "keeps up" if r["lost"] == 0 and p99 <= LATENCY_BUDGET_MS else "does not keep up"
