@@ -273,3 +273,40 @@ def test_bags_are_converted_on_the_fly_and_cached(bags: dict[str, Path], tmp_pat
     assert info["dataset"] == str(tmp_path / "bags" / "play.review" / "data")
     lines, _ = run()
     assert "0 converted, 2 skipped" in lines[0]  # the cached conversion
+
+
+def test_labels_exported_as_mcap_read_back_on_the_recording_clock(
+    bags: dict[str, Path], tmp_path: Path, serve: Any
+) -> None:
+    from mcap.reader import make_reader
+    from test_convert_segment import convert_cli
+
+    assert convert_cli([bags["annotated"]], tmp_path / "data", bags["mapping"]) == 0
+    url = serve(tmp_path / "data")
+    dataset = PlayDataset.open(tmp_path / "data")
+    labels = [(3, 12, "pick up the cup"), (12, 25, "put the cup down")]
+    assert [(s.start, s.end, s.instruction) for s in dataset.segments(0)] == labels
+    written = post(url + "api/export/mcap", {"out": str(tmp_path / "segments.mcap")})
+    start_ns = dataset.records[0].source["start_ns"]
+    times = start_ns + np.round(dataset.timestamps(0) * 1e9).astype(np.int64)
+    with open(tmp_path / "segments.mcap", "rb") as handle:
+        reader = make_reader(handle)
+        messages = [
+            (channel.topic, schema.name, message.log_time, json.loads(message.data))
+            for schema, channel, message in reader.iter_messages()
+        ]
+    assert written["messages"] == len(messages)
+    states = [(t, m["data"]) for topic, _, t, m in messages if topic == "/playseg/instruction"]
+    assert [t for t, _ in states] == times.tolist()
+    expected = [
+        "pick up the cup" if 3 <= k < 12 else "put the cup down" if 12 <= k < 25 else ""
+        for k in range(len(times))
+    ]
+    assert [text for _, text in states] == expected
+    logs = [(name, t, m["message"]) for topic, name, t, m in messages if topic == "/playseg/boundaries"]
+    assert logs == [
+        ("foxglove.Log", int(times[3]), "start: pick up the cup"),
+        ("foxglove.Log", int(times[12]), "end: pick up the cup"),
+        ("foxglove.Log", int(times[12]), "start: put the cup down"),
+        ("foxglove.Log", int(times[25]), "end: put the cup down"),
+    ]

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from test_convert import write_mapping
+from test_convert import T0, write_mapping
 from test_convert_segment import (
     bags,  # noqa: F401 (the fixture: two bags and their mapping)
     convert_cli,
@@ -39,7 +39,7 @@ def test_converted_episodes_keep_their_times_and_bag(bags: dict[str, Path], tmp_
     assert convert_cli([bags["annotated"]], tmp_path / "data", bags["mapping"]) == 0
     dataset = PlayDataset.open(tmp_path / "data")
     record = dataset.records[0]
-    assert record.source == {"bag": str(bags["annotated"]), "topics": MAPPING_TOPICS}
+    assert record.source == {"bag": str(bags["annotated"]), "topics": MAPPING_TOPICS, "start_ns": T0}
     times = dataset.timestamps(0)
     assert times.shape == (record.num_steps + 1,) and times.dtype == np.float64
     # steps are the camera frames thinned to 10 Hz, from the bag's first message

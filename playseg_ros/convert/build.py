@@ -74,7 +74,7 @@ def episodes_of(
     segments, label_notes = segments_of_episodes(times, labels)
     notes += label_notes
     name = bag.name if bag.is_dir() else bag.stem
-    source = {"bag": str(bag), "topics": mapping.topics}
+    source = {"bag": str(bag), "topics": mapping.topics, "start_ns": bag_start_ns}
     episodes = [
         replace(
             _episode(f"{name}:{k}", episode, mapping, episode_segments),

@@ -117,6 +117,20 @@ class ReviewActions:
                 break
         return {"episodes": rows}
 
+    def export_mcap(self, body: dict[str, Any]) -> dict[str, Any]:
+        """The labels as an MCAP for Foxglove (review/foxglove.py), beside the review by default."""
+        from playseg_ros.review.foxglove import write_segments_mcap
+
+        out = Path(str(body.get("out") or self.work / "segments.mcap"))
+        session = self.session
+        labels = {i: session.store.initial_labels(i) for i in range(len(session.dataset))}
+        segments = {
+            i: [Segment(label.start, label.end, label.instruction) for label in found]
+            for i, found in labels.items()
+            if found
+        }
+        return {"out": str(out), "messages": write_segments_mcap(session.dataset, segments, out)}
+
     def export(self, body: dict[str, Any]) -> Job:
         out = Path(str(body.get("out") or self.work / "lerobot"))
         return self.session.start_job("export", self._export, out)

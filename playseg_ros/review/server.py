@@ -12,6 +12,7 @@ Routes (JSON unless said otherwise; every one needs ``?token=`` when the server 
     POST /api/propose | /api/retrain        start a background job; GET /api/jobs polls them
     GET  /api/export/preview                the language_persistent rows an export would write
     POST /api/export                        {out}: the reviewed dataset as LeRobot v3.0
+    POST /api/export/mcap                   {out}: the labels as an MCAP for Foxglove (foxglove.py)
 """
 
 from __future__ import annotations
@@ -116,6 +117,8 @@ class ReviewHandler(BaseHTTPRequestHandler):
             self._json(session.start_job("propose", session.propose).to_json())
         elif path == "/api/retrain":
             self._json(self.server.actions.retrain(body).to_json())
+        elif path == "/api/export/mcap":
+            self._json(self.server.actions.export_mcap(body))
         elif path == "/api/export":
             self._json(self.server.actions.export(body).to_json())
         else:

@@ -532,6 +532,13 @@ async function exportPreview() {
   } catch (error) { status(error.message, "error"); }
 }
 
+async function exportMcap() {
+  try {
+    const result = await api("/api/export/mcap", {});
+    status(`${result.messages} messages written to ${result.out}`, "ok");
+  } catch (error) { status(error.message, "error"); }
+}
+
 // ------------------------------------------------------------------------------------------------
 // Keys
 
@@ -579,7 +586,7 @@ function bind() {
     "mark-in": () => { S.inPoint = S.step; draw(); }, "mark-out": markOut, split, merge, delete: remove, accept, reject,
     "accept-above": acceptAbove, undo: () => restore(S.undo, S.redo), redo: () => restore(S.redo, S.undo), save,
     propose: () => startJob("/api/propose"), retrain: () => startJob("/api/retrain"), "export-preview": exportPreview,
-    export: () => startJob("/api/export") };
+    export: () => startJob("/api/export"), "export-mcap": exportMcap };
   for (const [id, handler] of Object.entries(click)) $(id).addEventListener("click", handler);
   $("reviewed").addEventListener("change", () => { S.dirty = true; status("unsaved changes", ""); });
   const detail = $("detail");
