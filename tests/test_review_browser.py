@@ -79,9 +79,9 @@ def browser() -> Iterator[Any]:
         driver.quit()
 
 
-def wait_for(driver: Any, script: str, what: str) -> Any:
+def wait_for(driver: Any, script: str, what: str, seconds: float = WAIT_S) -> Any:
     """Poll ``script`` (JavaScript returning a value) until it is truthy."""
-    deadline = time.monotonic() + WAIT_S
+    deadline = time.monotonic() + seconds
     while time.monotonic() < deadline:
         value = driver.execute_script(script)
         if value:
@@ -307,3 +307,24 @@ def test_two_tabs_never_overwrite_each_other(browser: Any, server: str) -> None:
     with pytest.raises(urllib.error.HTTPError) as refused:
         urllib.request.urlopen(request, timeout=10)
     assert refused.value.code == 409
+
+
+def test_retrain_and_export_from_the_page(browser: Any, server: str, reviewed: dict[str, Path]) -> None:
+    open_episode(browser, server, "annotated:0")
+    steps = browser.find_element("id", "retrain-steps")
+    steps.clear()
+    steps.send_keys("12")
+    browser.find_element("id", "retrain").click()
+    jobs = "return document.getElementById('jobs').textContent"
+    wait_for(browser, jobs + ".includes('retrain: done')", "the retraining", seconds=600)
+    work = reviewed["data"].with_name("data.review")
+    assert (work / "models" / "ps-0.pt").is_file()
+    assert "retrain: done" in browser.execute_script(jobs) and "failed" not in browser.execute_script(jobs)
+    browser.find_element("id", "export-preview").click()
+    preview = wait_for(browser, "return document.getElementById('preview').textContent", "the preview")
+    # each labelled episode with its rows; annotated:0 holds what the other tab saved in the test above
+    assert "play:0" in preview and "annotated:0" in preview and '"content":"other tab"' in preview
+    browser.find_element("id", "export").click()
+    wait_for(browser, jobs + ".includes('export: done')", "the export", seconds=300)
+    exported = json.loads((work / "lerobot" / "meta" / "info.json").read_text())
+    assert exported["codebase_version"] == "v3.0"

@@ -522,7 +522,10 @@ async function pollJobs(started) {
   const jobs = await api("/api/jobs");
   renderJobs(jobs);
   if (Object.values(jobs).some((j) => j.state === "running")) setTimeout(() => pollJobs(true), 1000);
-  else if (started) await refreshInfo();
+  else if (started) {
+    await refreshInfo();
+    if (S.ep && !S.dirty) await openEpisode(S.ep.index);  // new proposals
+  }
 }
 
 async function exportPreview() {
@@ -585,7 +588,7 @@ function bind() {
     "prev-boundary": () => jumpBoundary(-1), "next-boundary": () => jumpBoundary(1), "apply-label": relabel,
     "mark-in": () => { S.inPoint = S.step; draw(); }, "mark-out": markOut, split, merge, delete: remove, accept, reject,
     "accept-above": acceptAbove, undo: () => restore(S.undo, S.redo), redo: () => restore(S.redo, S.undo), save,
-    propose: () => startJob("/api/propose"), retrain: () => startJob("/api/retrain"), "export-preview": exportPreview,
+    propose: () => startJob("/api/propose"), retrain: () => startJob("/api/retrain", { steps: parseInt($("retrain-steps").value, 10) }), "export-preview": exportPreview,
     export: () => startJob("/api/export"), "export-mcap": exportMcap };
   for (const [id, handler] of Object.entries(click)) $(id).addEventListener("click", handler);
   $("reviewed").addEventListener("change", () => { S.dirty = true; status("unsaved changes", ""); });
