@@ -148,6 +148,10 @@ def test_a_token_guards_a_server_bound_beyond_localhost(tmp_path: Path) -> None:
         port = server.server_address[1]
         assert get(f"http://127.0.0.1:{port}/api/info")[0] == 403
         assert get(f"http://127.0.0.1:{port}/api/info?token={url.split('token=')[1]}")[0] == 200
+        assert get(f"http://127.0.0.1:{port}/api/episode/0")[0] == 403
+        # the page and its script hold no data: they load, and the script sends the token with each call
+        assert get(f"http://127.0.0.1:{port}/")[0] == 200
+        assert b"token" in get(f"http://127.0.0.1:{port}/static/app.js")[2]
     finally:
         server.shutdown()
         server.server_close()

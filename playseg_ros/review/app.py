@@ -3,7 +3,6 @@ that reach beyond one episode (retrain and re-propose, export to LeRobot v3.0)."
 
 from __future__ import annotations
 
-import os
 import secrets
 import subprocess
 import sys
@@ -76,12 +75,9 @@ class ReviewActions:
         data = self.reviewed_dataset(self.work / "train-data")
         if not data.episode_indices("train"):
             raise PlaysegError("training needs labelled episodes in train: label more episodes")
-        model = (
-            self.work
-            / "models"
-            / f"ps-{len(os.listdir(self.work / 'models')) if (self.work / 'models').is_dir() else 0}.pt"
-        )
-        model.parent.mkdir(parents=True, exist_ok=True)
+        models = self.work / "models"
+        models.mkdir(parents=True, exist_ok=True)
+        model = models / f"ps-{len(list(models.glob('ps-*.pt')))}.pt"  # one per retraining, kept
         command = [sys.executable, "-m", "playseg_ros.cli", "train", "--data", str(data.path), "--out", str(model),
                    "--max-steps", str(steps), "--overwrite"]  # fmt: skip
         job.progress = "training"

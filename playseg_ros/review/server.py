@@ -1,6 +1,7 @@
 """The review page's HTTP server (the standard library's threading server: nothing to install).
 
-Routes (JSON unless said otherwise; every one needs ``?token=`` when the server was given a token):
+Routes (JSON unless said otherwise; with a token, every /api route needs ``?token=``; the page and its
+static files, which hold no data, do not):
 
     GET  /                                  the page (static/index.html)
     GET  /static/<file>                     the page's script and style
@@ -69,8 +70,11 @@ class ReviewHandler(BaseHTTPRequestHandler):
         url = urlsplit(self.path)
         query = {k: v[-1] for k, v in parse_qs(url.query).items()}
         token = self.server.token
-        if token and not hmac.compare_digest(
-            query.get("token", self.headers.get("X-Review-Token", "")), token
+        public = url.path in ("/", "/index.html") or url.path.startswith("/static/")  # the page's own code
+        if (
+            token
+            and not public
+            and not hmac.compare_digest(query.get("token", self.headers.get("X-Review-Token", "")), token)
         ):
             self._json(
                 {"error": "a token is needed: open the URL `playseg review` printed"}, HTTPStatus.FORBIDDEN
@@ -103,7 +107,7 @@ class ReviewHandler(BaseHTTPRequestHandler):
                 self._json(session.signals(int(match[1]), start, end, int(query.get("points", 1000))))
             elif match := re.fullmatch(r"/api/episode/(\d+)/video/(.+)", path):
                 index, camera = int(match[1]), match[2]
-                session._check_index(index)
+                session.check_index(index)
                 if camera not in session.dataset.features.cameras:
                     raise PlaysegError(f"no camera {camera!r} in this dataset")
                 self._file(episode_video(session.dataset, index, camera, session.cache_dir), ranges=True)

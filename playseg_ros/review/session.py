@@ -147,7 +147,7 @@ class ReviewSession:
         ]
 
     def episode(self, index: int) -> dict[str, Any]:
-        self._check_index(index)
+        self.check_index(index)
         record = self.dataset.records[index]
         times = self.dataset.timestamps(index)
         state = self.store.state().get(record.episode_id, {})
@@ -185,7 +185,7 @@ class ReviewSession:
 
     def signals(self, index: int, start: int, end: int, points: int) -> dict[str, Any]:
         """The plotted channels over observations [start, end), at most ``points`` samples (every k-th)."""
-        self._check_index(index)
+        self.check_index(index)
         record = self.dataset.records[index]
         start, end = max(0, start), min(record.num_steps + 1, max(end, start + 1))
         stride = max(1, -(-(end - start) // max(1, min(points, MAX_POINTS))))
@@ -200,7 +200,7 @@ class ReviewSession:
         values = np.concatenate(series, axis=1)[:, : len(self.signal_names)]
         return {"steps": steps.tolist(), "values": np.round(values.T, 5).tolist(), "names": self.signal_names}
 
-    def _check_index(self, index: int) -> None:
+    def check_index(self, index: int) -> None:
         if not 0 <= index < len(self.dataset):
             raise PlaysegError(f"episode index {index} out of range (0..{len(self.dataset) - 1})")
 
@@ -210,7 +210,7 @@ class ReviewSession:
     def save(self, index: int, body: dict[str, Any]) -> dict[str, Any]:
         """Save the page's labels and review state of episode ``index`` (VersionConflict when its file
         changed since the page loaded it)."""
-        self._check_index(index)
+        self.check_index(index)
         record = self.dataset.records[index]
         raw = body.get("labels")
         if not isinstance(raw, list):
