@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 # (tests/conftest.py).
 DEMO_ENV := ROS_DOMAIN_ID=$(or $(ROS_DOMAIN_ID),77) ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 
-.PHONY: setup demo test fuzz lint format bags models bench clean lerobot-check
+.PHONY: setup demo test test-fast fuzz lint format bags models bench clean lerobot-check
 
 setup:
 	@bash scripts/setup_env.sh
@@ -17,6 +17,10 @@ demo: setup
 
 test: setup
 	$(PY) -m pytest -q tests
+
+# The quick tier while working: no ROS 2 nodes or DDS, no training beyond seconds (markers `dds`, `slow`).
+test-fast: setup
+	$(PY) -m pytest -q -m "not dds and not slow" tests
 
 # The fuzz tests (pytest -m fuzz) with many more examples each: minutes instead of seconds.
 fuzz: setup
@@ -36,6 +40,7 @@ lerobot-check: setup
 lint: setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy
 
 format: setup
 	$(VENV)/bin/ruff format .

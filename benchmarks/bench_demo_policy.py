@@ -14,7 +14,8 @@ import time
 
 import numpy as np
 
-from playseg_core.augment.policy import load_policy_learner, torch_threads
+from playseg_core.augment.policies import load_policy_learner
+from playseg_core.augment.policy import torch_threads
 from playseg_core.augment.retraining import TrainerConfig, annotated_clips
 from playseg_ros.demo import DEMO_POLICY
 from playseg_ros.play_bags import read_play_bag

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from playseg_core.augment.policy import load_policy_learner
+from playseg_core.augment.policies import load_policy_learner
 from playseg_core.augment.retraining import annotated_clips
 from playseg_core.data.dataset import PlayDataset, is_dataset
 from playseg_core.domains.tabletop import CAMERA, generate_dataset

@@ -119,7 +119,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     from playseg_core.domains import load_domain
 
     domain = load_domain(args.domain)
-    presets = getattr(domain, "PRESET_NAMES", ())
+    presets = domain.preset_names
     if args.preset not in presets:
         raise PlaysegError(f"--preset {args.preset!r}: domain {args.domain!r} has {', '.join(presets)}")
     if args.workers < 1:
@@ -265,7 +265,6 @@ def _train_from(args: argparse.Namespace) -> int:
         args.augment,
         args.label_accuracy,
         args.end_lookahead,
-        args.end_grounding,
         {"max_steps": args.max_steps, "max_minutes": args.max_minutes, "patience": args.patience},
         args.device,
         args.val_share,
@@ -403,7 +402,7 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
         "--augment",
         action="store_true",
         help="each training clip under a random symmetry of the domain's world, its instruction turned with "
-        "it (the domain's CLIP_SYMMETRIES); for a domain without symmetries, rotate/mirror the camera frames "
+        "it (the domain's clip_symmetries); for a domain without symmetries, rotate/mirror the camera frames "
         "by a random multiple of 90 degrees (with --actions none; only where instructions and ends do not "
         "depend on orientation: a room seen from above, not 'push the block left'); PS and the labelling model",
     )
@@ -434,14 +433,6 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
         help="PS: steps past a candidate end its end head also reads (0 = the paper's model; 1 reads the "
         "first command after the end, where a demonstrator's intent changes; live segmenting then decides "
         "each end that many steps later); default: the domain's choice, else 0",
-    )
-    train.add_argument(
-        "--end-grounding",
-        type=int,
-        metavar="HEADS",
-        help="PS: an end head grounded on the label, with HEADS attention heads over the things a step "
-        "encoder tracks by position (which to read chosen by the label's words); 0 = none; default: the "
-        "domain's choice, else 0",
     )
     train.set_defaults(func=_cmd_train)
     calibrate = sub.add_parser(

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 from playseg_core.errors import PlaysegError
 
 if TYPE_CHECKING:
-    from playseg_ros.launch import Graph
+    pass
 
 DEMO_DIR = Path("build/demo")
 BABYAI_MODEL = "babyai-ps.pt"
@@ -212,14 +212,6 @@ def train_sample_models(bags_dir: Path = Path("bags"), work_dir: Path = Path("bu
     return 0
 
 
-def player_graph(bag: Path, log_dir: Path, **parameters) -> Graph:
-    """A graph of one bag_player node playing ``bag`` (exits when done), with its other ``parameters``."""
-    from playseg_ros.launch import Graph, GraphSpec, NodeSpec
-
-    spec = NodeSpec("bag_player", "bag_player", {"bag": str(bag), "exit_when_done": True, **parameters})
-    return Graph(GraphSpec([spec]), log_dir=log_dir)
-
-
 class _DemoClient:
     """The demo's own ROS node: watches segments and trainer status, calls the trainer's services."""
 
@@ -292,7 +284,7 @@ def _episode_outcomes(policies: Path, version: int) -> list[bool]:
 def run_demo(bags_dir: Path = Path("bags"), out_dir: Path = DEMO_DIR) -> int:
     from playseg_core.augment.policy import describe_success_change
     from playseg_core.ps.metrics import evaluate, format_metrics_table
-    from playseg_ros.launch import Graph, GraphSpec, NodeSpec
+    from playseg_ros.launch import Graph, GraphSpec, NodeSpec, player_graph
     from playseg_ros.play_bags import read_play_bag, read_segment_bag
 
     began = time.monotonic()

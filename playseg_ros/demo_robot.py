@@ -20,6 +20,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from playseg_core.errors import PlaysegError
+
 PLAY_BAG = "tabletop-1"
 ANNOTATED_BAG = "tabletop-0"
 STREAM_TIMEOUT_S = 120.0
@@ -34,7 +36,7 @@ def _log(message: str) -> None:
     print(f"[demo {time.strftime('%H:%M:%S')}] {message}", flush=True)
 
 
-class RobotHalfError(RuntimeError):
+class RobotHalfError(PlaysegError):
     """The robot half could not run to its end (a node or a conversion failed); the message names it."""
 
 
@@ -74,8 +76,7 @@ def _stream_live(play_bag: Path, mapping: Path, model: Path, run_dir: Path, expe
 
     from playseg_ros import qos
     from playseg_ros.convert import load_mapping
-    from playseg_ros.demo import player_graph
-    from playseg_ros.launch import Graph, GraphSpec, NodeSpec
+    from playseg_ros.launch import Graph, GraphSpec, NodeSpec, player_graph
 
     topics = sorted({feature.topic for feature in load_mapping(mapping).topic_features})
     recorded = run_dir / "robot_bag"

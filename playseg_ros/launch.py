@@ -26,14 +26,13 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
 
 from playseg_core.errors import PlaysegError
 from playseg_core.yaml_io import load_yaml
-from playseg_ros.wiring import stop_order, wire_waits
+from playseg_ros.wiring import GraphSpec, NodeSpec, stop_order, wire_waits
 
 NODE_KINDS: dict[str, str] = {
     "recorder": "playseg_ros.nodes.recorder",
@@ -47,22 +46,6 @@ NODE_KINDS: dict[str, str] = {
 
 NODE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 """What rcl accepts as a node name (a remapped `__node`)."""
-
-
-@dataclass
-class NodeSpec:
-    name: str
-    node: str
-    parameters: dict = field(default_factory=dict)
-    exit_ends_graph: bool = False
-
-
-@dataclass
-class GraphSpec:
-    nodes: list[NodeSpec]
-    ros_domain_id: int | None = None
-    shutdown_timeout_s: float = 15.0
-    wired: list[str] = field(default_factory=list)  # the waits `playseg up` set, one line per node
 
 
 def load_graph(path: str | Path) -> GraphSpec:
@@ -198,6 +181,12 @@ class Graph:
                     proc.wait()
         shutil.rmtree(self.params_dir, ignore_errors=True)
         return {name: proc.returncode for name, proc in self.processes.items()}
+
+
+def player_graph(bag: Path, log_dir: Path, **parameters) -> Graph:
+    """A graph of one bag_player node playing ``bag`` (exits when done), with its other ``parameters``."""
+    spec = NodeSpec("bag_player", "bag_player", {"bag": str(bag), "exit_when_done": True, **parameters})
+    return Graph(GraphSpec([spec]), log_dir=log_dir)
 
 
 def run_graph(path: str | Path) -> int:

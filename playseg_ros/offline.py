@@ -196,7 +196,6 @@ def train(
     augment: bool = False,
     label_accuracy: float | None = None,
     end_lookahead: int | None = None,
-    end_grounding: int | None = None,
     budget: dict[str, Any] | None = None,
     device: str = "auto",
     val_share: float | None = None,
@@ -208,7 +207,7 @@ def train(
     ``bounds`` (min_len, max_len, k_max; None = derived, see `segment_bounds`) and ``encoders``
     (``FEATURE=KIND`` overrides of the step encoders) and ``label_head`` (None: the domain's, else
     linear) and ``augment`` (training clips under the domain's symmetries, or rotated/mirrored frames)
-    and ``end_lookahead`` and ``end_grounding`` (None: the domain's, else 0) come from the command line;
+    and ``end_lookahead`` (None: the domain's, else 0) come from the command line;
     ``budget`` (max_steps, max_minutes, patience; None = the method's default) bounds the run on
     ``device``. Without annotated val episodes, ``val_share`` of the annotated training episodes are
     held out for early stopping and calibration (`hold_out_for_validation`); with too few to hold any
@@ -219,7 +218,7 @@ def train(
     """
     from playseg_core.baselines.registry import get_method
     from playseg_core.data.splits import DEFAULT_VAL_SHARE
-    from playseg_core.ps.model import MAX_END_GROUNDING, MAX_END_LOOKAHEAD, save_model
+    from playseg_core.ps.model import MAX_END_LOOKAHEAD, save_model
     from playseg_core.ps.training import (
         TrainConfig,
         clip_symmetries_of,
@@ -250,10 +249,6 @@ def train(
         raise PlaysegError(f"--end-lookahead: only with --method ps, not {method}")
     if end_lookahead is not None and not 0 <= end_lookahead <= MAX_END_LOOKAHEAD:
         raise PlaysegError(f"--end-lookahead: must be in 0..{MAX_END_LOOKAHEAD}, got {end_lookahead}")
-    if end_grounding is not None and method != "ps":
-        raise PlaysegError(f"--end-grounding: only with --method ps, not {method}")
-    if end_grounding is not None and not 0 <= end_grounding <= MAX_END_GROUNDING:
-        raise PlaysegError(f"--end-grounding: must be in 0..{MAX_END_GROUNDING}, got {end_grounding}")
     if encoders_from and method not in ("unloc", "tridet"):
         raise PlaysegError(f"--encoders-from: only with --method unloc or tridet, not {method}")
     if val_share is not None and not 0.0 <= val_share < 1.0:
@@ -303,7 +298,7 @@ def train(
     if augment and read_actions and clip_symmetries_of(dataset.domain) is None:
         raise PlaysegError(
             "--augment: only with --actions none (a mirror would swap left and right turns), or for a "
-            "domain whose symmetries turn the actions too (its CLIP_SYMMETRIES)"
+            "domain whose symmetries turn the actions too (its clip_symmetries)"
         )
     if augment and not get_method(method).augments:
         raise PlaysegError(f"--augment: only for PS and the labelling model, not {method}")
@@ -349,7 +344,6 @@ def train(
         min_len=chosen.min_len,
         label_head=label_head,
         end_lookahead=end_lookahead,
-        end_grounding=end_grounding,
     )
     read = ", ".join(f"{spec.feature} ({spec.kind})" for spec in model_cfg.encoders)
     unread = (
@@ -362,8 +356,6 @@ def train(
         if model_cfg.end_lookahead
         else ""
     )
-    if model_cfg.end_grounding:
-        ahead += f"; its end grounded on the label ({model_cfg.end_grounding} attention heads)"
     print(
         f"model reads {read}{unread}; {model_cfg.label_head} label head{ahead}; {chosen.describe()}; "
         f"device {resolved}",

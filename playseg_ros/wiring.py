@@ -16,10 +16,27 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:
-    from playseg_ros.launch import GraphSpec, NodeSpec
+
+@dataclass
+class NodeSpec:
+    """One node of a graph config (launch.py parses it)."""
+
+    name: str
+    node: str
+    parameters: dict = field(default_factory=dict)
+    exit_ends_graph: bool = False
+
+
+@dataclass
+class GraphSpec:
+    """A graph config: its nodes and how the graph runs."""
+
+    nodes: list[NodeSpec]
+    ros_domain_id: int | None = None
+    shutdown_timeout_s: float = 15.0
+    wired: list[str] = field(default_factory=list)  # the waits `playseg up` set, one line per node
+
 
 CLOCK = "/clock"
 

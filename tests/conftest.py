@@ -28,6 +28,16 @@ settings.register_profile(
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
 
 
+DDS_FIXTURES = frozenset({"procs", "peer"})
+"""Fixtures that start nodes or an rclpy peer: a test that uses one is marked `dds` without saying so."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if DDS_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.dds)
+
+
 @pytest.fixture
 def procs(tmp_path: Path) -> Iterator[Processes]:
     """Node processes of one test, logging into its tmp_path; killed at the end."""

@@ -45,6 +45,7 @@ def test_demonstrations_are_the_segments_states_and_actions(episodes):
     np.testing.assert_array_equal(actions, episodes[0].actions[seg.start : seg.end])
 
 
+@pytest.mark.slow
 def test_retraining_writes_versions_that_survive_a_restart(tmp_path, episodes):
     trainer = AugmentationTrainer(_config(tmp_path), _learner(), annotated_clips(episodes[:1]))
     assert trainer.policy_version == 0

@@ -127,6 +127,7 @@ def _run_python(code: str) -> subprocess.CompletedProcess[bytes]:
     return subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=120, check=True)
 
 
+@pytest.mark.slow
 def test_generation_prints_nothing_to_stdout() -> None:
     # The same level made by plain minigrid does print (so the check below is not vacuous).
     raw = _run_python(

@@ -260,6 +260,7 @@ def test_a_truncated_bag_without_metadata_is_recovered_with_its_custom_data(
         assert reader.custom_data == CUSTOM
 
 
+@pytest.mark.slow
 def test_recovery_never_fails_at_any_truncation_offset(tmp_path: Path) -> None:
     """Cut a file at 50 offsets spread over it (and inside its first records): recovery always succeeds,
     rosbags reads the result, and the longer the file, the more messages come back (all of them uncut)."""

@@ -198,6 +198,7 @@ def _source(split: bool) -> Path:
     split=st.booleans(),
     delete=st.integers(-1, 5),
 )
+@pytest.mark.slow
 def test_recovery_keeps_every_complete_message_outside_damage_and_reports_every_loss(
     cut: float, flips: list[tuple[float, int]], split: bool, delete: int
 ) -> None:

@@ -194,7 +194,9 @@ def test_cumulative_cost_equals_the_direct_l2_cost() -> None:
 def test_the_registry_names_every_method_and_refuses_unknown_ones(tmp_path: Path) -> None:
     assert list(METHODS) == ["ps", "unloc", "tridet", "random", "changepoint"]
     assert [m.name for m in METHODS.values() if not m.tiles] == ["unloc", "tridet"]
-    with pytest.raises(ValueError, match="--method 'crf': unknown segmentation method \\(known: ps, unloc"):
+    with pytest.raises(
+        ValueError, match="--method 'crf': unknown segmentation method 'crf' \\(known: ps, unloc"
+    ):
         get_method("crf")
     with pytest.raises(CheckpointError, match="nothing.pt: no such file"):
         load_segmenter("tridet", tmp_path / "nothing.pt")
@@ -209,6 +211,7 @@ def trained_changepoint():
     return get_method("changepoint").train(synthetic_data(), TrainOptions(max_steps=300, batch_size=16))
 
 
+@pytest.mark.slow
 def test_changepoint_pieces_find_the_synthetic_boundaries(trained_changepoint, tmp_path: Path) -> None:
     test = [synthetic_episode(200 + s) for s in range(6)]
     signal = step_signal(test[0], FEATURES, "state_action")
@@ -228,6 +231,7 @@ def test_changepoint_pieces_find_the_synthetic_boundaries(trained_changepoint, t
         load_segmenter("changepoint", plain)
 
 
+@pytest.mark.slow
 def test_random_windows_tile_with_annotated_lengths_and_labelled_well(tmp_path: Path) -> None:
     trained = get_method("random").train(synthetic_data(), TrainOptions(max_steps=300, batch_size=16))
     path = trained.save(tmp_path / "random.pt", {})
@@ -322,6 +326,7 @@ LOOP_NAMES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", list(METHODS))
 def test_every_method_trains_through_the_loop_within_max_steps_and_max_minutes(method: str, loop_spy) -> None:
     data = synthetic_data(train=6, val=2)
@@ -432,6 +437,7 @@ def _fit_before_the_loop(task, cfg, seed: int, lr: float):
     return LoopResult(model, steps, steps, "step cap", steps, best, [best], 0.0, "val_loss")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["unloc", "tridet"])
 def test_without_early_stopping_the_window_models_train_as_before_the_loop(
     method: str, monkeypatch: pytest.MonkeyPatch, tmp_path: Path

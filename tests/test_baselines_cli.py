@@ -39,6 +39,7 @@ def test_the_command_line_offers_the_registry_methods_label_heads_and_keep_rules
     assert KEEP_RULE_CHOICES == tuple(KEEP_RULES)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", list(METHODS))
 def test_train_segment_evaluate_round_trip(method: str, dataset: Path, tmp_path: Path, capsys) -> None:
     model = tmp_path / f"{method}.pt"
@@ -68,6 +69,7 @@ def test_train_segment_evaluate_round_trip(method: str, dataset: Path, tmp_path:
     assert ("cuts single segments out of windows" in printed) == (not METHODS[method].tiles)
 
 
+@pytest.mark.slow
 def test_a_checkpoint_of_another_method_is_one_clear_line(dataset: Path, tmp_path: Path, capsys) -> None:
     model = tmp_path / "tridet.pt"
     argv = ["train", "--method", "tridet", "--data", str(dataset), "--out", str(model), "--epochs", "1"]
@@ -93,6 +95,7 @@ def test_a_checkpoint_of_another_method_is_one_clear_line(dataset: Path, tmp_pat
     assert "--labeller: only with --method ps" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_window_methods_can_read_a_trained_models_step_encoders(dataset: Path, tmp_path: Path) -> None:
     """--encoders-from: the PS model's step encoders, frozen (their weights are the PS model's after
     training), recorded in the baseline's checkpoint; other methods refuse the option."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 import torch
 from test_baselines import scores, synthetic_data, synthetic_episode
 
@@ -18,6 +19,7 @@ torch.set_num_threads(1)
 TEST = [synthetic_episode(300 + s, steps=150) for s in range(8)]
 
 
+@pytest.mark.slow
 def test_tridet_top1_detections_are_true_segments(tmp_path: Path) -> None:
     cfg = TridetConfig.for_lengths(7)
     cfg.dim = 32

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 import torch
 from test_baselines import scores, synthetic_data, synthetic_episode
 
@@ -18,6 +19,7 @@ torch.set_num_threads(1)
 TEST = [synthetic_episode(300 + s, steps=150) for s in range(8)]
 
 
+@pytest.mark.slow
 def test_unloc_crops_true_segments_out_of_random_windows(tmp_path: Path) -> None:
     data = synthetic_data()
     data.bounds = {"k_max": 3}  # 1..3 background steps each side of a training segment

@@ -16,7 +16,7 @@ from playseg_core.augment.bc_policy import (
     load_bc_policy,
     save_bc_policy,
 )
-from playseg_core.augment.policy import load_policy_learner
+from playseg_core.augment.policies import load_policy_learner
 from playseg_core.augment.retraining import AugmentationTrainer, TrainerConfig
 from playseg_core.checkpoint import CheckpointError, read_checkpoint
 from playseg_core.data.episode import Segment, SegmentClip
@@ -89,6 +89,7 @@ def test_generic_names_resolve_and_unknown_ones_are_named() -> None:
         load_policy_learner("bc", {})
 
 
+@pytest.mark.slow
 def test_training_beats_the_mean_action_on_held_out_clips(trained) -> None:
     _, _, report = trained
     assert report.num_segments == 60 and report.num_val_segments == 6
@@ -139,6 +140,7 @@ def test_a_foreign_policy_checkpoint_is_refused(trained, tmp_path: Path) -> None
         load_bc_policy(tmp_path / "p.pt")
 
 
+@pytest.mark.slow
 def test_discrete_actions_reach_high_validation_accuracy() -> None:
     learner = load_policy_learner("bc", FAST, features=robot_features(discrete=True))
     policy, report = learner.train(make_clips(60, seed=2, discrete=True))
@@ -176,6 +178,7 @@ def bimodal_clips(num: int, seed: int) -> list[SegmentClip]:
     return clips
 
 
+@pytest.mark.slow
 def test_a_bins_head_acts_like_one_of_the_demonstrators_and_regression_averages_them(
     tmp_path: Path,
 ) -> None:
@@ -231,6 +234,7 @@ def test_bad_action_head_settings_fail_in_one_line() -> None:
         load_policy_learner("bc", {"action_head": "bins"}, features=robot_features(discrete=True))
 
 
+@pytest.mark.slow
 def test_an_instruction_film_head_learns_and_its_flag_reads_from_text(tmp_path: Path) -> None:
     settings = {**FAST, "instruction_film": "true"}
     learner = load_policy_learner("bc", settings, features=robot_features())
@@ -294,6 +298,7 @@ def square_clips(num: int, seed: int) -> list[SegmentClip]:
     return clips
 
 
+@pytest.mark.slow
 def test_instruction_attention_finds_the_named_object_and_round_trips(tmp_path: Path) -> None:
     features = Features.of(
         [Feature(CAMERA, "image", "uint8", (32, 32, 3)), Feature(ACTION, "action", "float32", (2,))], 10.0
@@ -320,6 +325,7 @@ def test_instruction_attention_finds_the_named_object_and_round_trips(tmp_path: 
         load_policy_learner("bc", {"instruction_attention": -1}, features=features)
 
 
+@pytest.mark.slow
 def test_excluded_state_dimensions_are_not_read() -> None:
     names = tuple(f"joint_{i}" for i in range(7))
     base = robot_features()
@@ -348,6 +354,7 @@ def test_excluded_state_dimensions_are_not_read() -> None:
         load_policy_learner("bc", {"state_exclude": "joint_0"}, features=robot_features())
 
 
+@pytest.mark.slow
 def test_without_known_instructions_only_the_words_count() -> None:
     clips = make_clips(60, seed=1)
     observations = {CAMERA: clips[0].images[CAMERA][:1], STATE: clips[0].state[:1]}

@@ -380,6 +380,7 @@ def test_derived_action_and_sidecar_annotations(tmp_path: Path) -> None:
     assert [(s.start, s.end, s.instruction) for s in dataset.segments(0)] == [(5, 10, "wave")]
 
 
+@pytest.mark.slow
 def test_bad_bags_fail_alone_and_a_rerun_skips_finished_bags(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

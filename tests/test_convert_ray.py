@@ -20,6 +20,7 @@ def files_of(root: Path) -> dict[str, bytes]:
     return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
 
 
+@pytest.mark.slow
 def test_ray_engine_writes_the_same_dataset_as_the_local_engine(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -59,6 +60,7 @@ def test_ray_engine_writes_the_same_dataset_as_the_local_engine(
     print(f"local {seconds['local']:.1f} s, ray {seconds['ray']:.1f} s")
 
 
+@pytest.mark.slow
 def test_address_needs_the_ray_engine_and_the_local_engine_never_imports_ray(tmp_path: Path) -> None:
     bag = write_rosbag2(tmp_path / "a", RobotBag(seconds=0.5))
     args = ["convert", str(bag), "--mapping", str(write_mapping(tmp_path / "m.yaml")), "--quiet"]

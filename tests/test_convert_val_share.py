@@ -43,6 +43,7 @@ def mapping(tmp_path_factory: pytest.TempPathFactory):
 ANNOTATED = ["a0", "a1", "a2", "a3", "a4"]
 
 
+@pytest.mark.slow
 def test_val_is_the_held_out_rule_and_the_same_whatever_the_workers(tmp_path: Path, mapping) -> None:
     bags = write_bags(tmp_path / "bags", ANNOTATED, ["p0"])
     one = convert([bags], tmp_path / "one", mapping, workers=1, progress=False, val_share=0.4)
@@ -95,6 +96,7 @@ def test_fewer_than_two_annotated_episodes_give_no_val(tmp_path: Path, mapping) 
     assert (summary.val, summary.annotated) == (0, 1)
 
 
+@pytest.mark.slow
 def test_a_resumed_run_splits_as_a_fresh_one_and_another_share_resplits(tmp_path: Path, mapping) -> None:
     bags = tmp_path / "bags"
     write_bags(bags, ANNOTATED[:2], ["p0"])
@@ -127,6 +129,7 @@ def test_a_resumed_run_splits_as_a_fresh_one_and_another_share_resplits(tmp_path
     assert splits_by_id(out) == splits_by_id(tmp_path / "fresh") and back.val == 3
 
 
+@pytest.mark.slow
 def test_a_dataset_converted_before_val_share_gets_its_val_on_rerun(tmp_path: Path, mapping) -> None:
     bags = write_bags(tmp_path / "bags", ANNOTATED[:4])
     out = tmp_path / "data"

@@ -319,6 +319,7 @@ def test_generated_splits_never_leak(tmp_path: Path) -> None:
     assert summary.segments_per_split["test"] >= 20 and summary.segments_per_split["play"] >= 30
 
 
+@pytest.mark.slow
 def test_generation_is_byte_identical_for_any_worker_count(tmp_path: Path) -> None:
     one = generate_dataset(tmp_path / "one", MINI, seed=2, workers=1, progress=False)
     two = generate_dataset(tmp_path / "two", MINI, seed=2, workers=2, progress=False)
@@ -340,6 +341,7 @@ def test_presets_and_annotated_share() -> None:
         get_preset("huge")
 
 
+@pytest.mark.slow
 def test_cli_generates_the_tiny_preset(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "tiny"
     assert cli_main(["generate", "--preset", "tiny", "--out", str(out), "--seed", "5", "--quiet"]) == 0

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 import torch
 from test_tabletop_encoder import tabletop_shaped_episode
 
@@ -17,6 +18,8 @@ from playseg_core.ps.model import PSModel, save_model
 from playseg_core.ps.training import model_config_for
 from playseg_ros.demo_robot import PLAY_BAG, run_robot_half
 from playseg_ros.play_bags import read_play_bag
+
+pytestmark = pytest.mark.dds  # the robot half streams through nodes
 
 BAGS = Path(__file__).resolve().parents[1] / "bags"
 

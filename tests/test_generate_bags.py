@@ -47,6 +47,7 @@ def assert_same_episodes(got: list[Episode], want: list[Episode]) -> None:
         assert g.segments == w.segments, g.episode_id
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(SPLITS_OF_BAG))
 def test_each_bag_holds_the_episodes_of_its_splits(generated: Path, name: str) -> None:
     dataset = PlayDataset.open(generated)

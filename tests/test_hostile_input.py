@@ -153,6 +153,7 @@ def test_a_sidecar_with_non_finite_or_huge_times_fails_its_bag_alone(
     assert not (tmp_path / ".out.convert").exists()
 
 
+@pytest.mark.slow
 def test_an_unrelated_file_as_sidecar_is_named_but_never_quoted(tmp_path: Path) -> None:
     bag = write_rosbag2(tmp_path / "bag", RobotBag(seconds=1.0, labels=[]))
     mapping = load_mapping(
@@ -310,6 +311,7 @@ def test_experiment_refuses_a_foreign_non_empty_out(
                                     r"node name is letters, digits and '_'"),
     ],
 )  # fmt: skip
+@pytest.mark.slow
 def test_a_lifecycle_node_with_a_bad_parameter_or_name_exits_2_with_one_line(
     tmp_path: Path, ros_args: list[str], line: str
 ) -> None:

@@ -22,6 +22,8 @@ from playseg_ros.launch import Graph, GraphSpec, NodeSpec
 from playseg_ros.messages import RCLPY, episode_step_message
 from playseg_ros.play_bags import DataInfo, read_play_bag, write_play_bag
 
+pytestmark = pytest.mark.dds  # every test runs a graph of nodes
+
 
 @pytest.fixture(scope="module")
 def model_path(tmp_path_factory) -> Path:

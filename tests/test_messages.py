@@ -53,6 +53,7 @@ def test_cdr_roundtrip_with_rosbags_typestore(name: str) -> None:
     assert _fields(again) == _fields(original)
 
 
+@pytest.mark.dds
 def test_every_message_crosses_processes_over_dds() -> None:
     peer = subprocess.Popen(
         [sys.executable, str(Path(__file__).with_name("ros_publisher_peer.py"))],
@@ -84,6 +85,7 @@ def test_every_message_crosses_processes_over_dds() -> None:
         assert _fields(received[name]) == _fields(make())
 
 
+@pytest.mark.slow
 def test_core_does_not_import_rclpy() -> None:
     code = "import sys, playseg_core, pkgutil, importlib\n"
     code += "for m in pkgutil.walk_packages(playseg_core.__path__, 'playseg_core.'):\n"

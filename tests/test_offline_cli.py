@@ -39,6 +39,7 @@ def segment_argv(model: Path, data: Path, out: Path) -> list[str]:
     return ["segment", "--model", str(model), "--input", str(data), "--splits", "test", "--out", str(out)]
 
 
+@pytest.mark.slow
 def test_train_calibrate_segment_evaluate(tiny_data: Path, tmp_path: Path, capsys) -> None:
     model = tmp_path / "ps.pt"
     assert cli_main(["train", "--data", str(tiny_data), "--out", str(model), "--epochs", "1"]) == 0
@@ -107,6 +108,7 @@ def test_train_calibrate_segment_evaluate(tiny_data: Path, tmp_path: Path, capsy
     assert meta["label_threshold"] is None
 
 
+@pytest.mark.slow
 def test_end_lookahead_reaches_the_checkpoint_and_segmenting(tiny_data: Path, tmp_path: Path, capsys) -> None:
     model = tmp_path / "ps.pt"
     train = ["train", "--data", str(tiny_data), "--out", str(model), "--epochs", "1"]
@@ -143,6 +145,7 @@ def test_actions_option(tiny_data: Path) -> None:
         _action_features("many", features)
 
 
+@pytest.mark.slow
 def test_augment_trains_on_rotated_clips_and_needs_actions_none(
     tiny_data: Path, tmp_path: Path, capsys
 ) -> None:
@@ -156,6 +159,7 @@ def test_augment_trains_on_rotated_clips_and_needs_actions_none(
     assert meta["train"]["augment"] is True and not trained.encoders.reads_actions
 
 
+@pytest.mark.slow
 def test_segment_refuses_data_with_other_features(tiny_data: Path, tmp_path: Path, capsys) -> None:
     model = tmp_path / "ps.pt"
     assert cli_main(["train", "--data", str(tiny_data), "--out", str(model), "--epochs", "1"]) == 0
@@ -298,6 +302,7 @@ def test_outputs_are_checked_before_training(tiny_data: Path, tmp_path: Path, ca
     assert "epoch" not in captured.err  # refused before any training
 
 
+@pytest.mark.slow
 def test_segment_replaces_only_its_own_output_and_never_the_input(
     tiny_data: Path, tmp_path: Path, capsys
 ) -> None:
@@ -321,6 +326,7 @@ def test_segment_replaces_only_its_own_output_and_never_the_input(
     _fails(capsys, [*swapped, "--json", str(tmp_path / "m.json")], "of its episodes are not in --truth")
 
 
+@pytest.mark.slow
 def test_sigterm_removes_partial_outputs(tmp_path: Path) -> None:
     out = tmp_path / "big"
     command = [sys.executable, "-m", "playseg_ros.cli", "generate", "--preset", "paper", "--out", str(out)]

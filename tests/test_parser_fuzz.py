@@ -107,6 +107,7 @@ def _check_mapping(path: Path) -> ConvertMapping | None:
     return mapping
 
 
+@pytest.mark.slow
 @given(changes=st.lists(st.tuples(st.sampled_from(MAPPING_PATHS), st.one_of(st.none(), values)), max_size=4))
 def test_any_mapping_gives_a_mapping_or_one_named_line(
     work: Path, changes: list[tuple[tuple[str, ...], Any]]

@@ -14,7 +14,8 @@ from torch.nn import functional as F
 import playseg_core.augment.bc_policy as bc_policy
 import playseg_core.domains.babyai.imitation as imitation
 from playseg_core.augment.bc_policy import BCPolicyLearner, _Steps
-from playseg_core.augment.policy import SequentialDraws, load_policy_learner, torch_threads
+from playseg_core.augment.policies import load_policy_learner
+from playseg_core.augment.policy import SequentialDraws, torch_threads
 from playseg_core.data.features import STATE
 from playseg_core.domains.babyai.imitation import (
     PolicyTrainConfig,

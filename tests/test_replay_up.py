@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import yaml
 from msg_samples import play_step
 from node_procs import ROOT, Processes, RosPeer, node_env, stop, wait_for_log
@@ -72,6 +73,7 @@ def test_set_waits_are_kept(tmp_path: Path) -> None:
     assert {n.name: n.parameters for n in load_graph(path).nodes}["adapter"]["wait_for_subscribers"] == 5
 
 
+@pytest.mark.dds
 def test_minimal_replay_through_up_equals_convert_segment(tmp_path: Path) -> None:
     model = _untrained_tabletop_model(tmp_path / "tabletop.pt")
     quiet = ["--mapping", str(MAPPING), "--quiet"]

@@ -91,6 +91,7 @@ def _train(features: Features, train: list[Episode], val: list[Episode], **confi
     return train_ps(train, val, INSTRUCTIONS, cfg, model_cfg).model
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ends_in", ["action", "state"])
 def test_boundaries_that_only_one_feature_shows_are_found_by_the_model_that_reads_it(ends_in: str) -> None:
     features = robot_features({FRONT: (12, 16)}, state=True)
@@ -123,6 +124,7 @@ def test_bounds_and_statistics_come_from_the_annotated_data() -> None:
     np.testing.assert_allclose(stats[ACTION]["std"], all_actions.std(0), atol=1e-5)
 
 
+@pytest.mark.slow
 def test_a_robot_dataset_goes_through_train_segment_evaluate(tmp_path: Path, capsys) -> None:
     """Two cameras of different sizes, a 7-D state, 7-D continuous actions, L_max over 100."""
     features = robot_features({FRONT: (24, 32), WRIST: (16, 16)}, state=True)
@@ -151,6 +153,7 @@ def test_a_robot_dataset_goes_through_train_segment_evaluate(tmp_path: Path, cap
     assert cli_main(["evaluate", "--pred", str(out), "--truth", str(data), "--plot-episodes", "0"]) == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("end_lookahead", [0, 2])
 def test_the_stream_equals_offline_segmentation_on_robot_data(end_lookahead: int) -> None:
     """Two cameras, a state and continuous actions, pushed one step at a time as a live segmenter does;

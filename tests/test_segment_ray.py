@@ -26,6 +26,7 @@ def trained(tmp_path_factory) -> tuple[Path, Path]:
     return data, model
 
 
+@pytest.mark.slow
 def test_ray_engine_segments_a_dataset_and_a_bag_as_the_local_engine_does(
     trained: tuple[Path, Path], tmp_path: Path, capsys
 ) -> None:
@@ -74,6 +75,7 @@ def test_ray_engine_segments_a_dataset_and_a_bag_as_the_local_engine_does(
     assert messages(bag_local) == messages(bag_ray) and messages(bag_ray)
 
 
+@pytest.mark.slow
 def test_engine_options_are_checked_and_the_local_engine_never_imports_ray(
     trained: tuple[Path, Path], tmp_path: Path
 ) -> None:

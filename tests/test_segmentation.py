@@ -30,6 +30,7 @@ from playseg_core.ps.segmentation import segment_episode
 torch.set_num_threads(1)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("seed", "num_actions", "end_bias"), [(0, 0, 0.0), (1, 0, 0.0), (2, 3, -0.7)])
 def test_reference_style_equals_fast_segmentation(seed: int, num_actions: int, end_bias: float) -> None:
     model = tiny_ps_model(max_len=5, seed=seed, num_actions=num_actions)
@@ -221,6 +222,7 @@ def test_steps_labelled_right_count_only_steps_the_truth_labels_the_same() -> No
     assert steps_labelled_right(cut, truth, num_steps=10) == [3, 3, 0, 0]
 
 
+@pytest.mark.slow
 def test_own_cuts_check_scores_what_the_threshold_keeps_of_the_model_s_segmentation() -> None:
     model = tiny_ps_model(max_len=5, seed=4)
     episodes = [synthetic_episode(s, num_segments=4, max_seg_len=4) for s in range(3)]

@@ -161,6 +161,7 @@ def _run(
     jitter=st.lists(st.integers(-2_000_000, 2_000_000), min_size=1, max_size=8),
     seed=st.integers(0, 2**16),
 )
+@pytest.mark.slow
 def test_a_single_outlier_stamp_never_stops_the_stream(
     seconds: int, topic: str, where: float, kind: str, magnitude: int, jitter: list[int], seed: int
 ) -> None:

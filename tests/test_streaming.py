@@ -28,6 +28,7 @@ def babyai_model(read_actions: bool, end_lookahead: int = 0) -> PSModel:
     ("seed", "read_actions", "end_lookahead"),
     [(0, False, 0), (1, False, 0), (2, True, 0), (3, True, 1), (4, False, 3)],
 )
+@pytest.mark.slow
 def test_stream_equals_offline(seed, read_actions, end_lookahead):
     torch.manual_seed(seed)  # untrained weights cut arbitrarily: many boundaries to compare
     model = babyai_model(read_actions, end_lookahead)
@@ -65,6 +66,7 @@ def test_stream_of_an_action_model_rejects_a_missing_or_invalid_action():
         StreamingSegmenter(model).push({STATE: episode.state[0]}, [1.0])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("end_lookahead", [0, 2])
 def test_an_episode_shorter_than_l_min_is_one_segment_live_as_offline(end_lookahead):
     torch.manual_seed(0)
@@ -91,6 +93,7 @@ def test_an_episode_shorter_than_l_min_is_one_segment_live_as_offline(end_lookah
         assert [s.confidence for s in live] == pytest.approx([s.confidence for s in offline], abs=1e-5)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("end_lookahead", [0, 2])
 def test_incremental_end_scores_equal_end_column(end_lookahead):
     """Each step's column from the windows' advanced state equals `end_column` on the kept rows, before

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 import torch
 
 from playseg_core.data.dataset import PlayDataset
@@ -15,6 +16,7 @@ from playseg_ros.cli import main as cli_main
 torch.set_num_threads(1)
 
 
+@pytest.mark.slow
 def test_generate_train_segment_evaluate(tmp_path: Path, capsys) -> None:
     data, model, pred = tmp_path / "data", tmp_path / "ps.pt", tmp_path / "pred"
     assert (

@@ -104,6 +104,7 @@ def test_a_keypoint_is_where_its_detector_fires(size: int = 96) -> None:
     assert np.abs(coordinates).max() <= 1.0
 
 
+@pytest.mark.slow
 def test_blocks_pooling_finds_every_block_and_pairs_each_colours_blocks() -> None:
     """Random layouts: the entities 2c and 2c + 1 are the two blocks of colour c (in either order), each
     within 0.06 of the true image position (a patch is 0.087); no learning involved."""
@@ -134,6 +135,7 @@ def test_blocks_pooling_finds_every_block_and_pairs_each_colours_blocks() -> Non
     assert worst < 0.06, worst
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("size", [96, 192])  # 192: the masks pooled to the spreads' resolution
 def test_blocks_pooling_by_size_tells_each_colours_cube_from_its_cylinder(size: int) -> None:
     """With ``twins_by_size`` the entity 2c + k is colour c's block of shape SHAPES[k], found by its
@@ -209,6 +211,7 @@ def test_the_domain_chooses_the_scaled_blocks_and_the_linear_head_and_checkpoint
     torch.testing.assert_close(loaded.label_head(hidden), model.label_head(hidden))
 
 
+@pytest.mark.slow
 def test_a_text_head_labels_combinations_never_seen_in_training() -> None:
     colours, directions = ["red", "blue", "green", "yellow"], ["left", "right", "up", "down"]
     instructions = [f"push the {c} block {d}" for c in colours for d in directions]

@@ -26,6 +26,7 @@ def digests(root: Path) -> dict[str, str]:
     }
 
 
+@pytest.mark.slow
 def test_same_seed_same_bytes_for_any_worker_count(tmp_path: Path) -> None:
     domain = load_domain("tabletop")
     one = domain.generate_dataset(tmp_path / "one", "tiny", seed=2, workers=1, progress=False)

@@ -45,6 +45,7 @@ def spans(episode: Episode) -> list[tuple[int, int, str]]:
     return [(s.start, s.end, s.instruction) for s in episode.segments]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(DATASET_BAGS))
 def test_convert_gives_back_the_dataset_episodes(generated: Path, tmp_path: Path, name: str) -> None:
     dataset = PlayDataset.open(generated)

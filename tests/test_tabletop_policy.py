@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from playseg_core.augment.policy import load_policy_learner
+from playseg_core.augment.policies import load_policy_learner
 from playseg_core.augment.retraining import annotated_clips
 from playseg_core.data.dataset import PlayDataset
 from playseg_core.data.episode import Segment, SegmentClip
@@ -129,6 +129,7 @@ def tiny_clips(tmp_path_factory: pytest.TempPathFactory) -> list:
     return annotated_clips(list(PlayDataset.open(out).episodes("train")))
 
 
+@pytest.mark.slow
 def test_the_same_policy_always_scores_the_same(tiny_clips: list, tmp_path: Path) -> None:
     learner = load_policy_learner("tabletop.bc", {"steps": 15, "batch_size": 16, "eval_max_steps": 25})
     assert learner.name == "tabletop.bc" and learner.features == PlayConfig().features
@@ -259,6 +260,7 @@ def named_entities(instruction: str) -> list[int]:
     ]
 
 
+@pytest.mark.slow
 def test_the_moved_entity_loss_teaches_the_instruction_which_block_it_names() -> None:
     """The block a segment moves is the target of the instruction's first query (the entity 2c + k of
     colour c's shape k; none where nothing moves), the block it is carried next to the second's, and

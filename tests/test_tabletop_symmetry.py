@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from playseg_core.augment.policy import load_policy_learner
+from playseg_core.augment.policies import load_policy_learner
 from playseg_core.data.episode import Episode, Segment, SegmentClip
 from playseg_core.data.features import ACTION, STATE
 from playseg_core.domains import tabletop
@@ -82,6 +82,7 @@ def test_a_transformed_frame_is_the_frame_of_the_transformed_table(quarter_turns
         np.testing.assert_allclose(centres[0], centres[1], atol=1.0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("quarter_turns", "mirror"), SYMMETRIES[1:])
 def test_a_transformed_instruction_is_done_when_the_original_is(quarter_turns: int, mirror: bool) -> None:
     rng = np.random.default_rng(7)
@@ -260,6 +261,7 @@ def test_ps_trains_on_turned_clips_with_turned_labels() -> None:
     assert len({w for w in seen if w.startswith("move the arm")}) > 1
 
 
+@pytest.mark.slow
 def test_the_blocks_are_encoded_once_per_episode_and_symmetry() -> None:
     """The blocks' positions learn nothing: training encodes them once per (episode, symmetry) and reads
     rows from there (ps/fixed_features.py). The step features of such a batch are those of the batch that

@@ -17,6 +17,8 @@ from playseg_core.data.dataset import DatasetWriter, PlayDataset
 from playseg_ros.cli import main as cli_main
 from playseg_ros.offline import train_state_path
 
+pytestmark = pytest.mark.slow  # every test trains through `playseg train`, most in subprocesses
+
 
 @pytest.fixture(scope="module")
 def tiny_data(tmp_path_factory) -> Path:

@@ -13,14 +13,9 @@ from playseg_core.data.episode import Episode
 from playseg_core.domains.babyai.spec import CAMERA
 from playseg_core.ps.encoders import StepEncoders
 from playseg_core.ps.model import PSModel
-from playseg_core.ps.samples import (
-    NEGATIVE_KINDS,
-    camera_symmetries,
-    label_index,
-    make_batch,
-    segment_samples,
-)
+from playseg_core.ps.samples import NEGATIVE_KINDS, label_index, make_batch, segment_samples
 from playseg_core.ps.segmentation import segment_episode
+from playseg_core.ps.symmetries import camera_symmetries
 from playseg_core.ps.training import (
     TrainConfig,
     step_cap,
@@ -164,6 +159,7 @@ def _boundary_hits(model, episodes) -> tuple[float, float, float]:
     return hits / predicted, hits / true, correct_labels / max(1, hits)
 
 
+@pytest.mark.slow
 def test_short_ps_training_learns_to_segment() -> None:
     result, val = _train_small_ps(dense=True, epochs=30)
     first = result.history[0]
@@ -176,6 +172,7 @@ def test_short_ps_training_learns_to_segment() -> None:
     assert labels >= 0.9
 
 
+@pytest.mark.slow
 def test_a_model_that_reads_actions_learns_ends_only_the_actions_show() -> None:
     # Frames carry no end marker here; the last action of each segment is the only sign of its end.
     with_actions, val = _train_small_ps(dense=True, epochs=30, num_actions=3, ends_in_actions=True)
@@ -186,6 +183,7 @@ def test_a_model_that_reads_actions_learns_ends_only_the_actions_show() -> None:
     assert blind_precision + blind_recall < precision + recall - 0.3
 
 
+@pytest.mark.slow
 def test_an_end_head_with_lookahead_learns_ends_only_the_next_action_shows() -> None:
     # Each segment's first action is the only sign of a boundary: a segment's end shows one step later.
     ahead, val = _train_small_ps(
@@ -198,6 +196,7 @@ def test_an_end_head_with_lookahead_learns_ends_only_the_next_action_shows() -> 
     assert causal_precision + causal_recall < precision + recall - 0.3
 
 
+@pytest.mark.slow
 def test_short_ps_training_without_dense_prefixes_still_learns() -> None:
     result, _ = _train_small_ps(dense=False, epochs=20)
     first = result.history[0]
@@ -206,6 +205,7 @@ def test_short_ps_training_without_dense_prefixes_still_learns() -> None:
     assert best["val_label_accuracy"] >= 0.8
 
 
+@pytest.mark.slow
 def test_short_labeller_training_learns() -> None:
     train, val = _small_data()
     cfg = TrainConfig(

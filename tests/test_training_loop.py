@@ -200,6 +200,7 @@ def _train_toy_in_group(out: str) -> int:
     return 0
 
 
+@pytest.mark.slow
 def test_two_gloo_processes_train_to_the_quality_of_one(tmp_path: Path) -> None:
     from playseg_core.training import distributed
 

@@ -572,7 +572,7 @@ class BCPolicyLearner:
         episodes = [clip.as_episode(f"clip{i}") for i, clip in enumerate(clips)]
         names = ([STATE] if features.state is not None else []) + ([] if action.is_discrete else [ACTION])
         statistics = feature_statistics(episodes, names)
-        specs = choose_encoders(features, None, statistics, read_actions=False, choice=self.encoder_choice)
+        specs = choose_encoders(features, self.encoder_choice, statistics, read_actions=False)
         dims = {"image_cnn": self.settings.image_dim, "state_mlp": self.settings.state_dim}
         for spec in specs:
             if spec.kind in dims:  # a domain's own encoder keeps its own settings

@@ -1,9 +1,8 @@
 """The policy interface augmentation trains through: train on segment clips, act, evaluate, save, load.
 
-A `PolicyLearner` is one policy family: a generic one for any domain's data (``GENERIC_POLICIES``, named
-without a dot, e.g. ``bc``) or one of a domain (a domain package lists its own in ``POLICIES``, named
-``<domain>.<policy>``). The trainer node and `AugmentationTrainer` know only this interface and find a
-learner by its name (`load_policy_learner`). A learner without a simulator returns no evaluation.
+A `PolicyLearner` is one policy family: a generic one for any domain's data or one of a domain
+(policies.py finds them by name). The trainer node and `AugmentationTrainer` know only this interface.
+A learner without a simulator returns no evaluation.
 """
 
 from __future__ import annotations
@@ -20,7 +19,6 @@ import torch
 
 from playseg_core.data.episode import SegmentClip
 from playseg_core.data.features import Features
-from playseg_core.domains import load_domain
 from playseg_core.errors import PlaysegError
 
 
@@ -114,16 +112,6 @@ class PolicyLearner(Protocol):
     def load(self, path: Path) -> tuple[Any, dict[str, Any]]: ...
 
 
-def _bc_policy(config: dict[str, Any], features: Features | None) -> PolicyLearner:
-    from playseg_core.augment.bc_policy import BCPolicyLearner  # imports this module
-
-    return BCPolicyLearner.from_config(config, features)
-
-
-GENERIC_POLICIES: dict[str, Callable[[dict[str, Any], Features | None], PolicyLearner]] = {"bc": _bc_policy}
-"""Policies for any domain's data, by name: factory (config, the data's features) -> learner."""
-
-
 T = TypeVar("T")
 
 
@@ -173,22 +161,3 @@ def torch_threads(num_threads: int) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(previous)
-
-
-def load_policy_learner(
-    name: str, config: Mapping[str, Any] | None = None, features: Features | None = None
-) -> PolicyLearner:
-    """The learner ``name`` built from ``config``: a generic policy (a name without a dot, built for data
-    with ``features``) or ``<domain>.<policy>`` (a domain's policy, which knows its own features and
-    ignores ``features``); ValueError naming what is unknown."""
-    domain, _, policy = name.partition(".")
-    if not policy:
-        if name not in GENERIC_POLICIES:
-            raise PlaysegError(
-                f"policy {name!r}: not a generic policy ({sorted(GENERIC_POLICIES)}) nor <domain>.<policy>"
-            )
-        return GENERIC_POLICIES[name](dict(config or {}), features)
-    policies = getattr(load_domain(domain), "POLICIES", {})
-    if policy not in policies:
-        raise PlaysegError(f"policy {name!r}: domain {domain!r} has {sorted(policies) or 'no policies'}")
-    return policies[policy](dict(config or {}))

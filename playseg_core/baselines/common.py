@@ -41,7 +41,7 @@ class TrainingData:
     features: the features to build step encoders for (the action possibly re-declared, see
         `playseg train --actions`); read_actions False leaves the previous action unread.
     augment: each training segment under a random symmetry of the domain's world (its
-        ``CLIP_SYMMETRIES``), else with its camera frames rotated/mirrored (only for models that read no
+        ``clip_symmetries``), else with its camera frames rotated/mirrored (only for models that read no
         actions, and only where labels and ends do not depend on orientation); PS and the labelling model.
     bounds: command-line overrides of min_len / max_len / k_max (None: derived, ps.training.segment_bounds).
     """

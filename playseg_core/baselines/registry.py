@@ -31,6 +31,7 @@ from playseg_core.baselines.unloc import load_unloc_segmenter, train_unloc
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.errors import PlaysegError
 from playseg_core.ps.model import PSModel, load_model, save_model
+from playseg_core.registry import Registry
 
 
 class PlaySegmenter(Segmenter):
@@ -94,51 +95,52 @@ class Method:
     augments: bool = False
 
 
-METHODS: dict[str, Method] = {
-    method.name: method
-    for method in (
-        Method(
-            "ps", "Play Segmentation (ps/)", True, train_play_segmentation, load_play_segmenter, augments=True
-        ),
-        Method(
-            "unloc",
-            "UnLoc-style per-step classification, background cropped",
-            False,
-            train_unloc,
-            load_unloc_segmenter,
-        ),
-        Method(
-            "tridet",
-            "TriDet-style localisation, top-1 detection per window",
-            False,
-            train_tridet,
-            load_tridet_segmenter,
-        ),
-        Method(
-            "random",
-            "random windows labelled by the labelling model",
-            True,
-            train_random,
-            load_random_segmenter,
-            augments=True,
-        ),
-        Method(
-            "changepoint",
-            "PELT changepoints labelled by the labelling model",
-            True,
-            train_changepoint,
-            load_changepoint_segmenter,
-            augments=True,
-        ),
-    )
-}
+METHODS: Registry[Method] = Registry("segmentation method")
+"""The segmentation methods by name (`train` and `segment`'s ``--method``), in the order tables list them."""
+for _method in (
+    Method(
+        "ps", "Play Segmentation (ps/)", True, train_play_segmentation, load_play_segmenter, augments=True
+    ),
+    Method(
+        "unloc",
+        "UnLoc-style per-step classification, background cropped",
+        False,
+        train_unloc,
+        load_unloc_segmenter,
+    ),
+    Method(
+        "tridet",
+        "TriDet-style localisation, top-1 detection per window",
+        False,
+        train_tridet,
+        load_tridet_segmenter,
+    ),
+    Method(
+        "random",
+        "random windows labelled by the labelling model",
+        True,
+        train_random,
+        load_random_segmenter,
+        augments=True,
+    ),
+    Method(
+        "changepoint",
+        "PELT changepoints labelled by the labelling model",
+        True,
+        train_changepoint,
+        load_changepoint_segmenter,
+        augments=True,
+    ),
+):
+    METHODS.register(_method.name, _method)
 
 
 def get_method(name: str) -> Method:
     """The method called ``name``; ValueError listing the known ones otherwise."""
-    if name not in METHODS:
-        raise PlaysegError(f"--method {name!r}: unknown segmentation method (known: {', '.join(METHODS)})")
-    return METHODS[name]
+    try:
+        return METHODS[name]
+    except PlaysegError as error:
+        raise PlaysegError(f"--method {name!r}: {error}") from None
 
 
 def train_segmenter(name: str, data: TrainingData, options: TrainOptions) -> TrainedSegmenter:

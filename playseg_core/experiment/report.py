@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from playseg_core.experiment.conditions import AddedSegments, pool_percent
-from playseg_core.experiment.runner import ExperimentData, ExperimentSpec
+from playseg_core.experiment.spec import ExperimentData, ExperimentSpec
 
 
 def summarize(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:

@@ -26,6 +26,7 @@ from playseg_core.data.episode import Episode
 from playseg_core.data.features import ACTION, Feature, FeatureError, Features, check_discrete_actions
 from playseg_core.domains import load_domain
 from playseg_core.errors import PlaysegError
+from playseg_core.registry import Registry
 
 
 @dataclass(frozen=True)
@@ -66,9 +67,6 @@ class ObservationEncoder(StepEncoder):
     """
 
     entity_dim: int = 0  # width of the entities `encode_with_entities` gives; 0: this encoder has none
-    # > 0: the output is this many things' (x, y) positions, each slot always the same thing (what an end
-    # head grounded on the label reads: ps/model.py `GroundedEndHead`); 0: it is not
-    position_slots: int = 0
 
     def __init__(self, feature: Feature) -> None:
         super().__init__()
@@ -119,28 +117,20 @@ class PreviousActionEncoder(StepEncoder):
 
 
 EncoderFactory = Callable[[Feature, dict[str, Any]], StepEncoder]
-_REGISTRY: dict[str, EncoderFactory] = {}
+STEP_ENCODERS: Registry[EncoderFactory] = Registry("step encoder kind")
+"""Step encoder classes (or factories) by kind; a domain's kinds are ``<domain>.<name>``."""
 
 
 def register_encoder(kind: str) -> Callable[[EncoderFactory], EncoderFactory]:
-    """Register a step encoder class (or factory) under ``kind``; a domain's kinds are ``<domain>.<name>``."""
-
-    def register(factory: EncoderFactory) -> EncoderFactory:
-        if kind in _REGISTRY and _REGISTRY[kind] is not factory:
-            raise PlaysegError(f"step encoder kind {kind!r} is registered twice")
-        _REGISTRY[kind] = factory
-        return factory
-
-    return register
+    """Register a step encoder class (or factory) under ``kind`` (`STEP_ENCODERS`), as a decorator."""
+    return STEP_ENCODERS.add(kind)
 
 
 def build_encoder(spec: EncoderSpec, feature: Feature) -> StepEncoder:
     """The encoder ``spec`` describes, reading ``feature``; ValueError naming the kind when unknown."""
-    if spec.kind not in _REGISTRY and "." in spec.kind:
+    if spec.kind not in STEP_ENCODERS and "." in spec.kind:
         load_domain(spec.kind.split(".", 1)[0])  # a domain registers its encoders on import
-    if spec.kind not in _REGISTRY:
-        raise PlaysegError(f"unknown step encoder kind {spec.kind!r} (known: {', '.join(sorted(_REGISTRY))})")
-    return _REGISTRY[spec.kind](feature, dict(spec.config))
+    return STEP_ENCODERS[spec.kind](feature, dict(spec.config))
 
 
 @register_encoder("discrete_action")
@@ -287,18 +277,6 @@ class StepEncoders(nn.Module):
     def reads_actions(self) -> bool:
         return any(isinstance(e, PreviousActionEncoder) for e in self.encoders)
 
-    @property
-    def position_slots(self) -> list[tuple[int, int]]:
-        """(first column, number of slots) in the step features of each encoder whose output is things'
-        positions (`ObservationEncoder.position_slots`), in order."""
-        found, column = [], 0
-        for encoder in self.encoders:
-            slots = getattr(encoder, "position_slots", 0)
-            if slots:
-                found.append((column, slots))
-            column += encoder.out_dim
-        return found
-
     def episode_inputs(self, episode: Episode) -> dict[str, np.ndarray]:
         """Every encoder's input rows for o_0..o_T, by feature (memory-mapped where the episode is)."""
         where = f"episode {episode.episode_id!r}"
@@ -312,7 +290,7 @@ class StepEncoders(nn.Module):
     ) -> dict[str, np.ndarray]:
         """What was recorded of the observations o_first..o_last that the encoders read, by feature, and
         of the actions that led to them (a_{first-1}..a_{last-1}; from a_0 when ``first`` is 0): the
-        values a domain's symmetries turn before `clip_inputs` (ps/samples.py `ClipSymmetries`). Only
+        values a domain's symmetries turn before `clip_inputs` (ps/symmetries.py `ClipSymmetries`). Only
         ``features`` when given."""
         where = f"episode {episode.episode_id!r}"
         return {
@@ -449,19 +427,17 @@ def _default_spec(kind: str, feature: Feature, statistics: dict[str, dict[str, l
 
 def choose_encoders(
     features: Features,
-    domain: str | None,
+    choice: Callable[[Features], Mapping[str, EncoderSpec | None]] | None = None,
     statistics: dict[str, dict[str, list[float]]] | None = None,
     read_actions: bool = True,
     overrides: dict[str, str] | None = None,
-    choice: Callable[[Features], dict[str, EncoderSpec | None]] | None = None,
 ) -> list[EncoderSpec]:
     """Step encoders for data with ``features``, in order: every camera, the state, then the previous
     action (observation encoders first: the auxiliary frame-label loss reads their columns).
 
     Each feature gets, in this order of preference: ``overrides[name]`` (a kind, or "none" to leave it
-    unread), the domain's choice (``choice(features)`` when given, else the domain's
-    ``step_encoders(features)``: a spec, or None for "not read"), the
-    generic default (``image_cnn`` per camera, ``state_mlp``, ``discrete_action`` or
+    unread), ``choice(features)`` (a domain's `Domain.step_encoders`: a spec, or None for "not read"),
+    the generic default (``image_cnn`` per camera, ``state_mlp``, ``discrete_action`` or
     ``continuous_action``). ``read_actions`` False leaves the action unread. ``statistics``
     (`feature_statistics`) standardise the state and a continuous action. FeatureError when nothing
     would be read, or an override names a feature the data lacks.
@@ -470,8 +446,6 @@ def choose_encoders(
     statistics = statistics or {}
     for name in overrides:
         features[name]  # FeatureError naming a feature the data lacks
-    if choice is None and domain:
-        choice = getattr(load_domain(domain), "step_encoders", None)
     chosen = choice(features) if choice else {}
     action = features.action
     defaults = {name: "image_cnn" for name in features.cameras}

@@ -8,17 +8,13 @@ from every step after the first; a learnt encoder is untouched and still runs in
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 import torch
 
 from playseg_core.data.episode import Episode
 from playseg_core.errors import PlaysegError
 from playseg_core.ps.encoders import ObservationEncoder, StepEncoders
-
-if TYPE_CHECKING:
-    from playseg_core.ps.samples import ClipSymmetries
+from playseg_core.ps.symmetries import ClipSymmetries
 
 ENCODE_ROWS = 256  # observation rows per encoder pass when filling the cache
 

@@ -57,8 +57,6 @@ class ModelConfig:
         action a_j that led to it, the first command after the end: where a demonstrator's intent
         changes, the command does.
         Segmenting a stream then decides each end one step later.
-    end_grounding: attention heads of the PS end head's grounded part (`GroundedEndHead`; 0: none, the
-        paper's end head). It needs a step encoder whose output is things' positions.
     """
 
     encoders: list[EncoderSpec]
@@ -68,15 +66,12 @@ class ModelConfig:
     min_len: int = 1
     label_head: str = "linear"
     end_lookahead: int = 0
-    end_grounding: int = 0
 
     def __post_init__(self) -> None:
         if self.label_head not in LABEL_HEADS:
             raise PlaysegError(f"unknown label head {self.label_head!r} (known: {', '.join(LABEL_HEADS)})")
         if not 0 <= self.end_lookahead <= MAX_END_LOOKAHEAD:
             raise PlaysegError(f"end_lookahead must be in 0..{MAX_END_LOOKAHEAD}, got {self.end_lookahead}")
-        if not 0 <= self.end_grounding <= MAX_END_GROUNDING:
-            raise PlaysegError(f"end_grounding must be in 0..{MAX_END_GROUNDING}, got {self.end_grounding}")
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -86,11 +81,15 @@ class ModelConfig:
             "min_len": self.min_len,
             "label_head": self.label_head,
             "end_lookahead": self.end_lookahead,
-            "end_grounding": self.end_grounding,
         }
 
     @staticmethod
     def from_json(raw: dict[str, Any], features: Features) -> ModelConfig:
+        if raw.get("end_grounding"):  # an end head grounded on the label: a study's, not this model's
+            raise PlaysegError(
+                f"end_grounding {raw['end_grounding']}: a PS model whose end head is grounded on the label "
+                "(docs/studies/2026-12-05-tabletop-end-grounding.md); train it again without"
+            )
         return ModelConfig(
             encoders=[EncoderSpec.from_json(spec) for spec in raw["encoders"]],
             features=features,
@@ -99,7 +98,6 @@ class ModelConfig:
             min_len=int(raw.get("min_len", 1)),
             label_head=str(raw.get("label_head", "linear")),  # checkpoints before text heads: linear
             end_lookahead=int(raw.get("end_lookahead", 0)),  # checkpoints before it: the paper's 0
-            end_grounding=int(raw.get("end_grounding", 0)),  # checkpoints before it: none
         )
 
     @property
@@ -114,13 +112,6 @@ class ModelConfig:
 
 MAX_END_LOOKAHEAD = 8
 """The most steps past an end the end head may read (a stream's ends are decided that much later)."""
-
-MAX_END_GROUNDING = 8
-"""The most attention heads of a grounded end head."""
-
-GROUNDED_LABELS = 4
-"""Labels a grounded end head is asked about at each candidate end when the segment's label is unknown:
-the label head's likeliest there; the rest of the label distribution gets the ungrounded end."""
 
 
 class CausalConvBlock(nn.Module):
@@ -287,67 +278,6 @@ class TextLabelHead(nn.Module):
 LABEL_HEADS = ("linear", "text")
 
 
-class GroundedEndHead(nn.Module):
-    """Whether a segment has ended *as its label asks*: the label's words choose which of the things the
-    step encoders track by position (`StepEncoders.position_slots`) to read, and the end is scored from
-    where those things are, how far they have moved since the segment's start, and the trunk's states.
-
-    An end head that reads every tracked thing at once must learn, from a few segments per instruction,
-    which thing each instruction is about; words shared between instructions (a thing's name, a
-    direction) make that choice once for all of them. The output is added to the ungrounded end logit.
-    """
-
-    def __init__(
-        self,
-        instructions: list[str],
-        slots: list[tuple[int, int]],
-        hidden_in: int,
-        heads: int,
-        dim: int = 32,
-        width: int = 128,
-    ) -> None:
-        super().__init__()
-        words = token_bags([instruction_words(text) or [text] for text in instructions])
-        self.register_buffer("label_words", words, persistent=False)  # rebuilt from the instructions
-        self.slots, self.heads, self.dim = slots, heads, dim
-        self.words = nn.Linear(words.shape[1], dim, bias=False)
-        self.slot_identity = nn.Parameter(torch.randn(sum(n for _, n in slots), dim) * 0.1)
-        self.token = nn.Sequential(nn.Linear(4, dim), nn.LayerNorm(dim))  # (x, y) and moved (dx, dy)
-        self.query = nn.Linear(dim, heads * dim)
-        self.from_hidden = nn.Linear(hidden_in, width)
-        self.from_label = nn.Linear(heads * dim + dim, width, bias=False)
-        self.out = nn.Linear(width, 1)
-        nn.init.zeros_(self.out.weight)  # starts as the ungrounded end head
-        nn.init.zeros_(self.out.bias)
-
-    def forward(self, hidden_in: torch.Tensor, windows: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
-        """(B, P, hidden_in) what the end head reads at each position, (B, >= P, step_dim) the windows'
-        step features, (B, P, K) class indices -> (B, P, K) logits added to the end logit if the segment
-        ending at that position has that label."""
-        batch, num_pos = hidden_in.shape[:2]
-        where = torch.cat(
-            [windows[:, :num_pos, first : first + 2 * n].unflatten(-1, (n, 2)) for first, n in self.slots],
-            dim=2,
-        )  # (B, P, S, 2)
-        moved = where - where[:, :1]
-        tokens = (
-            self.token(torch.cat([where, moved], dim=-1)).flatten(0, 1) + self.slot_identity
-        )  # (B*P, S, dim)
-        # What a label attends to and adds depends on the label alone: computed once per label.
-        label = self.words(self.label_words)  # (L, dim)
-        query = self.query(label).unflatten(-1, (self.heads, self.dim))  # (L, H, dim)
-        weights = torch.softmax(query @ self.slot_identity.T / self.dim**0.5, dim=-1)  # (L, H, S)
-        split = self.heads * self.dim
-        from_words = F.linear(label, self.from_label.weight[:, split:])  # (L, width)
-        chosen = labels.flatten(0, 1)  # (B * P, K)
-        picked = weights[chosen].flatten(1, 2) @ tokens  # (B * P, K * H, dim)
-        mixed = F.linear(
-            picked.unflatten(1, (chosen.shape[1], -1)).flatten(2), self.from_label.weight[:, :split]
-        )
-        mixed = mixed + from_words[chosen] + self.from_hidden(hidden_in).flatten(0, 1).unsqueeze(1)
-        return self.out(F.gelu(mixed)).squeeze(-1).unflatten(0, (batch, num_pos))
-
-
 def make_label_head(kind: str, in_dim: int, instructions: list[str]) -> nn.Module:
     """A label head of ``kind`` (`LABEL_HEADS`) over ``in_dim`` features for ``instructions``."""
     if kind == "text":
@@ -449,17 +379,6 @@ class PSModel(StepModel):
         super().__init__(cfg, instructions)
         # The end head reads the hidden state at the end and at each of the `lookahead` steps after it.
         self.end_head = nn.Linear(cfg.trunk.hidden_dim * (1 + self.lookahead), 1)
-        self.grounded_end: GroundedEndHead | None = None
-        if cfg.end_grounding:
-            slots = self.encoders.position_slots
-            if not slots:
-                raise PlaysegError(
-                    "end_grounding: none of the model's step encoders gives things' positions "
-                    f"(position_slots); its encoders: {', '.join(s.kind for s in cfg.encoders)}"
-                )
-            self.grounded_end = GroundedEndHead(
-                self.instructions, slots, cfg.trunk.hidden_dim * (1 + self.lookahead), cfg.end_grounding
-            )
         self.label_head = make_label_head(cfg.label_head, cfg.trunk.hidden_dim, self.instructions)
         # Training only: the label from the end observation's encoding alone, an auxiliary loss that trains
         # the observation encoders directly (through the trunk's mixing they learn slowly at first).
@@ -475,51 +394,14 @@ class PSModel(StepModel):
     def lookahead(self) -> int:
         return self.cfg.end_lookahead
 
-    def _end_head_input(self, hidden: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """What the end head reads at each position p (the states at p .. p + lookahead) and its logit."""
+    def raw_end_logits(self, hidden: torch.Tensor) -> torch.Tensor:
+        """(B, P, hidden) trunk states of windows -> (B, P - lookahead): [b, p] = logit that the window's
+        segment ends at position p, from positions p .. p + lookahead; without the end bias (training)."""
         num_pos = hidden.shape[1] - self.lookahead
         read = hidden
         if self.lookahead:
             read = torch.cat([hidden[:, k : k + num_pos] for k in range(self.lookahead + 1)], dim=-1)
-        return read, self.end_head(read).squeeze(-1)
-
-    def raw_end_logits(self, hidden: torch.Tensor, windows: torch.Tensor | None = None) -> torch.Tensor:
-        """(B, P, hidden) trunk states of windows -> (B, P - lookahead): [b, p] = logit that the window's
-        segment ends at position p, from positions p .. p + lookahead; without the end bias (training).
-
-        With a grounded end head, ``windows`` (the trunk's (B, P, step_dim) input) is needed too, and the
-        end's probability is p(end) = sum_l q_l sigmoid(end + grounded_l) over the label head's
-        `GROUNDED_LABELS` likeliest labels l at each position (q_l their probability; the rest of q gets
-        sigmoid(end)).
-        """
-        read, end = self._end_head_input(hidden)
-        if self.grounded_end is None:
-            return end
-        if windows is None:
-            raise PlaysegError(
-                "a PS model with a grounded end head scores ends from the windows' features too"
-            )
-        with torch.no_grad():  # the label loss trains the label head, not the ends
-            probability = torch.softmax(self.label_head(hidden[:, : end.shape[1]]), dim=-1)
-            top, candidates = probability.topk(min(GROUNDED_LABELS, probability.shape[-1]), dim=-1)
-            weights = torch.cat([top, (1.0 - top.sum(-1, keepdim=True)).clamp_min(0.0)], dim=-1)
-        grounded = self.grounded_end(read, windows, candidates)  # (B, P, K)
-        logits = torch.cat([end.unsqueeze(-1) + grounded, end.unsqueeze(-1)], dim=-1)
-        log_weights = weights.log()
-        ended = torch.logsumexp(log_weights + F.logsigmoid(logits), dim=-1)
-        going_on = torch.logsumexp(log_weights + F.logsigmoid(-logits), dim=-1)
-        return ended - going_on
-
-    def told_end_logits(
-        self, hidden: torch.Tensor, windows: torch.Tensor, labels: torch.Tensor
-    ) -> torch.Tensor:
-        """As `raw_end_logits`, the grounded end told each window's label (B,) instead of marginalised:
-        end + grounded_label (training, where an annotated segment starts the window)."""
-        if self.grounded_end is None:
-            raise PlaysegError("told_end_logits: this PS model has no grounded end head")
-        read, end = self._end_head_input(hidden)
-        told = labels[:, None, None].expand(-1, end.shape[1], 1)
-        return end + self.grounded_end(read, windows, told).squeeze(-1)
+        return self.end_head(read).squeeze(-1)
 
     def end_logits(self, features: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
         """(T+1, d) -> (T, L_max): [i, k] = logit that the segment [i, i+k+1) ends at i+k+1, end bias
@@ -540,9 +422,7 @@ class PSModel(StepModel):
             rows = features[lo : hi + width]
             starts = torch.arange(lo, hi, device=features.device) == 0
             hidden = self.trunk.forward_over_steps(rows, hi - lo, width, starts)
-            # the windows themselves only for a grounded end head (a view: no copy)
-            windows = episode_windows(rows, width)[: hi - lo] if self.grounded_end is not None else None
-            logits = self.raw_end_logits(hidden, windows)
+            logits = self.raw_end_logits(hidden)
             parts.append(logits[:, 1:] + self.end_bias)  # position 0: empty segment
         return torch.cat(parts) if parts else features.new_zeros(0, self.max_len)
 
@@ -587,10 +467,7 @@ class PSModel(StepModel):
             windows[row, : length + self.lookahead] = features_window[n - length :]
         starts_episode = (lengths == n) & starts_episode
         hidden = self.trunk(windows, starts_episode)
-        logits = (
-            self.raw_end_logits(hidden, windows)[torch.arange(n - 1, device=device), lengths - 1]
-            + self.end_bias
-        )
+        logits = self.raw_end_logits(hidden)[torch.arange(n - 1, device=device), lengths - 1] + self.end_bias
         column[: n - 1] = logits
         return column
 

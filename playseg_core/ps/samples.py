@@ -13,7 +13,7 @@ windows are gathered from those features by index.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,6 +22,7 @@ import torch
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.ps.encoders import StepEncoders
 from playseg_core.ps.fixed_features import FixedFeatureCache
+from playseg_core.ps.symmetries import ClipSymmetries
 
 NEGATIVE_KINDS = ("end_later", "end_earlier", "widened", "before", "shift_left", "shift_right")
 
@@ -95,45 +96,12 @@ class Batch:
     label_window: torch.Tensor  # (M,) window of each positive
     label_position: torch.Tensor  # (M,) its length (the position of its end in the window)
     labels: torch.Tensor  # (M,) its class index
-    window_labels: torch.Tensor  # (S,) the class of the annotated segment starting the window, else -1
 
     @property
     def needed_len(self) -> torch.Tensor:
         """(S,) positions each window needs: 1 + the last supervised position."""
         positions = torch.arange(self.end_weight.shape[1], device=self.end_weight.device)
         return (positions * (self.end_weight > 0)).amax(1) + 1
-
-
-@dataclass(frozen=True)
-class ClipSymmetries:
-    """The symmetries `augment` trains on: ``count`` of them, number 0 the identity.
-
-    ``turn_clip(recorded, number)``: a clip as recorded (`StepEncoders.recorded_clip`: observations and
-    the actions that led to them, by feature; any may be absent) under symmetry ``number``, as new arrays.
-    ``turn_instruction(text, number)``: what the instruction says of the turned world. A domain's own
-    are its ``CLIP_SYMMETRIES`` (playseg_core/domains); `camera_symmetries` turns the frames only.
-    """
-
-    count: int
-    turn_clip: Callable[[dict[str, np.ndarray], int], dict[str, np.ndarray]]
-    turn_instruction: Callable[[str, int], str]
-
-
-def camera_symmetries(cameras: Sequence[str]) -> ClipSymmetries:
-    """The 8 rotations of the ``cameras``' frames by multiples of 90 degrees, each also mirrored (number
-    k + 4m: k quarter turns, then a mirror if m), instructions unchanged: for top-down views whose
-    instructions and ends do not depend on orientation. Actions are left as they are, so only for models
-    that read none (a mirror swaps left and right turns)."""
-
-    def turn_clip(recorded: dict[str, np.ndarray], number: int) -> dict[str, np.ndarray]:
-        turned = dict(recorded)
-        for feature in cameras:
-            if feature in recorded:
-                frames = np.rot90(np.asarray(recorded[feature]), k=number % 4, axes=(1, 2))
-                turned[feature] = np.ascontiguousarray(frames[:, :, ::-1] if number >= 4 else frames)
-        return turned
-
-    return ClipSymmetries(8, turn_clip, lambda text, number: text)
 
 
 def label_index(instructions: Sequence[str]) -> dict[str, int]:
@@ -175,7 +143,7 @@ def make_batch(
     raw = [spec.feature for spec in encoders.specs if spec.feature not in cached]
     inputs: dict[str, list[torch.Tensor]] = {feature: [] for feature in raw}
     encoded: dict[str, list[torch.Tensor]] = {feature: [] for feature in cached}
-    rows, starts_episode, targets, weights, window_labels = [], [], [], [], []
+    rows, starts_episode, targets, weights = [], [], [], []
     label_window, label_position, labels = [], [], []
     offset = 0
     for (ep, seg), (lo, hi) in zip(items, regions, strict=True):
@@ -205,7 +173,6 @@ def make_batch(
                 steps = sample.start + np.arange(num_pos + lookahead)
                 rows.append(np.where(steps <= hi, offset + steps - lo, zero_row))
                 starts_episode.append(sample.start == 0)
-                window_labels.append(label if sample.start == seg.start else -1)
                 targets.append(np.zeros(num_pos, np.float32))
                 weights.append(np.zeros(num_pos, np.float32))
             row, position = windows[sample.start], sample.end - sample.start
@@ -240,5 +207,4 @@ def make_batch(
         label_window=torch.tensor(label_window, dtype=torch.long),
         label_position=torch.tensor(label_position, dtype=torch.long),
         labels=torch.tensor(labels, dtype=torch.long),
-        window_labels=torch.tensor(window_labels, dtype=torch.long),
     )

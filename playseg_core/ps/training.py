@@ -17,18 +17,13 @@ import torch.nn.functional as F
 from playseg_core.data.episode import Episode
 from playseg_core.data.features import Features
 from playseg_core.data.splits import DEFAULT_VAL_SHARE, held_out_ids
-from playseg_core.domains import load_domain
+from playseg_core.domains import Domain, load_domain
 from playseg_core.errors import PlaysegError
 from playseg_core.ps.encoders import StepEncoders, choose_encoders, feature_statistics
 from playseg_core.ps.fixed_features import FixedFeatureCache
 from playseg_core.ps.model import LabelModel, ModelConfig, PSModel, TrunkConfig
-from playseg_core.ps.samples import (
-    Batch,
-    ClipSymmetries,
-    camera_symmetries,
-    label_index,
-    make_batch,
-)
+from playseg_core.ps.samples import Batch, label_index, make_batch
+from playseg_core.ps.symmetries import ClipSymmetries, camera_symmetries
 from playseg_core.training.device import resolve_device, to_device
 from playseg_core.training.loop import (
     LoopConfig,
@@ -61,7 +56,7 @@ class TrainConfig:
     dense_prefix_negatives: bool = True
     dense_window_negatives: bool = False  # windows starting off a true start: every position is "no end"
     augment: bool = False  # each training clip under a random symmetry (`training_symmetries`; see docs)
-    domain: str | None = None  # the data's domain, whose `CLIP_SYMMETRIES` augment applies if it has any
+    domain: str | None = None  # the data's domain, whose `clip_symmetries` augment applies if it has any
     label_weight: float = 1.0
     frame_label_weight: float = 1.0  # auxiliary label loss on the end observation's encoding
     end_pos_weight: float = 4.0  # weight of the end head's positives in the BCE (ends are rare)
@@ -97,12 +92,12 @@ def segment_bounds(
 ) -> SegmentBounds:
     """The segment-length bounds for training on ``episodes``' annotated segments.
 
-    A domain's ``SEGMENT_BOUNDS`` if it has them; else derived from the annotated lengths: L_max = the
+    A domain's ``segment_bounds`` if it has them; else derived from the annotated lengths: L_max = the
     longest x 1.25 (segments a bit longer than any annotated one can still be cut), L_min = half the
     shortest, k_max = a quarter of the median length (negatives move a boundary by up to a quarter
     segment: by a few steps for short tasks, by more for long ones). Each given value wins.
     """
-    measured = dict(getattr(load_domain(domain), "SEGMENT_BOUNDS", {}) if domain else {})
+    measured = dict((load_domain(domain).segment_bounds if domain else None) or {})
     source = f"domain {domain}" if measured else "annotated segments"
     if not measured:
         lengths = np.array([seg.length for ep in episodes for seg in ep.segments])
@@ -133,35 +128,27 @@ def model_config_for(
     min_len: int = 1,
     label_head: str | None = None,
     end_lookahead: int | None = None,
-    end_grounding: int | None = None,
 ) -> ModelConfig:
     """The default model for data with ``features`` (step encoders by `choose_encoders`; the state and a
     continuous action standardised with ``episodes``' statistics, computed only when read; the label
-    head ``label_head``, else the domain's ``LABEL_HEAD``, else "linear"; the end head's lookahead
-    ``end_lookahead``, else the domain's ``END_LOOKAHEAD``, else 0, the paper's; the grounded end
-    head's attention heads ``end_grounding``, else the domain's ``END_GROUNDING``, else 0: none)."""
+    head ``label_head``, else the domain's, else "linear"; the end head's lookahead ``end_lookahead``,
+    else the domain's, else 0, the paper's; playseg_core/domains `Domain`)."""
+    known = load_domain(domain) if domain else Domain("")
     needs = [f.name for f in (features.state, features.action) if f is not None and not f.is_discrete]
     episodes = list(episodes)
     statistics = feature_statistics(episodes, needs) if episodes and needs else {}
-    encoders = choose_encoders(features, domain, statistics, read_actions, overrides)
+    encoders = choose_encoders(features, known.step_encoders, statistics, read_actions, overrides)
     observed = [features[spec.feature] for spec in encoders if spec.feature != features.action.name]
     # The action is always recorded (what the model was trained on), read or not.
     read = Features.of([*observed, features.action], features.fps)
-    if label_head is None:
-        label_head = getattr(load_domain(domain), "LABEL_HEAD", "linear") if domain else "linear"
-    if end_lookahead is None:
-        end_lookahead = int(getattr(load_domain(domain), "END_LOOKAHEAD", 0)) if domain else 0
-    if end_grounding is None:
-        end_grounding = int(getattr(load_domain(domain), "END_GROUNDING", 0)) if domain else 0
     return ModelConfig(
         encoders,
         read,
         num_classes,
         TrunkConfig(max_len=max_len),
         min_len=min_len,
-        label_head=label_head,
-        end_lookahead=end_lookahead,
-        end_grounding=end_grounding,
+        label_head=known.label_head if label_head is None else label_head,
+        end_lookahead=known.end_lookahead if end_lookahead is None else end_lookahead,
     )
 
 
@@ -200,22 +187,12 @@ def ps_loss(model: PSModel, batch: Batch, cfg: TrainConfig) -> tuple[torch.Tenso
         # The end head also reads `lookahead` positions past each supervised one.
         windows = _gather_windows(features, batch.window_index[members, : length + model.lookahead])
         hidden = model.trunk(windows, batch.starts_episode[members])
-        logits = model.raw_end_logits(hidden, windows)  # without end_bias: that is for segmenting only
+        logits = model.raw_end_logits(hidden)  # without end_bias: that is for segmenting only
         target, weight = batch.end_target[members, :length], batch.end_weight[members, :length]
         bce = F.binary_cross_entropy_with_logits(
             logits, target, reduction="none", pos_weight=logits.new_tensor(cfg.end_pos_weight)
         )
         end_sum = end_sum + (bce * weight).sum()
-        if model.grounded_end is not None:  # also told the label where an annotated segment starts
-            known = batch.window_labels[members] >= 0
-            if known.any():
-                told = model.told_end_logits(
-                    hidden[known], windows[known], batch.window_labels[members][known]
-                )
-                bce = F.binary_cross_entropy_with_logits(
-                    told, target[known], reduction="none", pos_weight=told.new_tensor(cfg.end_pos_weight)
-                )
-                end_sum = end_sum + (bce * weight[known]).sum()
         end_correct += int((((logits > 0).float() == target) & (weight > 0)).sum())
         # Label head: hidden state at the end of each positive whose window is in this group.
         slot = torch.full((num_windows,), -1, dtype=torch.long, device=features.device)
@@ -270,9 +247,9 @@ def labeller_loss(model: LabelModel, batch: Batch, cfg: TrainConfig) -> tuple[to
 
 
 def clip_symmetries_of(domain: str | None) -> ClipSymmetries | None:
-    """The ``CLIP_SYMMETRIES`` of ``domain`` (playseg_core/domains), or None: `augment` then turns camera
-    frames only."""
-    return getattr(load_domain(domain), "CLIP_SYMMETRIES", None) if domain else None
+    """The symmetries of ``domain`` (playseg_core/domains `Domain.clip_symmetries`), or None: `augment`
+    then turns camera frames only."""
+    return load_domain(domain).clip_symmetries if domain else None
 
 
 def training_symmetries(cfg: TrainConfig, encoders: StepEncoders) -> ClipSymmetries | None:
@@ -286,7 +263,7 @@ def training_symmetries(cfg: TrainConfig, encoders: StepEncoders) -> ClipSymmetr
     if encoders.reads_actions:
         raise PlaysegError(
             "augment: the camera frames' rotations leave the actions as they are; only for models that "
-            "read no actions, or for a domain whose symmetries turn them too (its CLIP_SYMMETRIES)"
+            "read no actions, or for a domain whose symmetries turn them too (its clip_symmetries)"
         )
     return camera_symmetries(encoders.cameras)
 
@@ -504,8 +481,8 @@ def train_labeller(
 ) -> TrainResult:
     """Train the stand-alone labelling model on the annotated segments (positives only)."""
     torch.manual_seed(cfg.seed)
-    # it labels given segments: no end head to look ahead or ground
-    model_cfg = replace(model_cfg, end_lookahead=0, end_grounding=0)
+    # it labels given segments: no end head to look ahead
+    model_cfg = replace(model_cfg, end_lookahead=0)
     model = LabelModel(model_cfg, list(instructions))
     return _fit(
         model,

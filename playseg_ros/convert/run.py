@@ -242,7 +242,7 @@ def convert(
     """Convert the bags named by ``inputs`` into the playseg dataset ``out`` (see the module docstring).
 
     With ``segmentation`` the unannotated episodes are segmented by its model (segmenting.py). ``engine``
-    "ray" runs the bags as Ray tasks (ray_engine.py; ``address`` joins a cluster), with the same output.
+    "ray" runs the bags as Ray tasks (`_run_ray_tasks`; ``address`` joins a cluster), with the same output.
     ``val_share`` of the annotated episodes go to ``val`` (`held_out_ids`: none with fewer than two; 0: all
     in ``train``); a rerun with another share re-splits the whole dataset.
 
@@ -384,6 +384,35 @@ def _report_of_part(task: BagTask) -> BagReport:
     )  # fmt: skip
 
 
+def _run_ray_tasks(
+    tasks: list[BagTask], workers: int, address: str | None, on_done: Callable[[BagReport], None]
+) -> list[BagReport]:
+    """Convert each task's bag as a Ray task, one CPU each (Ray started or joined as
+    playseg_ros/ray_session.py says, imported only now); ``on_done`` is called per finished bag. Each task
+    writes its bag's part under ``.<OUT>.convert/``, merged as the local engine's are, so the dataset is
+    the same. On a cluster the bags and ``--out``'s directory must be on storage every node sees at the
+    same path."""
+    from playseg_ros.ray_session import ray_session
+
+    with ray_session(workers, address) as ray:
+        remote = ray.remote(num_cpus=1, max_retries=0)(convert_one)
+        pending = {remote.remote(task): task for task in tasks}
+        reports: list[BagReport] = []
+        while pending:
+            (done,), _ = ray.wait(list(pending), num_returns=1)
+            task = pending.pop(done)
+            try:
+                report = ray.get(done)
+            except Exception as error:  # noqa: BLE001 -- a worker that died: its bag failed, the rest go on
+                reason = " ".join(str(error).split())[:300]
+                report = BagReport(
+                    task.bag, "failed", error=f"bag {str(task.bag)!r}: ray task failed: {reason}"
+                )
+            reports.append(report)
+            on_done(report)
+        return reports
+
+
 def _run_tasks(
     tasks: list[BagTask], workers: int, progress: bool, engine: Engine = "local", address: str | None = None
 ) -> list[BagReport]:
@@ -395,14 +424,13 @@ def _run_tasks(
                file=sys.stderr)  # fmt: skip
     try:
         if engine == "ray" and tasks:
-            from playseg_ros.convert.ray_engine import run_ray_tasks  # Ray: only with this engine
 
             def done(report: BagReport) -> None:
                 reports.append(report)
                 bar.update(report.bytes)
                 bar.set_postfix(failed=sum(r.status == "failed" for r in reports))
 
-            return run_ray_tasks(tasks, workers, address, done)
+            return _run_ray_tasks(tasks, workers, address, done)
         if workers == 1 or len(tasks) <= 1:
             for task in tasks:
                 reports.append(convert_one(task))

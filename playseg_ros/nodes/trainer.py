@@ -7,7 +7,7 @@ same: a failed configure can be retried). Every received segment is fsync'ed to 
 counts (TrainerStatus.buffer_segments is the acknowledged count), so a crash loses nothing that was
 acknowledged. Retraining runs in a background thread every `retrain_every` segments and on the
 `~/retrain` service; each run writes `policy-vNNNN.pt` and evaluates it on fixed seeded episodes of the
-policy's simulator (the `policy` parameter names it: ``<domain>.<policy>``, see playseg_core.augment.policy).
+policy's simulator (the `policy` parameter names it: ``<domain>.<policy>``, see playseg_core.augment.policies).
 A policy without a simulator (the generic ``bc``) reports its held-out validation figure instead;
 TrainerStatus.last_eval_metric and the `~/evaluate` answer say which one they carry.
 
@@ -31,7 +31,7 @@ from playseg_msgs.srv import EvaluatePolicy, Retrain, SaveBuffer
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 
-from playseg_core.augment.policy import load_policy_learner
+from playseg_core.augment.policies import load_policy_learner
 from playseg_core.augment.retraining import (
     AugmentationTrainer,
     TrainerConfig,

@@ -1,19 +1,24 @@
 """BabyAI GoToLocal play (minigrid): generator and presets, the grid-tile step encoder, the FiLM policy
 and its GoToLocal evaluation.
 
-Importing the package registers the grid-tile encoder; minigrid is imported only by the modules that run
-the environment (play.py, evaluation.py, generate.py).
+Importing the package registers its `Domain` and the grid-tile encoder; minigrid is imported only by the
+modules that run the environment (play.py, evaluation.py, generate.py), the experiment framework only
+when its experiment is asked for.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from playseg_core.data.features import STATE, Features
+from playseg_core.domains import Domain, preset_generator, register_domain
 from playseg_core.domains.babyai.encoder import frames_are_tiled, grid_tile_spec
 from playseg_core.domains.babyai.spec import CAMERA, DOMAIN
 from playseg_core.ps.encoders import EncoderSpec
+
+if TYPE_CHECKING:
+    from playseg_core.augment.policy import PolicyLearner
+    from playseg_core.experiment.spec import ExperimentSpec
 
 SEGMENT_BOUNDS = {"min_len": 1, "max_len": 25, "k_max": 5}
 """The measured setting for BabyAI play (tasks of 1-21 steps, mostly ~5): L_min, L_max and the negatives'
@@ -29,7 +34,7 @@ def step_encoders(features: Features) -> dict[str, EncoderSpec | None]:
     return chosen
 
 
-def _film_policy(config: dict[str, Any]) -> Any:
+def _film_policy(config: dict[str, Any]) -> PolicyLearner:
     from playseg_core.domains.babyai.learner import FilmPolicyLearner
 
     return FilmPolicyLearner.from_config(config)
@@ -42,27 +47,24 @@ PRESET_NAMES = ("tiny", "sample", "small", "medium", "paper")
 """The dataset sizes `generate_dataset` knows (generate.py PRESETS)."""
 
 
-def generate_dataset(
-    out: str | Path,
-    preset: str,
-    seed: int = 0,
-    workers: int = 1,
-    progress: bool = True,
-    overwrite: bool = False,
-    annotated_share: float | None = None,
-) -> Any:
-    """BabyAI play of the named preset into the dataset directory ``out`` (`playseg generate`)."""
-    from playseg_core.domains.babyai import generate
-
-    chosen = generate.get_preset(preset, annotated_share=annotated_share)
-    return generate.generate_dataset(out, chosen, seed, workers, progress, overwrite)
+generate_dataset = preset_generator("playseg_core.domains.babyai.generate")
+"""BabyAI play of a named preset into a dataset directory (`playseg generate`; generate.py)."""
 
 
-__all__ = ["DOMAIN", "POLICIES", "PRESET_NAMES", "SEGMENT_BOUNDS", "generate_dataset", "step_encoders"]
+__all__ = [
+    "DOMAIN",
+    "POLICIES",
+    "PRESET_NAMES",
+    "SEGMENT_BOUNDS",
+    "experiment",
+    "generate_dataset",
+    "step_encoders",
+]
 
 
-def _experiment() -> Any:
-    from playseg_core.experiment.runner import ExperimentScale, ExperimentSpec
+def experiment() -> ExperimentSpec:
+    """The augmentation experiment on BabyAI (`playseg experiment babyai`, playseg_core/experiment)."""
+    from playseg_core.experiment.spec import ExperimentScale, ExperimentSpec
 
     return ExperimentSpec(
         policy="babyai.film",
@@ -143,5 +145,14 @@ def _experiment() -> Any:
     )
 
 
-EXPERIMENT = _experiment()
-"""The augmentation experiment on BabyAI (`playseg experiment babyai`, playseg_core/experiment)."""
+register_domain(
+    Domain(
+        name=DOMAIN,
+        step_encoders=step_encoders,
+        segment_bounds=SEGMENT_BOUNDS,
+        policies=POLICIES,
+        preset_names=PRESET_NAMES,
+        generate_dataset=generate_dataset,
+        experiment=experiment,
+    )
+)

@@ -16,14 +16,18 @@ world do.
 
 from __future__ import annotations
 
-from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from playseg_core.data.features import Features
+from playseg_core.domains import Domain, preset_generator, register_domain
 from playseg_core.domains.tabletop.encoder import ObjectMapConfig, object_map_spec
 from playseg_core.domains.tabletop.spec import CAMERA, DOMAIN
 from playseg_core.ps.encoders import EncoderSpec
-from playseg_core.ps.samples import ClipSymmetries
+from playseg_core.ps.symmetries import ClipSymmetries
+
+if TYPE_CHECKING:
+    from playseg_core.augment.policy import PolicyLearner
+    from playseg_core.experiment.spec import ExperimentSpec
 
 LABEL_HEAD = "linear"
 """PS and labelling models of this domain score each instruction with its own weights (ps/model.py): the
@@ -68,13 +72,13 @@ CLIP_SYMMETRIES = ClipSymmetries(8, _turn_clip, _turn_instruction)
 ``playseg train --augment`` trains PS on: frames, state, commands and the instruction's words turn alike."""
 
 
-def _bc_policy(config: dict[str, Any]) -> Any:
+def _bc_policy(config: dict[str, Any]) -> PolicyLearner:
     from playseg_core.domains.tabletop.learner import TabletopPolicyLearner
 
     return TabletopPolicyLearner.from_config(config)
 
 
-POLICIES: dict[str, Any] = {"bc": _bc_policy}
+POLICIES = {"bc": _bc_policy}
 """The policies of this domain (see playseg_core.domains): ``tabletop.bc``, the generic ``bc`` policy
 evaluated in the tabletop simulator."""
 
@@ -82,20 +86,8 @@ PRESET_NAMES = ("tiny", "small", "paper", "calvin-small", "calvin")
 """The dataset sizes `generate_dataset` knows (generate.py PRESETS)."""
 
 
-def generate_dataset(
-    out: str | Path,
-    preset: str,
-    seed: int = 0,
-    workers: int = 1,
-    progress: bool = True,
-    overwrite: bool = False,
-    annotated_share: float | None = None,
-) -> Any:
-    """Tabletop play of the named preset into the dataset directory ``out`` (`playseg generate`)."""
-    from playseg_core.domains.tabletop import generate
-
-    chosen = generate.get_preset(preset, annotated_share=annotated_share)
-    return generate.generate_dataset(out, chosen, seed, workers, progress, overwrite)
+generate_dataset = preset_generator("playseg_core.domains.tabletop.generate")
+"""Tabletop play of a named preset into a dataset directory (`playseg generate`; generate.py)."""
 
 
 def play_config(**settings: Any) -> Any:
@@ -122,8 +114,10 @@ calibrated for on the ``paper`` preset's split: the surest ones reach about this
 the val episodes, never on the evaluation)."""
 
 
-def _experiment() -> Any:
-    from playseg_core.experiment.runner import ExperimentScale, ExperimentSpec
+def experiment() -> ExperimentSpec:
+    """The augmentation experiment on tabletop play (`playseg experiment tabletop`, playseg_core/experiment),
+    a 25% annotated start split as in the paper's CALVIN experiment."""
+    from playseg_core.experiment.spec import ExperimentScale, ExperimentSpec
 
     return ExperimentSpec(
         policy="tabletop.bc",
@@ -181,9 +175,19 @@ def _experiment() -> Any:
     )
 
 
-EXPERIMENT = _experiment()
-"""The augmentation experiment on tabletop play (`playseg experiment tabletop`, playseg_core/experiment),
-a 25% annotated start split as in the paper's CALVIN experiment."""
+register_domain(
+    Domain(
+        name=DOMAIN,
+        step_encoders=step_encoders,
+        label_head=LABEL_HEAD,
+        end_lookahead=END_LOOKAHEAD,
+        clip_symmetries=CLIP_SYMMETRIES,
+        policies=POLICIES,
+        preset_names=PRESET_NAMES,
+        generate_dataset=generate_dataset,
+        experiment=experiment,
+    )
+)
 
 
 __all__ = [
@@ -193,11 +197,11 @@ __all__ = [
     "CAMERA",
     "CLIP_SYMMETRIES",
     "DOMAIN",
-    "EXPERIMENT",
     "POLICIES",
     "PRESET_NAMES",
     "generate_dataset",
     "step_encoders",
+    "experiment",
     "play_config",
     "record_robot_log",
 ]

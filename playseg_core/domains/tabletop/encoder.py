@@ -147,7 +147,6 @@ class ObjectMapEncoder(ObservationEncoder):
                 self.identity = nn.Parameter(torch.randn(identities, cfg.channels) * 0.1)
                 self.entity_dim = cfg.channels
                 self.out_dim = 2 * len(COLOURS) * len(SHAPES)
-                self.position_slots = len(COLOURS) * len(SHAPES)
             return
         self.out_dim = cfg.feature_dim
         self.convs = nn.Sequential(
