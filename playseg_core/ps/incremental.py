@@ -22,8 +22,9 @@ class IncrementalEndScorer:
     """`push(features of o_t)` for t = 0, 1, ... then `column(first_kept)`: what `PSModel.end_column`
     returns for the kept rows first_kept .. t (of at most L_max + 1 + lookahead), computed incrementally.
 
-    Starts before ``first_kept`` (rows the caller dropped after committing their segments) are dropped
-    here too: their windows are never scored again.
+    The kept starts are always the consecutive steps first_start .. t: each push opens one and drops those
+    out of reach; `column` drops the starts before ``first_kept`` (rows the caller dropped after committing
+    their segments: their windows are never scored again).
     """
 
     def __init__(self, model: PSModel) -> None:
@@ -51,7 +52,8 @@ class IncrementalEndScorer:
         hidden = trunk.in_proj.out_features
         device, dtype = weight.device, weight.dtype
         self.t = -1
-        self.starts = torch.zeros(0, dtype=torch.long, device=device)  # step of each kept start
+        self.first_start = 0  # the kept starts are steps first_start .. t
+        self._descending = torch.arange(self.reach, -1, -1, device=device)  # positions, oldest start first
         self.start_part = torch.zeros(0, hidden, device=device, dtype=dtype)
         self.caches = [
             torch.zeros(0, self.kernel - 1, hidden, device=device, dtype=dtype) for _ in trunk.blocks
@@ -65,51 +67,52 @@ class IncrementalEndScorer:
         """Advance every kept window by step t's features (step_dim,), and open the window starting at t."""
         trunk = self.model.trunk
         self.t += 1
-        keep = self.starts >= self.t - self.reach
-        if not bool(keep.all()):
-            self._select(keep)
+        self._drop_before(self.t - self.reach)
         new_start = F.linear(feature, self.start_weight, self.start_bias)
         hidden = self.start_part.shape[1]
-        self.starts = torch.cat([self.starts, self.starts.new_tensor([self.t])])
         self.start_part = torch.cat([self.start_part, new_start[None]])
         self.caches = [torch.cat([c, c.new_zeros(1, self.kernel - 1, hidden)]) for c in self.caches]
         self.maxima = torch.cat([self.maxima, self.maxima.new_full((1, hidden), float("-inf"))])
         self.recent = torch.cat([self.recent, self.recent.new_zeros(1, *self.recent.shape[1:])])
 
-        positions = self.t - self.starts
+        kept = self.t - self.first_start + 1
         h = trunk.in_norm(F.linear(feature, self.step_weight)[None] + self.start_part)
-        h = h + trunk.offset.weight[positions]
-        if int(self.starts[0]) == 0:  # the window starting the episode is flagged, as in training
+        h = h + trunk.offset.weight[self._descending[-kept:]]  # start s is at position t - s
+        if self.first_start == 0:  # the window starting the episode is flagged, as in training
             h[0] = h[0] + trunk.episode_start
         for index, block in enumerate(trunk.blocks):
             normed = block.norm(h)
             stacked = torch.cat([self.caches[index], normed[:, None]], dim=1)
             self.caches[index] = stacked[:, 1:]
-            conv = F.linear(stacked.reshape(stacked.shape[0], -1), self.convs[index], block.conv.bias)
+            conv = F.linear(stacked.reshape(kept, -1), self.convs[index], block.conv.bias)
             h = h + block.out(F.gelu(conv))
         self.maxima = torch.maximum(self.maxima, trunk.memory(trunk.memory_norm(h)))
         out = trunk.norm(h + self.maxima)
         self.recent = torch.cat([self.recent[:, 1:], out[:, None]], dim=1)
 
+    @torch.no_grad()
     def column(self, first_kept: int) -> torch.Tensor:
         """(L_max,) logits: [k] = the segment [e-k-1, e) ends at e = t - lookahead; -inf where its start is
         before ``first_kept`` or out of reach (as `PSModel.end_column` on the kept rows)."""
         model = self.model
+        self._drop_before(first_kept)
         end = self.t - model.lookahead
         column = torch.full(
             (model.max_len,), float("-inf"), dtype=self.recent.dtype, device=self.recent.device
         )
-        first = max(first_kept, self.t - self.reach)
-        scored = (self.starts >= first) & (self.starts <= end - 1)
-        if not bool(scored.any()):
+        scored = end - self.first_start  # starts first_start .. end - 1
+        if scored < 1:
             return column
-        starts = self.starts[scored]
-        read = self.recent[scored].reshape(int(scored.sum()), -1)  # positions e-s .. e-s+lookahead
+        read = self.recent[:scored].reshape(scored, -1)  # positions e-s .. e-s+lookahead of each start s
         logits = model.end_head(read).squeeze(-1) + model.end_bias
-        column[end - starts - 1] = logits
+        column[:scored] = logits.flip(0)  # start s is k = e - s - 1
         return column
 
-    def _select(self, keep: torch.Tensor) -> None:
-        self.starts, self.start_part = self.starts[keep], self.start_part[keep]
-        self.caches = [cache[keep] for cache in self.caches]
-        self.maxima, self.recent = self.maxima[keep], self.recent[keep]
+    def _drop_before(self, first: int) -> None:
+        drop = first - self.first_start
+        if drop <= 0:
+            return
+        self.first_start = first
+        self.start_part = self.start_part[drop:]
+        self.caches = [cache[drop:] for cache in self.caches]
+        self.maxima, self.recent = self.maxima[drop:], self.recent[drop:]
