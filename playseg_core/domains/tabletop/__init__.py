@@ -166,6 +166,24 @@ def experiment() -> ExperimentSpec:
                 segmenter_label_accuracy=CALVIN_LABEL_ACCURACY,
                 own_cuts_accuracy=OWN_CUTS_ACCURACY,
             ),
+            "calvin-small": ExperimentScale(
+                "calvin-small",
+                0.25,
+                {"steps": 1000, "batch_size": 64, "task_set": "calvin"},
+                100,
+                segmenter_steps=400,
+                description="CALVIN's shape, small: 400 annotated start segments of a 1,600-segment pool",
+                segmenter_label_accuracy=CALVIN_LABEL_ACCURACY,
+            ),
+            "calvin": ExperimentScale(
+                "calvin",
+                0.25,
+                {"steps": 6000, "batch_size": 32, "task_set": "calvin"},
+                500,
+                description="CALVIN's shape: 1,800 annotated start segments (>= 30 per task type) of a "
+                "7,200-segment pool; the segmenters at their default budgets",
+                segmenter_label_accuracy=CALVIN_LABEL_ACCURACY,
+            ),
         },  # fmt: skip
         # The paper's CALVIN table scores the average number of tasks completed in a row (of 5 per
         # sequence); this evaluation scores single tasks' success. They do not mean the same thing, so
