@@ -552,6 +552,10 @@ def segment(
         raise PlaysegError("--address is the Ray cluster to join: give --engine ray")
     if workers < 1:
         raise PlaysegError(f"--workers must be >= 1, got {workers}")
+    if workers > 1 and engine != "ray":
+        raise PlaysegError(
+            "--workers is the number of Ray actors: give --engine ray (local runs in this process)"
+        )
     source = Path(input_path)
     if not source.exists():
         raise FileNotFoundError(f"--input {source}: no such bag or dataset")

@@ -51,7 +51,8 @@ def test_ray_engine_segments_a_dataset_and_a_bag_as_the_local_engine_does(
                 "--keep",
                 "all",
             ]
-            assert main([*argv, "--engine", engine, "--workers", "2"]) == 0, capsys.readouterr().err
+            workers = ["--workers", "2"] if engine == "ray" else []
+            assert main([*argv, "--engine", engine, *workers]) == 0, capsys.readouterr().err
             outputs[engine] = files_of(out)
         local, ray = outputs["local"], outputs["ray"]
         assert sorted(local) == sorted(ray) and "data/segments.npy" in local
@@ -86,6 +87,7 @@ def test_engine_options_are_checked_and_the_local_engine_never_imports_ray(
         "from playseg_ros.cli import main\n"
         f"assert main({[*argv, '--out', str(tmp_path / 'x'), '--address', 'auto']!r}) == 1\n"
         f"assert main({[*argv, '--out', str(tmp_path / 'w'), '--engine', 'ray', '--workers', '0']!r}) == 1\n"
+        f"assert main({[*argv, '--out', str(tmp_path / 'v'), '--workers', '2']!r}) == 1\n"
         f"assert main({[*argv, '--out', str(tmp_path / 'y')]!r}) == 0\n"
         "assert 'ray' not in sys.modules, 'ray imported'\n"
     )
@@ -93,3 +95,22 @@ def test_engine_options_are_checked_and_the_local_engine_never_imports_ray(
     assert done.returncode == 0, done.stderr[-3000:]
     assert "playseg segment: --address is the Ray cluster to join: give --engine ray" in done.stderr
     assert "playseg segment: --workers must be >= 1, got 0" in done.stderr
+    assert "playseg segment: --workers is the number of Ray actors: give --engine ray" in done.stderr
+
+
+def test_an_actor_that_dies_is_one_error_naming_the_episode(
+    trained: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """The actors load the checkpoint themselves (on a cluster, from the nodes' shared storage): one that
+    cannot fails the run with a PlaysegError naming the episode, not a Ray traceback."""
+    from playseg_core.baselines.common import SegmentOptions
+    from playseg_core.errors import PlaysegError
+    from playseg_ros.segment_ray import segment_on_ray
+
+    data, _ = trained
+    dataset = PlayDataset.open(data)
+    episodes = [dataset.episode(i) for i in dataset.episode_indices("test")[:2]]
+    missing = tmp_path / "not-there.pt"
+    with pytest.raises(PlaysegError, match=r"episode '.+': Ray actor failed: .*not-there\.pt") as raised:
+        list(segment_on_ray(episodes, "ps", missing, SegmentOptions(), 1, None))
+    assert "\n" not in str(raised.value)
