@@ -590,7 +590,8 @@ function bind() {
     "accept-above": acceptAbove, undo: () => restore(S.undo, S.redo), redo: () => restore(S.redo, S.undo), save,
     propose: () => startJob("/api/propose"), retrain: () => startJob("/api/retrain", { steps: parseInt($("retrain-steps").value, 10) }), "export-preview": exportPreview,
     export: () => startJob("/api/export"), "export-mcap": exportMcap };
-  for (const [id, handler] of Object.entries(click)) $(id).addEventListener("click", handler);
+  // a clicked button gives the focus back, so that space plays instead of clicking it again
+  for (const [id, handler] of Object.entries(click)) $(id).addEventListener("click", (event) => { event.currentTarget.blur(); handler(); });
   $("reviewed").addEventListener("change", () => { S.dirty = true; status("unsaved changes", ""); });
   const detail = $("detail");
   detail.addEventListener("mousedown", onDetailDown);
