@@ -5,10 +5,12 @@ across real hosts: the same ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET 
 ROS_STATIC_PEERS; DDS over UDP only (no shared memory between the "hosts"). The recorded PlaySteps and
 segments equal `playseg convert --segment` of the bag: nothing is lost on the way.
 
-Needs root (CAP_NET_ADMIN) for `ip netns`, as the project's machines and CI have."""
+Needs root with CAP_SYS_ADMIN and CAP_NET_ADMIN for `ip netns`, as the project's machines and CI have."""
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
 import signal
 import subprocess
@@ -30,6 +32,8 @@ from playseg_ros.play_bags import read_play_bag, read_segment_bag
 TABLETOP = ROOT / "bags" / "tabletop"
 BAG = TABLETOP / "tabletop-1"
 MAPPING = TABLETOP / "mapping.yaml"
+LINK = "pslink0"
+"""The veth's name at both ends (each end lives in its own namespace)."""
 
 
 @dataclass(frozen=True)
@@ -45,27 +49,42 @@ def ip(*args: str) -> None:
 
 @pytest.fixture
 def hosts() -> Iterator[tuple[Host, Host]]:
-    """Two network namespaces with one veth link between them (10.X.Y.1 and .2/24), multicast routed."""
+    """Two network namespaces with one veth link between them (10.X.Y.1 and .2/24), multicast routed.
+    The link is made inside the namespaces (nothing is left in the machine's own namespace), and every
+    process still in them is killed before they go."""
     tag = os.getpid() % 100_000
     subnet = f"10.{200 + tag % 50}.{tag // 50 % 250}"
     robot, server = Host(f"psrobot{tag}", f"{subnet}.1"), Host(f"psserver{tag}", f"{subnet}.2")
-    links = {robot: f"psr{tag}", server: f"pss{tag}"}
     made: list[str] = []
     try:
         for host in (robot, server):
+            subprocess.run(["ip", "netns", "del", host.namespace], capture_output=True)  # a killed run's
             ip("netns", "add", host.namespace)
             made.append(host.namespace)
-        ip("link", "add", links[robot], "type", "veth", "peer", "name", links[server])
-        for host, link in links.items():
-            ip("link", "set", link, "netns", host.namespace)
-            ip("-n", host.namespace, "addr", "add", f"{host.address}/24", "dev", link)
-            ip("-n", host.namespace, "link", "set", link, "up", "multicast", "on")
+        ip("link", "add", LINK, "netns", robot.namespace, "type", "veth",
+           "peer", "name", LINK, "netns", server.namespace)  # fmt: skip
+        for host in (robot, server):
+            ip("-n", host.namespace, "addr", "add", f"{host.address}/24", "dev", LINK)
+            ip("-n", host.namespace, "link", "set", LINK, "up", "multicast", "on")
             ip("-n", host.namespace, "link", "set", "lo", "up")
-            ip("-n", host.namespace, "route", "add", "224.0.0.0/4", "dev", link)  # SPDP's multicast
+            ip("-n", host.namespace, "route", "add", "224.0.0.0/4", "dev", LINK)  # SPDP's multicast
         yield robot, server
     finally:
         for namespace in made:
+            pids = subprocess.run(["ip", "netns", "pids", namespace], capture_output=True, text=True).stdout
+            for pid in pids.split():
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(int(pid), signal.SIGKILL)
             subprocess.run(["ip", "netns", "del", namespace], capture_output=True)
+
+
+def received_bytes(host: Host) -> int:
+    """Bytes the host's end of the link has received."""
+    shown = subprocess.run(
+        ["ip", "-n", host.namespace, "-s", "-j", "link", "show", "dev", LINK],
+        capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    return int(json.loads(shown.stdout)[0]["stats64"]["rx"]["bytes"])
 
 
 def host_env(peer: Host) -> dict[str, str]:
@@ -126,6 +145,9 @@ def test_a_graph_split_across_two_hosts_loses_nothing(hosts: tuple[Host, Host], 
     finally:
         if server_up.poll() is None:
             server_up.kill()
+    # the steps crossed the link: the server received at least their frames' bytes over it
+    frame_bytes = sum(frames.nbytes for frames in episode.images.values())
+    assert received_bytes(server) > frame_bytes, (received_bytes(server), frame_bytes)
     for log in (robot_log, server_log):
         text = log.read_text()
         assert "Traceback" not in text and "gap at the start" not in text, text[-4000:]
