@@ -8,14 +8,15 @@ Server side: one segmenter per robot (default) or one shared segmenter reading e
 (`--shared`: the adapters publish to one topic, episodes told apart by their ids), and one recorder of
 every step and segment. All nodes are real processes on real DDS (localhost, this machine's cores).
 
-Reported per N: steps lost (camera frames published - PlaySteps recorded), segments live against the same
-model offline on the recorded steps, and the latency from the last input message of the step that decided
-a segment (`Commit.decided_at` of the node's own streaming decoder run offline on the recorded steps; a
-step's last input is the first message of each topic later than the step's time plus that feature's
-tolerance, which the adapter waits for) to the LabelledSegment's arrival here, p50 / p99 / max, split
-into the adapter's part (last input -> PlayStep here) and the segmenter's (that PlayStep -> segment
-here); segments decided by an episode's end are counted apart (the stream's end is the adapter's idle
-timeout). Also the CPU each kind of process used (percent of one core over the streaming window).
+Reported per N: steps lost (camera frames published - PlaySteps received by this process, itself one
+more RELIABLE reader of every step topic), segments live against the same model offline on those steps,
+and the latency from the last input message of the step that decided a segment (`Commit.decided_at` of
+the node's own streaming decoder run offline on those steps; a step's last input is the first message of
+each topic later than the step's time plus that feature's tolerance, which the adapter waits for) to the
+LabelledSegment's arrival here, p50 / p99 / max, split into the adapter's part (last input -> PlayStep
+here) and the segmenter's (that PlayStep -> segment here); segments decided by an episode's end are
+counted apart (the stream's end is the adapter's idle timeout). Send times are taken just before each
+publish. Also the CPU each kind of process used over the streaming window (percent of one core).
 
     ROS_DOMAIN_ID=151 .venv/bin/python benchmarks/bench_fleet.py [--robots 1,2,5,10] [--seconds 20] [--shared] [--reference]
 
@@ -155,22 +156,22 @@ def run_robot(robot: str, seconds: float, start_at: float, times_out: Path) -> N
             msg.header.stamp = stamp
             msg.name = [f"joint{j}" for j in range(JOINTS)]
             msg.position = play.joints(now).tolist()
-            joints.publish(msg)
             sent["joints"].append((stamp.sec * 1_000_000_000 + stamp.nanosec, time.time_ns()))
+            joints.publish(msg)
             joint_ticks += 1
         if due["command"] <= now:
             twist = Twist()
             twist.linear.x, twist.angular.z = play.command(now)
-            command.publish(twist)
             sent["command"].append((node.get_clock().now().nanoseconds, time.time_ns()))  # stamped on arrival
+            command.publish(twist)
             commands += 1
         if due["frame"] <= now:
             image = Image()
             image.header.stamp, image.header.frame_id = stamp, "camera"
             image.height, image.width, image.encoding, image.step = SIZE, SIZE, "rgb8", SIZE * 3
             image.data = play.image(now).tobytes()
-            camera.publish(image)
             published[stamp.sec * 1_000_000_000 + stamp.nanosec] = time.time_ns()
+            camera.publish(image)
             frames += 1
     cpu = time.process_time() - cpu_began
     frames_sent = {str(k): v for k, v in published.items()}
@@ -403,12 +404,12 @@ def run_fleet(robots: int, seconds: float, shared: bool, reference: bool, model:
     time.sleep(max(0.0, start_at - time.time()))
     pids = {name: proc.pid for name, proc in graph.processes.items()}
     cpu_before = {name: cpu_seconds(pid) for name, pid in pids.items()}
-    began = time.monotonic()
-    for robot, proc in drivers.items():
-        if proc.wait(timeout=seconds + 180) != 0:
-            raise SystemExit(f"{robot} driver failed:\n{(work / f'{robot}.driver.log').read_text()[-2000:]}")
-    window = time.monotonic() - began
+    time.sleep(max(0.0, start_at + seconds - time.time()))  # the streaming window, for every process
+    window = seconds
     cpu_after = {name: cpu_seconds(pid) for name, pid in pids.items() if Path(f"/proc/{pid}").exists()}
+    for robot, proc in drivers.items():
+        if proc.wait(timeout=180) != 0:
+            raise SystemExit(f"{robot} driver failed:\n{(work / f'{robot}.driver.log').read_text()[-2000:]}")
     graph.stop()  # upstream first: the adapters end their streams, the segmenters publish the last segments
     time.sleep(0.5)
     listener.close()
