@@ -46,6 +46,8 @@ import yaml
 FPS, JOINT_HZ, JOINTS, SIZE = 30, 100, 7, 96
 CAMERA = "observation.images.front"
 LATENCY_BUDGET_MS = 50.0
+TAIL_S = 0.2
+"""Joints and commands go on this long after the last frame, as a robot's do: its step has its inputs."""
 
 
 def mapping(robot: str) -> dict:
@@ -143,10 +145,13 @@ def run_robot(robot: str, seconds: float, start_at: float, times_out: Path) -> N
     frames = joint_ticks = commands = 0
     while True:
         now = time.monotonic() - began
-        if now >= seconds:
+        if now >= seconds + TAIL_S:
             break
-        # the teleop's commands at k / FPS, the camera's frames half a period later (own clocks)
-        due = {"joint": joint_ticks / JOINT_HZ, "command": commands / FPS, "frame": (frames + 0.5) / FPS}
+        # the teleop's commands at k / FPS, the camera's frames half a period later (own clocks); the
+        # camera stops at `seconds`, the joints and commands a little later (the last frame's neighbours)
+        due = {"joint": joint_ticks / JOINT_HZ, "command": commands / FPS}
+        if (frames + 0.5) / FPS < seconds:
+            due["frame"] = (frames + 0.5) / FPS
         if now < min(due.values()):
             time.sleep(min(due.values()) - now)
             continue
@@ -165,7 +170,7 @@ def run_robot(robot: str, seconds: float, start_at: float, times_out: Path) -> N
             sent["command"].append((node.get_clock().now().nanoseconds, time.time_ns()))  # stamped on arrival
             command.publish(twist)
             commands += 1
-        if due["frame"] <= now:
+        if due.get("frame", now + 1) <= now:
             image = Image()
             image.header.stamp, image.header.frame_id = stamp, "camera"
             image.height, image.width, image.encoding, image.step = SIZE, SIZE, "rgb8", SIZE * 3
