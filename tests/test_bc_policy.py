@@ -99,6 +99,7 @@ def test_training_beats_the_mean_action_on_held_out_clips(trained) -> None:
     assert report.losses[-1][1] < report.losses[0][1]
 
 
+@pytest.mark.slow  # the module's trained policy
 def test_act_is_batched_and_checkpoints_round_trip(trained, tmp_path: Path) -> None:
     learner, policy, _ = trained
     clip = make_clips(1, seed=9, length=5)[0]
@@ -129,6 +130,7 @@ def test_act_is_batched_and_checkpoints_round_trip(trained, tmp_path: Path) -> N
         policy.act({CAMERA: observations[CAMERA][:, :8], STATE: clip.state}, instructions)
 
 
+@pytest.mark.slow  # the module's trained policy
 def test_a_foreign_policy_checkpoint_is_refused(trained, tmp_path: Path) -> None:
     _, policy, _ = trained
     policy.config = {**policy.config, "policy": "other"}

@@ -20,6 +20,8 @@ from playseg_core.experiment.conditions import (
 from playseg_core.experiment.runner import ExperimentData
 from playseg_ros.cli import main as cli_main
 
+pytestmark = pytest.mark.slow  # every test reads a small experiment that trains segmenters and policies
+
 CONDITIONS = "gt_start,gt_2x,gt_100,oracle_relabel,random_relabel,gt_5pct,gt_50pct"
 
 
@@ -31,7 +33,6 @@ def experiment(tmp_path_factory) -> Path:
     return out
 
 
-@pytest.mark.slow
 def test_every_condition_and_seed_gives_a_row_and_the_report_has_table_and_plots(experiment: Path) -> None:
     table = (experiment / "results.md").read_text()
     for condition in CONDITIONS.split(","):
@@ -77,7 +78,6 @@ def test_conditions_add_what_they_say(experiment: Path) -> None:
     )
 
 
-@pytest.mark.slow
 def test_a_rerun_computes_nothing_again_and_a_run_depends_on_its_seed_only(experiment: Path, capsys) -> None:
     runs = experiment / "runs"
     before = {p.name: p.stat().st_mtime_ns for p in runs.iterdir()}
@@ -99,7 +99,6 @@ def test_a_rerun_computes_nothing_again_and_a_run_depends_on_its_seed_only(exper
         assert again[key] == first[key], key
 
 
-@pytest.mark.slow
 def test_a_cache_made_from_a_file_replaced_since_is_refused_as_stale(
     experiment: Path, tmp_path: Path, capsys
 ) -> None:
@@ -150,7 +149,6 @@ def test_a_cache_made_from_a_file_replaced_since_is_refused_as_stale(
     assert f"made from {out / 'added' / 'gt_2x.json'}, which is missing" in capsys.readouterr().err
 
 
-@pytest.mark.slow
 def test_the_report_covers_every_cached_run_whatever_was_asked_this_time(experiment: Path) -> None:
     argv = ["experiment", "babyai", "--scale", "tiny", "--seeds", "1", "--out", str(experiment)]
     assert cli_main([*argv, "--conditions", "gt_start"]) == 0  # cached: computes nothing
@@ -198,7 +196,6 @@ def test_an_output_directory_of_another_experiment_is_refused(experiment: Path, 
     assert f"--out {a_file}: is a file" in error and "\n" not in error and a_file.read_text() == "kept"
 
 
-@pytest.mark.slow
 def test_a_scale_s_segmenter_settings_reach_training(experiment: Path, tmp_path: Path) -> None:
     from dataclasses import replace
 
@@ -217,7 +214,6 @@ def test_a_scale_s_segmenter_settings_reach_training(experiment: Path, tmp_path:
     assert default_model.encoders.reads_actions and default_meta["train"]["augment"] is False
 
 
-@pytest.mark.slow
 def test_an_experiment_recorded_before_a_scale_field_existed_still_resumes(experiment: Path) -> None:
     record = experiment / "experiment.json"
     written = record.read_text()
@@ -297,7 +293,6 @@ def test_the_balanced_condition_caps_what_ps_kept(experiment: Path, tmp_path: Pa
     assert AddedSegments.load(tmp_path / "added" / "ps_balanced.json").count == balanced.count
 
 
-@pytest.mark.slow
 def test_ps_conditions_filter_the_cuts_found_once(experiment: Path, tmp_path: Path) -> None:
     """``ps`` keeps cached cuts by the true-cut label threshold, ``ps_own_cuts`` by the own-cut one on
     the label's probability times the cut's; play is segmented once for both (out/found)."""

@@ -21,6 +21,8 @@ from playseg_ros.play_bags import (
     write_dataset_bags,
 )
 
+pytestmark = pytest.mark.slow  # the module's bags are generated play
+
 SPLITS_OF_BAG = {"annotated": ("train", "val"), "play": ("play",), "test": ("test",)}
 
 
@@ -47,7 +49,6 @@ def assert_same_episodes(got: list[Episode], want: list[Episode]) -> None:
         assert g.segments == w.segments, g.episode_id
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("name", list(SPLITS_OF_BAG))
 def test_each_bag_holds_the_episodes_of_its_splits(generated: Path, name: str) -> None:
     dataset = PlayDataset.open(generated)

@@ -29,6 +29,8 @@ from playseg_core.domains.babyai.policy import (
     tokenize,
 )
 
+pytestmark = pytest.mark.slow  # most tests read a policy trained once for the module
+
 SMALL = PolicyConfig(channels=16, cell_embedding=16, word_embedding=16, instruction_dim=32, head_hidden=32)
 
 
@@ -50,7 +52,6 @@ def test_tokenizer_maps_unknown_words_to_one_id():
     assert ids.shape == (2, 5) and lengths.tolist() == [4, 5] and ids[0, 4] == 0
 
 
-@pytest.mark.slow
 def test_bot_demonstrations_are_consistent(demonstrations):
     assert len(demonstrations) == 800  # the bot solves every GoToLocal episode
     for instruction, states, actions in demonstrations[:50]:
@@ -120,7 +121,6 @@ def test_training_is_seeded(demonstrations):
     assert not torch.equal(first.head[-1].weight, other.head[-1].weight)
 
 
-@pytest.mark.slow
 def test_checkpoint_round_trip(tmp_path: Path, trained, demonstrations):
     model, stats = trained
     path = tmp_path / "policy.pt"
@@ -163,7 +163,6 @@ def test_bad_checkpoints_name_the_file(tmp_path: Path, trained):
         load_policy(missing)
 
 
-@pytest.mark.slow
 def test_checkpoint_written_before_relevance_maps_loads_as_film_only(tmp_path: Path, demonstrations):
     film_only = PolicyConfig(**{**SMALL.__dict__, "relevance_maps": 0})
     model, _ = train_policy(
@@ -183,7 +182,6 @@ def test_checkpoint_written_before_relevance_maps_loads_as_film_only(tmp_path: P
         assert torch.equal(loaded(states, ids, lengths), model.eval()(states, ids, lengths))
 
 
-@pytest.mark.slow
 def test_a_trained_policys_relevance_maps_find_the_instructed_object(trained):
     """Among the objects in view, the cell a relevance map scores highest is the instructed one far more
     often than chance: the maps ground the instruction (policy.py)."""
@@ -212,7 +210,6 @@ def test_a_trained_policys_relevance_maps_find_the_instructed_object(trained):
     assert hits.max() >= 0.8 and hits.max() >= chance + 0.4
 
 
-@pytest.mark.slow
 def test_evaluation_is_reproducible(trained):
     model, _ = trained
     first = evaluate_policy(model, num_episodes=32, seed=7, num_envs=16)
@@ -222,7 +219,6 @@ def test_evaluation_is_reproducible(trained):
     assert first.success_rate == sum(first.episode_success) / 32
 
 
-@pytest.mark.slow
 def test_trained_policy_beats_untrained_and_random(trained):
     model, stats = trained
     assert stats.final_loss < stats.losses[0][1]
@@ -236,7 +232,6 @@ def test_trained_policy_beats_untrained_and_random(trained):
     assert trained_score >= random_score + 0.1
 
 
-@pytest.mark.slow
 def test_evaluation_counts_its_own_steps_past_the_levels_default_limit():
     """The level's own limit (64 steps in an 8x8 room) is off: success within max_steps is what counts."""
     result = evaluate_policy(RandomPolicy(1), num_episodes=100, max_steps=100, seed=5, num_envs=50)

@@ -309,6 +309,7 @@ def test_two_tabs_never_overwrite_each_other(browser: Any, server: str) -> None:
     assert refused.value.code == 409
 
 
+@pytest.mark.slow  # trains a model
 def test_retrain_and_export_from_the_page(browser: Any, server: str, reviewed: dict[str, Path]) -> None:
     open_episode(browser, server, "annotated:0")
     steps = browser.find_element("id", "retrain-steps")

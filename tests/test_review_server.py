@@ -206,6 +206,7 @@ def finished(url: str, job: str) -> dict[str, Any]:
     raise AssertionError(f"{job} still running: {state}")
 
 
+@pytest.mark.slow  # trains a model
 def test_retrain_reproposes_and_export_writes_lerobot(
     bags: dict[str, Path], tmp_path: Path, serve: Any
 ) -> None:

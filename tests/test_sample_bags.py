@@ -26,6 +26,8 @@ from playseg_ros.play_bags import (
     read_play_bag_info,
 )
 
+pytestmark = pytest.mark.slow  # every test regenerates or reads the sample preset's play
+
 BAGS = Path(__file__).resolve().parent.parent / "bags"
 PRESET = PRESETS["sample"]
 SEED = 0
@@ -54,7 +56,6 @@ def test_bags_have_the_expected_topics() -> None:
         assert topics == expected, name
 
 
-@pytest.mark.slow
 def test_sizes_match_the_sample_preset(sample: dict[str, list[Episode]]) -> None:
     targets = PRESET.targets
     max_tasks = PRESET.play.max_tasks
@@ -69,7 +70,6 @@ def test_sizes_match_the_sample_preset(sample: dict[str, list[Episode]]) -> None
     assert size < 5_000_000, f"sample bags are {size / 1e6:.1f} MB; they must stay small"
 
 
-@pytest.mark.slow
 def test_annotations_equal_ground_truth_in_the_annotated_bag(sample: dict[str, list[Episode]]) -> None:
     annotated = read_play_bag(BAGS / "annotated")
     assert [e.segments for e in annotated] == [e.segments for e in sample["annotated"]]
@@ -90,7 +90,6 @@ def test_episodes_are_the_seeded_stream_split_by_the_preset(sample: dict[str, li
         assert order == sorted(order), name
 
 
-@pytest.mark.slow
 def test_regenerating_gives_the_same_messages(sample: dict[str, list[Episode]]) -> None:
     for name, episodes in sample.items():
         chosen = [*episodes[:REGENERATED_PER_BAG], episodes[-1]]

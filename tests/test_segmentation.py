@@ -126,6 +126,7 @@ def _boundary_f1(model, episodes) -> float:
     return evaluate(pred, truth, {ep.episode_id: ep.num_steps for ep in episodes})["boundary_f1_tol0"]
 
 
+@pytest.mark.slow
 def test_calibrated_end_bias_is_the_best_candidate_when_segmenting() -> None:
     model = tiny_ps_model(max_len=5, seed=4)
     episodes = [synthetic_episode(s, num_segments=4, max_seg_len=4) for s in range(4)]
@@ -247,6 +248,7 @@ def test_own_cuts_check_scores_what_the_threshold_keeps_of_the_model_s_segmentat
     assert longer == sum(len(segment_episode(model, e, min_len=3)) for e in episodes) < short
 
 
+@pytest.mark.slow
 def test_scoring_in_chunks_equals_scoring_at_once() -> None:
     """Long episodes are scored a chunk of windows at a time (bounded memory); the result is the same."""
     model = tiny_ps_model(max_len=5, seed=6, num_actions=3)

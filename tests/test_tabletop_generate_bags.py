@@ -26,6 +26,8 @@ from playseg_ros.tabletop.bags import (
     typestore,
 )
 
+pytestmark = pytest.mark.slow  # the module's robot bags are generated play
+
 
 @pytest.fixture(scope="module")
 def generated(tmp_path_factory: pytest.TempPathFactory) -> Path:
@@ -45,7 +47,6 @@ def spans(episode: Episode) -> list[tuple[int, int, str]]:
     return [(s.start, s.end, s.instruction) for s in episode.segments]
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("name", list(DATASET_BAGS))
 def test_convert_gives_back_the_dataset_episodes(generated: Path, tmp_path: Path, name: str) -> None:
     dataset = PlayDataset.open(generated)
