@@ -98,6 +98,7 @@ def test_engine_options_are_checked_and_the_local_engine_never_imports_ray(
     assert "playseg segment: --workers is the number of Ray actors: give --engine ray" in done.stderr
 
 
+@pytest.mark.slow
 def test_an_actor_that_dies_is_one_error_naming_the_episode(
     trained: tuple[Path, Path], tmp_path: Path
 ) -> None:

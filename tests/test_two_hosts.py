@@ -102,6 +102,7 @@ def graph(path: Path, nodes: list[dict]) -> Path:
     return path
 
 
+@pytest.mark.dds
 def test_a_graph_split_across_two_hosts_loses_nothing(hosts: tuple[Host, Host], tmp_path: Path) -> None:
     robot, server = hosts
     model = _untrained_tabletop_model(tmp_path / "tabletop.pt")
