@@ -1,7 +1,7 @@
 # ruff: noqa: F811 (a test takes the imported fixture `bags` as an argument)
-"""`playseg review`'s server without a browser: the bad inputs of issue 40 (a dataset without images, an
-episode of 100,000 steps, a hand-edited labels file with an error, a model of other features, a port in
-use) and HTTP range requests on the cached video."""
+"""`playseg review`'s server without a browser: bad inputs (a dataset without images, an episode of
+100,000 steps, a hand-edited labels file with an error, a model of other features, a port in use, requests
+another site could send) and HTTP range requests on the cached video."""
 
 from __future__ import annotations
 
@@ -155,6 +155,42 @@ def test_a_token_guards_a_server_bound_beyond_localhost(tmp_path: Path) -> None:
     finally:
         server.shutdown()
         server.server_close()
+
+
+def test_a_localhost_server_refuses_what_another_site_could_send(tmp_path: Path, serve: Any) -> None:
+    """Without a token, a page of another site in the same browser can neither read through the server
+    (DNS rebinding: a foreign Host) nor write (a form or text/plain POST, a foreign Origin); bad values
+    are one-line 400s, and nothing was written."""
+    data = write_dataset(tmp_path / "d", (10,), images=False)
+    url = serve(data)
+    target = tmp_path / "precious.txt"
+    target.write_text("keep me")
+    body = json.dumps({"out": str(target)}).encode()
+
+    def send(headers: dict[str, str], path: str = "api/export/mcap") -> int:
+        request = urllib.request.Request(url + path, body, headers)
+        try:
+            with urllib.request.urlopen(request, timeout=30) as response:
+                return response.status
+        except urllib.error.HTTPError as error:
+            return error.code
+
+    assert send({"Content-Type": "text/plain"}) == 403
+    assert send({"Content-Type": "application/json", "Origin": "https://evil.example"}) == 403
+    assert get(url + "api/info", {"Host": "evil.example:8765"})[0] == 403
+    assert target.read_text() == "keep me"
+    assert get(url + "api/info")[0] == 200  # the page itself, from this machine
+    status, _, reply = get(url + "api/episode/0/signals?start=abc")
+    assert status == 400 and json.loads(reply)["error"]
+    page = json.loads(get(url + "api/episode/0")[2])
+    nan = '{"labels": [{"start": 0, "end": 2, "instruction": "reach", "confidence": NaN}], "version": "%s"}'
+    request = urllib.request.Request(
+        url + "api/episode/0/save", (nan % page["version"]).encode(), {"Content-Type": "application/json"}
+    )
+    with pytest.raises(urllib.error.HTTPError) as refused:
+        urllib.request.urlopen(request, timeout=30)
+    assert refused.value.code == 400 and "confidence" in json.loads(refused.value.read())["error"]
+    assert get(url + "api/episode/0")[0] == 200  # still served
 
 
 def test_bad_labels_file_names_its_line(tmp_path: Path) -> None:

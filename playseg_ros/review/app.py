@@ -23,6 +23,7 @@ RETRAIN_STEPS = 300
 
 def review_dir(dataset: Path) -> Path:
     """Where the review of ``dataset`` keeps its labels, videos and models: ``<dataset>.review`` beside it."""
+    dataset = dataset.resolve()  # `playseg review .` too
     return dataset.with_name(f"{dataset.name}.review")
 
 

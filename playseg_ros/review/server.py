@@ -1,7 +1,9 @@
 """The review page's HTTP server (the standard library's threading server: nothing to install).
 
 Routes (JSON unless said otherwise; with a token, every /api route needs ``?token=``; the page and its
-static files, which hold no data, do not):
+static files, which hold no data, do not). A server without a token (bound to localhost) answers only
+requests addressed to this machine's names, and takes writes only as JSON from its own origin, so a page of
+another site open in the same browser can neither read nor write through it:
 
     GET  /                                  the page (static/index.html)
     GET  /static/<file>                     the page's script and style
@@ -22,6 +24,8 @@ import hmac
 import json
 import mimetypes
 import re
+import socket
+import traceback
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
@@ -34,6 +38,8 @@ from playseg_ros.review.store import VersionConflict
 from playseg_ros.review.video import episode_video
 
 STATIC = Path(__file__).with_name("static")
+LOCAL_NAMES = frozenset({"127.0.0.1", "localhost", "::1"})
+"""Host names of this machine that a page served on localhost is opened at."""
 MAX_BODY = 8 * 1024 * 1024
 CHUNK = 1 << 16
 
@@ -44,6 +50,8 @@ class ReviewServer(ThreadingHTTPServer):
     def __init__(
         self, address: tuple[str, int], session: ReviewSession, token: str | None, actions: Any
     ) -> None:
+        if ":" in address[0]:  # an IPv6 address
+            self.address_family = socket.AF_INET6
         super().__init__(address, ReviewHandler)
         self.session, self.token, self.actions = session, token, actions
 
@@ -71,21 +79,39 @@ class ReviewHandler(BaseHTTPRequestHandler):
         query = {k: v[-1] for k, v in parse_qs(url.query).items()}
         token = self.server.token
         public = url.path in ("/", "/index.html") or url.path.startswith("/static/")  # the page's own code
-        if (
-            token
-            and not public
-            and not hmac.compare_digest(query.get("token", self.headers.get("X-Review-Token", "")), token)
-        ):
+        given = query.get("token", self.headers.get("X-Review-Token", ""))
+        if token and not public and not hmac.compare_digest(given.encode(), token.encode()):
             self._json(
                 {"error": "a token is needed: open the URL `playseg review` printed"}, HTTPStatus.FORBIDDEN
             )
+            return
+        if not token and (refused := self._foreign_request(method)):
+            self._json({"error": refused}, HTTPStatus.FORBIDDEN)
             return
         try:
             self._route(method, unquote(url.path), query)
         except VersionConflict as error:
             self._json({"error": str(error)}, HTTPStatus.CONFLICT)
-        except (PlaysegError, OSError, KeyError) as error:
+        except (PlaysegError, OSError, KeyError, ValueError, TypeError) as error:  # bad input, one line
             self._json({"error": " ".join(str(error).split())}, HTTPStatus.BAD_REQUEST)
+        except Exception as error:  # a bug: the page gets one line, the console the traceback
+            traceback.print_exc()
+            self._json({"error": f"internal error: {type(error).__name__}"}, HTTPStatus.INTERNAL_SERVER_ERROR)
+
+    def _foreign_request(self, method: str) -> str | None:
+        """Without a token (a localhost server), what another site's page could send: a request whose Host
+        is not this machine (DNS rebinding), or a write that is not the page's JSON from this origin (a
+        cross-site form or `text/plain` fetch needs no preflight). The reason to refuse it, or None."""
+        host = (self.headers.get("Host") or "").rsplit(":", 1)[0].strip("[]")
+        if host not in LOCAL_NAMES:
+            return f"host {host!r} refused: open the page at http://127.0.0.1 (or bind with a token)"
+        if method == "POST":
+            if (self.headers.get("Content-Type") or "").split(";")[0].strip() != "application/json":
+                return "a write must be application/json"
+            origin = self.headers.get("Origin")
+            if origin is not None and (urlsplit(origin).hostname or "") not in LOCAL_NAMES:
+                return f"origin {origin!r} refused"
+        return None
 
     def _route(self, method: str, path: str, query: dict[str, str]) -> None:
         session = self.server.session

@@ -225,7 +225,11 @@ class ReviewSession:
                     f"labels [{previous.start}, {previous.end}) and [{label.start}, {label.end}) overlap"
                 )
         version = self.store.save(index, labels, str(body.get("version", "")))
-        rejected = [list(r)[:3] for r in body.get("rejected", []) if isinstance(r, list)]
+        rejected = [
+            [int(r[0]), int(r[1]), str(r[2])]
+            for r in body.get("rejected", [])
+            if isinstance(r, list) and len(r) == 3 and all(isinstance(v, int) for v in r[:2])
+        ]
         self.store.save_state(record.episode_id, bool(body.get("reviewed", False)), rejected)
         return {"version": version, "saved": len(labels), "file": str(self.store.file_of(index))}
 

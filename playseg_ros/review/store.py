@@ -80,6 +80,8 @@ class Label:
             )
         if not label.instruction:
             raise PlaysegError(f"{where}: no instruction")
+        if not 0.0 <= label.confidence <= 1.0:  # NaN too: JSON and YAML both spell it
+            raise PlaysegError(f"{where}: confidence {label.confidence} is not in [0, 1]")
         return label
 
 
