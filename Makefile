@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 # (tests/conftest.py).
 DEMO_ENV := ROS_DOMAIN_ID=$(or $(ROS_DOMAIN_ID),77) ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 
-.PHONY: setup demo test test-fast fuzz lint format bags models bench clean lerobot-check
+.PHONY: setup demo test test-fast fuzz lint format bags models bench clean lerobot-check io-check
 
 setup:
 	@bash scripts/setup_env.sh
@@ -36,6 +36,15 @@ lerobot-check: setup
 	$(PY) scripts/lerobot_export.py $(LEROBOT_CHECK_DIR)
 	HF_HUB_OFFLINE=1 HF_DATASETS_OFFLINE=1 $(LEROBOT_VENV)/bin/python scripts/lerobot_check.py \
 		$(LEROBOT_CHECK_DIR)/tabletop $(LEROBOT_CHECK_DIR)/synthetic
+
+# The ROS-free I/O part installed alone (requirements-io.txt: no ROS 2 wheels, playseg_msgs or torch) in
+# its own environment, ~/.cache/playseg/io-venv (scripts/setup_io_env.sh), runs `playseg bag` and
+# `playseg convert` on bags/tabletop (docs/setup.md "The I/O part alone"). Needs PyPI the first time.
+IO_CHECK_DIR ?= build/io-check
+IO_VENV ?= $(or $(XDG_CACHE_HOME),$(HOME)/.cache)/playseg/io-venv
+io-check:
+	@IO_VENV=$(IO_VENV) bash scripts/setup_io_env.sh
+	$(IO_VENV)/bin/python scripts/io_check.py $(CURDIR) $(abspath $(IO_CHECK_DIR))
 
 lint: setup
 	$(VENV)/bin/ruff check .

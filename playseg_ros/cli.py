@@ -673,6 +673,14 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"{command}: {_one_line(error)}", file=sys.stderr)
         return EXIT_FAILED
+    except ModuleNotFoundError as error:
+        # a third-party package missing is the environment's fault, not a bug: e.g. the I/O part installed
+        # alone (requirements-io.txt) running a command that needs torch or ROS 2
+        package = (error.name or "").split(".")[0]
+        if args.debug or package in ("", "playseg_core", "playseg_ros"):
+            raise
+        print(f"{command}: needs {package}, which this environment lacks (docs/setup.md)", file=sys.stderr)
+        return EXIT_FAILED
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)

@@ -33,12 +33,14 @@ def split_type_name(type_name: str) -> tuple[str, str]:
 
 
 def msg_dir() -> Path:
-    """Directory holding playseg_msgs' .msg files (installed copy first, then the source tree)."""
-    for candidate in (Path(sys.prefix) / "share" / "playseg_msgs" / "msg", _REPO_MSG_DIR):
+    """Directory holding playseg_msgs' .msg files: the built interface package's, else the copy that
+    playseg's own install carries (the I/O part alone has no interface package), else the source tree."""
+    candidates = [Path(sys.prefix) / "share" / name / "msg" for name in ("playseg_msgs", "playseg_ros")]
+    for candidate in (*candidates, _REPO_MSG_DIR):
         if (candidate / "PlayStep.msg").is_file():
             return candidate
     raise FileNotFoundError(
-        f"playseg_msgs .msg files not found in {sys.prefix}/share/playseg_msgs/msg or {_REPO_MSG_DIR}"
+        f"playseg_msgs .msg files not found in {', '.join(map(str, candidates))} or {_REPO_MSG_DIR}"
     )
 
 

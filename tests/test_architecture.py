@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from ros_free_run import run_blocked
 
 from playseg_core.checkpoint import CheckpointError, read_checkpoint
 from playseg_core.data.features import ACTION, STATE, Feature, FeatureError, Features
@@ -291,19 +292,11 @@ def test_bag_io_convert_and_the_lerobot_export_run_without_rclpy_or_playseg_msgs
     bag = tmp_path / "tabletop-0"
     shutil.copytree(ROOT / "bags" / "tabletop" / "tabletop-0", bag)
     mapping = ROOT / "bags" / "tabletop" / "mapping_truth.yaml"
-    code = BLOCK_ROS + (
+    reading = (
         "from playseg_ros.bag import BagReader, recover_bag\n"
         "from playseg_ros.convert.lerobot import export_lerobot\n"
-        "from playseg_ros.cli import main\n"
         f"with BagReader({str(bag)!r}) as reader:\n"
         "    assert sum(1 for _ in reader.messages()) > 0\n"
-        f"common = [{str(bag)!r}, '--mapping', {str(mapping)!r}, '--quiet']\n"
-        f"assert main(['convert', *common, '--out', {str(tmp_path / 'data')!r}]) == 0\n"
-        f"assert main(['convert', *common, '--out', {str(tmp_path / 'lerobot')!r}, '--format', 'lerobot']) == 0\n"
-        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('rclpy', 'playseg_msgs')))\n"
     )
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
-    assert done.returncode == 0, done.stdout + done.stderr
+    done = run_blocked(BLOCK_ROS, bag, mapping, tmp_path, extra=reading)
     assert done.stdout.strip().splitlines()[-1] == "[]"
-    assert (tmp_path / "data" / "meta" / "info.json").is_file()
-    assert (tmp_path / "lerobot" / "meta" / "info.json").is_file()
