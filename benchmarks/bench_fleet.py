@@ -325,28 +325,33 @@ def make_model(work: Path, bags: int, seconds: float, minutes: float) -> Path:
 
 
 def last_inputs(report: dict) -> dict[int, int]:
-    """Camera stamp of each step -> wall time its last input message was sent: the step is complete once
-    each topic has a message later than the step's time plus that feature's tolerance (the adapter's rule,
-    docs/convert.md), and the next frame is known. Steps whose inputs ran past the stream's end are left
-    out (they wait for the end)."""
+    """Camera stamp of each step -> wall time its last input message was sent. The adapter's rule
+    (docs/convert.md): a step's own inputs are there once each topic has a message later than the step's
+    time plus that feature's tolerance; it is published once the next step's are there too (the PlayStep
+    carries the action up to the next step and whether it is the last). Steps whose inputs run past the
+    stream's end are left out (they wait for the end)."""
     frames = sorted((int(stamp), sent) for stamp, sent in report["published"].items())
     streams = {
         "frame": (frames, mapping("")["tolerance_ms"]),
         "joints": (report["sent"]["joints"], mapping("")["tolerance_ms"]),
         "command": (report["sent"]["command"], mapping("")["features"]["action"]["tolerance_ms"]),
     }
-    ready: dict[int, int] = {}
+    times = {name: np.array([t for t, _ in messages]) for name, (messages, _) in streams.items()}
+    own: list[int | None] = []
     for stamp, _ in frames:
-        latest = 0
-        for messages, tolerance_ms in streams.values():
-            times = np.array([t for t, _ in messages])
-            index = int(np.searchsorted(times, stamp + tolerance_ms * 1_000_000, side="right"))
+        latest: int | None = 0
+        for name, (messages, tolerance_ms) in streams.items():
+            index = int(np.searchsorted(times[name], stamp + tolerance_ms * 1_000_000, side="right"))
             if index == len(messages):
+                latest = None
                 break
             latest = max(latest, messages[index][1])
-        else:
-            ready[stamp] = latest
-    return ready
+        own.append(latest)
+    return {
+        stamp: max(mine, following)
+        for (stamp, _), mine, following in zip(frames, own, own[1:], strict=False)
+        if mine is not None and following is not None
+    }
 
 
 def decisions(model, episodes: list) -> dict:
