@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from playseg_core.data.dataset import PlayDataset
+from playseg_core.data.dataset import INFO_FILE, PlayDataset
 
 GOP = 10
 DEFAULT_FPS = 10.0
@@ -51,8 +51,11 @@ def encode_mp4(frames: np.ndarray, path: Path, fps: float) -> None:
 def episode_video(dataset: PlayDataset, index: int, camera: str, cache: Path) -> Path:
     """The MP4 of ``camera`` in episode ``index``, from ``cache`` or encoded into it."""
     record = dataset.records[index]
+    # the dataset's own file too: a dataset written again in place (a bag converted again) is new video
+    written = (dataset.path / INFO_FILE).stat()
     key = (
-        f"{dataset.path.resolve()}|{record.episode_id}|{record.observation_start}|{record.num_steps}|{camera}"
+        f"{dataset.path.resolve()}|{written.st_mtime_ns}|{written.st_size}|{record.episode_id}|"
+        f"{record.observation_start}|{record.num_steps}|{camera}"
     )
     name = f"{hashlib.sha256(key.encode()).hexdigest()[:16]}.mp4"
     path = cache / name
