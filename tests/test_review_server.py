@@ -193,6 +193,34 @@ def test_a_localhost_server_refuses_what_another_site_could_send(tmp_path: Path,
     assert get(url + "api/episode/0")[0] == 200  # still served
 
 
+def test_saves_to_two_episodes_of_one_bag_do_not_conflict(tmp_path: Path, serve: Any) -> None:
+    """Both episodes' labels live in the bag's one labels file; each episode has its own version, so a
+    save to one leaves the other's page free to save, and a second save with a stale version is refused."""
+    rng = np.random.default_rng(1)
+    with DatasetWriter(tmp_path / "d", ["reach", "wave"]) as writer:
+        for k, (n, begins) in enumerate(((10, 0.0), (12, 5.0))):  # one bag: the second starts at 5 s
+            episode = Episode(
+                f"run:{k}",
+                rng.standard_normal((n, 2)).astype(np.float32),
+                state=rng.standard_normal((n + 1, 3)).astype(np.float32),
+                timestamps=begins + np.arange(n + 1) / 10.0,
+                source={"bag": str(tmp_path / "run")},
+            )
+            writer.add(episode, "play")
+    url = serve(tmp_path / "d")
+    pages = [json.loads(get(url + f"api/episode/{i}")[2]) for i in (0, 1)]
+    first = post(url + "api/episode/0/save", {"labels": [{"start": 0, "end": 4, "instruction": "reach"}],
+                                               "version": pages[0]["version"]})  # fmt: skip
+    second = post(url + "api/episode/1/save", {"labels": [{"start": 2, "end": 6, "instruction": "wave"}],
+                                                "version": pages[1]["version"]})  # fmt: skip
+    assert first["file"] == second["file"] and first["saved"] == second["saved"] == 1
+    stale = {"labels": [], "version": pages[0]["version"]}
+    with pytest.raises(urllib.error.HTTPError) as refused:
+        post(url + "api/episode/0/save", stale)
+    assert refused.value.code == 409
+    assert [row["instruction"] for row in json.loads(get(url + "api/episode/1")[2])["labels"]] == ["wave"]
+
+
 def test_bad_labels_file_names_its_line(tmp_path: Path) -> None:
     data = write_dataset(tmp_path / "d", (10,), images=False)
     labels = review_dir(data) / "labels"

@@ -85,14 +85,6 @@ class Label:
         return label
 
 
-def file_version(path: Path) -> str:
-    """The version of a labels file: a digest of its bytes (`NO_FILE` when absent)."""
-    try:
-        return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
-    except FileNotFoundError:
-        return NO_FILE
-
-
 def _entry_lines(text: str) -> list[int]:
     """The line (from 1) of each annotations entry of a sidecar's text."""
     try:
@@ -147,7 +139,14 @@ class LabelStore:
         return self.directory / f"{sidecar_name(record.episode_id, record.source)}.yaml"
 
     def version(self, index: int) -> str:
-        return file_version(self.file_of(index))
+        """The version of the episode's labels: a digest of its file's entries that fall in the episode
+        (`NO_FILE` without any). A file holds every episode of one bag: saves to its other episodes do
+        not change this one's version."""
+        path = self.file_of(index)
+        mine = [e for e in read_labels_file(path) if self._covers(index, e)] if path.is_file() else []
+        if not mine:
+            return NO_FILE
+        return hashlib.sha256(json.dumps(mine, sort_keys=True).encode()).hexdigest()[:16]
 
     def check_files(self) -> None:
         """LabelFileError for the first labels file that does not read."""
@@ -199,11 +198,11 @@ class LabelStore:
 
     def save(self, index: int, labels: list[Label], version: str) -> str:
         """Replace the episode's labels in its file (other episodes' entries in the same file stay);
-        VersionConflict when the file is no longer ``version``. Returns the new version."""
+        VersionConflict when the episode's labels are no longer ``version``. Returns the new version."""
         path = self.file_of(index)
         times = self.dataset.timestamps(index)
         with self._lock:
-            current = file_version(path)
+            current = self.version(index)
             if current != version:
                 raise VersionConflict(
                     f"{path}: changed since this page loaded it (another tab or reviewer saved); reload the "
@@ -225,7 +224,7 @@ class LabelStore:
                     entry["reviewer"] = label.reviewer
                 entries.append(entry)
             write_sidecar(path, others + entries)
-            return file_version(path)
+            return self.version(index)
 
     def state(self) -> dict[str, dict[str, Any]]:
         """Per episode id: ``reviewed`` (bool) and ``rejected`` ([start, end, instruction] proposals)."""
