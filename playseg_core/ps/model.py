@@ -88,7 +88,8 @@ class ModelConfig:
         if raw.get("end_grounding"):  # an end head grounded on the label: a study's, not this model's
             raise PlaysegError(
                 f"end_grounding {raw['end_grounding']}: a PS model whose end head is grounded on the label "
-                "(docs/studies/2026-12-05-tabletop-end-grounding.md); train it again without"
+                "(a study's model, not part of PS: docs/studies/, the tabletop end-grounding study); train it "
+                "again without"
             )
         return ModelConfig(
             encoders=[EncoderSpec.from_json(spec) for spec in raw["encoders"]],
