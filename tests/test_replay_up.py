@@ -21,6 +21,7 @@ from std_msgs.msg import String
 from test_demo_robot import _untrained_tabletop_model
 
 from playseg_core.data.dataset import PlayDataset
+from playseg_core.data.episode import Episode, Segment
 from playseg_ros import qos
 from playseg_ros.cli import main
 from playseg_ros.launch import load_graph
@@ -74,6 +75,24 @@ def test_set_waits_are_kept(tmp_path: Path) -> None:
 
 
 @pytest.mark.dds
+def assert_recorded_as_converted(recorded: Path, episode: Episode, expected: list[Segment]) -> list[Segment]:
+    """The recorded PlaySteps are the converted episode step for step (frames, joint state, commands, all
+    of it), and the recorded segments what convert --segment stored, the final one included."""
+    [live] = read_play_bag(recorded)
+    assert live.episode_id == "tabletop-1:0"
+    assert live.num_steps == episode.num_steps, (live.num_steps, episode.num_steps)
+    for camera, frames in episode.images.items():
+        np.testing.assert_array_equal(live.images[camera], frames)
+    np.testing.assert_array_equal(live.state, episode.state)
+    np.testing.assert_array_equal(live.actions, episode.actions)
+    segments = [clip.segment for clip in read_segment_bag(recorded)]
+    assert [(s.start, s.end, s.instruction) for s in segments] == [
+        (s.start, s.end, s.instruction) for s in expected
+    ]
+    assert segments[-1].end == episode.num_steps
+    return segments
+
+
 def test_minimal_replay_through_up_equals_convert_segment(tmp_path: Path) -> None:
     model = _untrained_tabletop_model(tmp_path / "tabletop.pt")
     quiet = ["--mapping", str(MAPPING), "--quiet"]
@@ -96,20 +115,7 @@ def test_minimal_replay_through_up_equals_convert_segment(tmp_path: Path) -> Non
     assert "Traceback" not in text and "unfinished episodes" not in text, text[-4000:]
     assert "gap at the start" not in text, text[-4000:]
 
-    # Step for step: the converted episode (frames, joint state, commands), all of it.
-    [live] = read_play_bag(recorded)
-    assert live.episode_id == "tabletop-1:0"
-    assert live.num_steps == episode.num_steps, (live.num_steps, episode.num_steps)
-    for camera, frames in episode.images.items():
-        np.testing.assert_array_equal(live.images[camera], frames)
-    np.testing.assert_array_equal(live.state, episode.state)
-    np.testing.assert_array_equal(live.actions, episode.actions)
-    # Segment for segment: what convert --segment stored, the last episode's final segment included.
-    segments = [clip.segment for clip in read_segment_bag(recorded)]
-    assert [(s.start, s.end, s.instruction) for s in segments] == [
-        (s.start, s.end, s.instruction) for s in expected
-    ]
-    assert segments[-1].end == episode.num_steps
+    segments = assert_recorded_as_converted(recorded, episode, expected)
     np.testing.assert_allclose([s.confidence for s in segments], [s.confidence for s in expected], atol=1e-4)
 
 

@@ -19,15 +19,14 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import pytest
 import yaml
 from node_procs import ROOT, node_env, wait_for_log
 from test_demo_robot import _untrained_tabletop_model
+from test_replay_up import assert_recorded_as_converted
 
 from playseg_core.data.dataset import PlayDataset
 from playseg_ros.cli import main
-from playseg_ros.play_bags import read_play_bag, read_segment_bag
 
 TABLETOP = ROOT / "bags" / "tabletop"
 BAG = TABLETOP / "tabletop-1"
@@ -153,13 +152,4 @@ def test_a_graph_split_across_two_hosts_loses_nothing(hosts: tuple[Host, Host], 
         text = log.read_text()
         assert "Traceback" not in text and "gap at the start" not in text, text[-4000:]
 
-    [live] = read_play_bag(recorded)
-    assert (live.episode_id, live.num_steps) == ("tabletop-1:0", episode.num_steps)
-    for camera, frames in episode.images.items():
-        np.testing.assert_array_equal(live.images[camera], frames)
-    np.testing.assert_array_equal(live.state, episode.state)
-    np.testing.assert_array_equal(live.actions, episode.actions)
-    segments = [clip.segment for clip in read_segment_bag(recorded)]
-    assert [(s.start, s.end, s.instruction) for s in segments] == [
-        (s.start, s.end, s.instruction) for s in expected
-    ]
+    assert_recorded_as_converted(recorded, episode, expected)
