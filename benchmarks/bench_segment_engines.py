@@ -23,6 +23,7 @@ from playseg_core.data.dataset import PlayDataset
 from playseg_ros.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
+RUNS = [("local", 1), ("local", 2), ("ray", 1), ("ray", 2)]
 
 
 def timed(argv: list[str]) -> float:
@@ -59,34 +60,29 @@ def main_bench() -> None:
     )  # fmt: skip
     mapping = str(bags / "mapping.yaml")
     print(f"{args.bags} tabletop bags, model {args.model}")
-    runs = [("local", 1), ("local", 2), ("ray", 1), ("ray", 2)]
-    reference = None
-    for engine, workers in runs:
-        out = root / f"convert-{engine}-{workers}"
-        argv = ["convert", str(bags), "--out", str(out), "--mapping", mapping, "--segment", args.model]
-        seconds = timed([*argv, "--quiet", "--engine", engine, "--workers", str(workers)])
-        rows = segment_rows(out)
-        reference = rows if reference is None else reference
-        same = "same output" if rows == reference else "OUTPUT DIFFERS"
-        print(
-            f"convert --segment  {engine:5s} x{workers}: {seconds:6.1f} s, "
-            f"{args.bags / seconds * 60:6.1f} bags/min ({same})"
-        )
+    convert_argv = ["convert", str(bags), "--mapping", mapping, "--segment", args.model, "--quiet"]
+    compare_engines("convert --segment", convert_argv, RUNS, root, args.bags, "bags")
     data = root / "convert-local-1"
     episodes = len(PlayDataset.open(data).episode_indices("play"))
+    segment_argv = ["segment", "--model", args.model, "--input", str(data), "--splits", "play"]
+    local_once = [run for run in RUNS if run != ("local", 2)]  # `playseg segment` runs in one process locally
+    compare_engines("segment", segment_argv, local_once, root, episodes, "episodes")
+
+
+def compare_engines(
+    name: str, argv: list[str], runs: list[tuple[str, int]], root: Path, count: int, unit: str
+) -> None:
+    """Time ``argv`` with each (engine, workers) of ``runs``; print the rate in ``unit``/min and whether
+    the segments equal the first run's."""
     reference = None
     for engine, workers in runs:
-        if engine == "local" and workers > 1:
-            continue  # `playseg segment` runs in one process locally
-        out = root / f"segment-{engine}-{workers}"
-        argv = ["segment", "--model", args.model, "--input", str(data), "--splits", "play", "--out", str(out)]
-        seconds = timed([*argv, "--engine", engine, "--workers", str(workers)])
+        out = root / f"{name.split()[0]}-{engine}-{workers}"
+        seconds = timed([*argv, "--out", str(out), "--engine", engine, "--workers", str(workers)])
         rows = segment_rows(out)
         reference = rows if reference is None else reference
         same = "same output" if rows == reference else "OUTPUT DIFFERS"
         print(
-            f"segment            {engine:5s} x{workers}: {seconds:6.1f} s, "
-            f"{episodes / seconds * 60:6.1f} episodes/min ({same})"
+            f"{name:18s} {engine:5s} x{workers}: {seconds:6.1f} s, {count / seconds * 60:6.1f} {unit}/min ({same})"
         )
 
 
