@@ -112,3 +112,71 @@ def test_datasets_without_recorded_times_count_steps_at_their_rate(tmp_path: Pat
     np.testing.assert_array_equal(dataset.timestamps(1), [0, 1, 2, 3])  # no fps: one step a second
     with pytest.raises(ValueError, match="timestamps must be"):
         Episode("bad", rng.random((2, 2), np.float32), timestamps=np.array([0.0, 2.0, 1.0]))
+
+
+REPEATED_STAMPS = [
+    [0.0, 0.1, 0.2, 0.2, 0.3, 0.4, 0.4, 0.4, 0.5, 0.6, 0.7, 0.7],  # o2/o3 and o5..o7 recorded at once
+    [0.7, 0.8, 0.9, 0.9, 1.0, 1.1],  # the bag's next episode starts on its predecessor's last stamp
+]
+"""Two episodes of one bag whose stamps repeat, inside an episode and across the two."""
+
+SPANS_ON_REPEATS = [
+    [(0, 3, "a"), (3, 6, "b"), (6, 7, "a"), (7, 11, "b")],  # every boundary on a repeated stamp
+    [(0, 2, "b"), (3, 5, "a")],
+]
+
+
+def test_segments_round_trip_exactly_where_stamps_repeat(tmp_path: Path) -> None:
+    """Segments -> sidecar times -> steps gives the same steps when consecutive observations share a
+    stamp, both as `convert` maps a sidecar (labels_from_file, segments_of_episodes) and as the review
+    page's store reads and saves it."""
+    from playseg_ros.convert.annotations import labels_from_file, segments_of_episodes, write_labels_out
+    from playseg_ros.review.store import Label, LabelStore
+
+    rng = np.random.default_rng(0)
+    source = {"bag": "/bags/run_01", "topics": ["/camera"], "start_ns": T0}
+    with DatasetWriter(tmp_path / "d", ["a", "b"]) as writer:
+        for k, (stamps, spans_k) in enumerate(zip(REPEATED_STAMPS, SPANS_ON_REPEATS, strict=True)):
+            episode = Episode(
+                f"run_01:{k}",
+                rng.random((len(stamps) - 1, 2), np.float32),
+                segments=[Segment(s, e, text) for s, e, text in spans_k],
+                timestamps=np.array(stamps),
+                source=source,
+            )
+            writer.add(episode, "train")
+    dataset = PlayDataset.open(tmp_path / "d")
+
+    labels_dir = tmp_path / "labels"
+    (file,) = write_labels_out(dataset, labels_dir, lambda s: True, lambda i: "human")
+    assert file.name == "run_01.yaml"
+    # convert's reading: the file's times from the bag's start, over the bag's step times
+    steps = [T0 + np.round(np.array(stamps) * 1e9).astype(np.int64) for stamps in REPEATED_STAMPS]
+    segments, notes = segments_of_episodes(steps, labels_from_file(Path("/bags/run_01"), file, T0))
+    assert notes == []
+    assert [[(s.start, s.end, s.instruction) for s in ep] for ep in segments] == SPANS_ON_REPEATS
+
+    # the review page's reading of the same file, and a save read back
+    store = LabelStore(dataset, labels_dir)
+    for index, spans_k in enumerate(SPANS_ON_REPEATS):
+        labels = store.labels(index)
+        assert labels is not None
+        assert [(label.start, label.end, label.instruction) for label in labels] == spans_k
+    moved = [Label(0, 2, "b"), Label(2, 5, "a"), Label(5, 7, "b"), Label(7, 10, "a")]
+    store.save(0, moved, store.version(0))
+    assert [(la.start, la.end, la.instruction) for la in store.labels(0) or []] == [
+        (la.start, la.end, la.instruction) for la in moved
+    ]
+    second = store.labels(1)  # the other episode's labels in the shared file are untouched
+    assert [(la.start, la.end) for la in second or []] == [(s, e) for s, e, _ in SPANS_ON_REPEATS[1]]
+
+
+@pytest.mark.parametrize("value", [-1, 1.5, True, "2"])
+def test_a_bad_skip_is_one_line_naming_its_key(tmp_path: Path, value: object) -> None:
+    from playseg_ros.convert.annotations import labels_from_file
+    from playseg_ros.convert.errors import ConvertError
+
+    file = tmp_path / "run.yaml"
+    file.write_text(yaml.safe_dump([{"start": 0.2, "end": 0.4, "instruction": "a", "end_skip": value}]))
+    with pytest.raises(ConvertError, match=r"annotations\[0\], key 'end_skip': must be a whole number"):
+        labels_from_file(tmp_path, file, T0)

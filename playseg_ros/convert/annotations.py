@@ -9,8 +9,11 @@ Two sources, used together when both are given: ``playseg_msgs/msg/TimedAnnotati
 
 A label [start, end] becomes the segment [s, e) of the episode holding it, where s is the first step at or
 after ``start`` and e the last step at or before ``end`` (the observations o_s..o_e lie inside the label's
-time). A label that covers fewer than two steps, overlaps an earlier label, or has no instruction is
-dropped and reported; one that runs past its episode's end is cut there and reported.
+time). Stamps may repeat (two observations recorded at one time): ``start_skip: n`` leaves out the first n
+observations stamped exactly ``start``, ``end_skip: n`` the last n stamped exactly ``end`` (both 0 when
+absent; at most all but one of them), so every segment has times that name it exactly (`EpisodeTimes`).
+A label that covers fewer than two steps, overlaps an earlier label, or has no instruction is dropped and
+reported; one that runs past its episode's end is cut there and reported.
 
 An entry may also carry ``provenance`` (who made it: ``human``, ``model:<checkpoint digest>``, ``edited``),
 ``confidence`` (the model's label probability) and ``reviewer``; conversion ignores them. `write_sidecar`
@@ -39,13 +42,16 @@ class SidecarLabelYaml(TypedDict):
     start: float
     end: float
     instruction: str
+    start_skip: NotRequired[int]
+    end_skip: NotRequired[int]
     provenance: NotRequired[str]
     confidence: NotRequired[float]
     reviewer: NotRequired[str]
 
 
 LABEL_KEYS = frozenset({"start", "end", "instruction"})
-OPTIONAL_LABEL_KEYS = frozenset({"provenance", "confidence", "reviewer"})
+OPTIONAL_LABEL_KEYS = frozenset({"start_skip", "end_skip", "provenance", "confidence", "reviewer"})
+SKIP_KEYS = ("start_skip", "end_skip")
 
 
 class SidecarYaml(TypedDict):
@@ -58,6 +64,52 @@ class TimedLabel:
     start_ns: int
     end_ns: int
     instruction: str
+    start_skip: int = 0  # observations stamped exactly start_ns the label leaves out at its start
+    end_skip: int = 0  # and stamped exactly end_ns at its end
+
+
+class EpisodeTimes:
+    """The observation times (int64 ns, one array per episode) of the episodes one labels file covers (a
+    bag's), in time order: which observations a label's times and skips name, and the skips that name a
+    segment's observations exactly where stamps repeat. Repeats are counted across episodes as well, so a
+    run of equal stamps that spans an episode boundary still names one observation each."""
+
+    def __init__(self, episodes: Sequence[np.ndarray]) -> None:
+        self.episodes = [np.asarray(times, dtype=np.int64) for times in episodes]
+        self.offsets = np.cumsum([0] + [len(times) for times in self.episodes])
+        self.all = np.concatenate(self.episodes) if self.episodes else np.zeros(0, np.int64)
+
+    def first(self, time_ns: int, skip: int = 0) -> int:
+        """The first observation (an index over all episodes) at or after ``time_ns``, ``skip`` further
+        among those stamped exactly ``time_ns``; ``len(self.all)`` when none is."""
+        low, high = self._stamped(time_ns)
+        return low + min(skip, max(high - low - 1, 0))
+
+    def last(self, time_ns: int, skip: int = 0) -> int:
+        """The last observation at or before ``time_ns``, ``skip`` earlier among those stamped exactly
+        ``time_ns``; -1 when none is."""
+        low, high = self._stamped(time_ns)
+        return high - 1 - min(skip, max(high - low - 1, 0))
+
+    def _stamped(self, time_ns: int) -> tuple[int, int]:
+        """The observations [low, high) stamped exactly ``time_ns`` (empty at where it would go)."""
+        return int(np.searchsorted(self.all, time_ns, "left")), int(
+            np.searchsorted(self.all, time_ns, "right")
+        )
+
+    def episode_of(self, observation: int) -> int:
+        """The episode holding ``observation`` (an index over all episodes)."""
+        return int(np.searchsorted(self.offsets, observation, "right")) - 1
+
+    def skips(self, episode: int, start: int, end: int) -> dict[str, int]:
+        """The skips that make the times of o_start and o_end of ``episode`` name exactly these two
+        observations (`first` and `last` give them back); none where a stamp does not repeat."""
+        s, e = int(self.offsets[episode]) + start, int(self.offsets[episode]) + end
+        skips = {
+            "start_skip": s - self._stamped(self.all[s])[0],
+            "end_skip": self._stamped(self.all[e])[1] - 1 - e,
+        }
+        return {key: n for key, n in skips.items() if n}
 
 
 def label_of(msg: Any) -> TimedLabel:
@@ -103,6 +155,9 @@ MAX_SECONDS = 4e9
 """The largest sidecar time in seconds, either way (absolute times are epoch seconds: 4e9 is the year
 2096); with the bag's start added it is still an int64 count of nanoseconds."""
 
+MAX_SKIP = 2**31 - 1
+"""The largest ``start_skip``/``end_skip`` a sidecar may give."""
+
 
 def labels_from_file(bag: Path, file: Path, bag_start_ns: int) -> list[TimedLabel]:
     """The labels of a sidecar file; ConvertError naming the bag, the file and the entry when malformed.
@@ -135,8 +190,8 @@ def labels_from_file(bag: Path, file: Path, bag_start_ns: int) -> list[TimedLabe
         if not LABEL_KEYS <= set(entry) <= LABEL_KEYS | OPTIONAL_LABEL_KEYS:
             raise ConvertError(
                 bag,
-                f"{where}: expected start, end, instruction (and optionally provenance, confidence, "
-                f"reviewer); got {_keys(set(entry))}",
+                f"{where}: expected start, end, instruction (and optionally start_skip, end_skip, "
+                f"provenance, confidence, reviewer); got {_keys(set(entry))}",
             )
         seconds = {}
         for key in ("start", "end"):
@@ -156,13 +211,23 @@ def labels_from_file(bag: Path, file: Path, bag_start_ns: int) -> list[TimedLabe
             seconds[key] = value
         if seconds["end"] < seconds["start"]:
             raise ConvertError(bag, f"{where}: end is before start")
+        skips = {}
+        for key in SKIP_KEYS:
+            value = entry.get(key, 0)
+            if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_SKIP:
+                raise ConvertError(
+                    bag, f"{where}, key {key!r}: must be a whole number of observations in 0..{MAX_SKIP}"
+                )
+            skips[key] = value
         instruction = "" if entry["instruction"] is None else entry["instruction"]  # "": dropped, reported
         if not isinstance(instruction, str):
             raise ConvertError(
                 bag, f"{where}, key 'instruction': must be text, got {_kind(entry['instruction'])}"
             )
         labels.append(
-            TimedLabel(base + round(seconds["start"] * 1e9), base + round(seconds["end"] * 1e9), instruction)
+            TimedLabel(
+                base + round(seconds["start"] * 1e9), base + round(seconds["end"] * 1e9), instruction, **skips
+            )
         )
     return labels
 
@@ -181,23 +246,25 @@ def _keys(keys: set[Any]) -> str:
 def segments_of_episodes(
     episode_steps: Sequence[np.ndarray], labels: Sequence[TimedLabel]
 ) -> tuple[list[list[Segment]], list[str]]:
-    """Each episode's segments (``episode_steps``: each episode's step times, sorted) and notes about the
-    labels that were cut or dropped."""
+    """Each episode's segments (``episode_steps``: each episode's step times, sorted, the episodes in time
+    order) and notes about the labels that were cut or dropped."""
+    times = EpisodeTimes(episode_steps)
     segments: list[list[Segment]] = [[] for _ in episode_steps]
     notes: list[str] = []
-    for label in sorted(labels):
+    for label in sorted(labels, key=_in_time_order):
         when = f"annotation {label.instruction!r} [{label.start_ns / 1e9:.3f}, {label.end_ns / 1e9:.3f}]"
         if not label.instruction:
             notes.append(f"{when}: no instruction; dropped")
             continue
-        # the episode holding its first step: the first episode that ends at or after the label's start
-        index = next((k for k, steps in enumerate(episode_steps) if steps[-1] >= label.start_ns), None)
-        if index is None or episode_steps[index][0] > label.end_ns:
+        # the episode holding its first step
+        first = times.first(label.start_ns, label.start_skip)
+        if first == len(times.all) or times.all[first] > label.end_ns:
             notes.append(f"{when}: no step of any episode in its time; dropped")
             continue
-        steps = episode_steps[index]
-        start = int(np.searchsorted(steps, label.start_ns, side="left"))
-        end = int(np.searchsorted(steps, label.end_ns, side="right")) - 1
+        index = times.episode_of(first)
+        steps, offset = episode_steps[index], int(times.offsets[index])
+        start = first - offset
+        end = min(times.last(label.end_ns, label.end_skip) - offset, len(steps) - 1)
         if (
             label.end_ns > steps[-1]
             and index + 1 < len(episode_steps)
@@ -217,22 +284,53 @@ def segments_of_episodes(
     return segments, notes
 
 
+def _in_time_order(label: TimedLabel) -> tuple[int, int, int, int, str]:
+    """Labels sorted by the observations they name: a skip moves a boundary within its stamp."""
+    return label.start_ns, label.start_skip, label.end_ns, -label.end_skip, label.instruction
+
+
+def times_ns(seconds: np.ndarray) -> np.ndarray:
+    """Observation times in seconds (a dataset's ``timestamp``) as the int64 nanoseconds a sidecar's
+    seconds read as."""
+    return np.round(np.asarray(seconds, dtype=np.float64) * 1e9).astype(np.int64)
+
+
 def sidecar_entries(
-    segments: Sequence[Segment], timestamps: np.ndarray, provenance: str
+    segments: Sequence[Segment],
+    timestamps: np.ndarray,
+    provenance: str,
+    times: EpisodeTimes | None = None,
+    episode: int = 0,
 ) -> list[SidecarLabelYaml]:
-    """``segments`` as sidecar labels: [s, e) becomes [time of o_s, time of o_e], which `segments_of_episodes`
-    maps back onto [s, e). Unlabelled segments have no entry."""
-    return [
-        {
+    """``segments`` as sidecar labels: [s, e) becomes [time of o_s, time of o_e], with the skips that
+    `segments_of_episodes` needs to map it back onto [s, e) where stamps repeat (``times``: the episodes
+    of the labels file, ``episode`` this one's position among them; default: this episode alone).
+    Unlabelled segments have no entry."""
+    times = EpisodeTimes([times_ns(timestamps)]) if times is None else times
+    entries: list[SidecarLabelYaml] = []
+    for seg in segments:
+        if not seg.instruction:
+            continue
+        entry: SidecarLabelYaml = {
             "start": float(timestamps[seg.start]),
             "end": float(timestamps[seg.end]),
             "instruction": seg.instruction,
-            "provenance": provenance,
-            "confidence": round(float(seg.confidence), 6),
         }
-        for seg in segments
-        if seg.instruction
-    ]
+        entry.update(times.skips(episode, seg.start, seg.end))  # type: ignore[typeddict-item]
+        entry["provenance"] = provenance
+        entry["confidence"] = round(float(seg.confidence), 6)
+        entries.append(entry)
+    return entries
+
+
+def episodes_by_file(dataset: PlayDataset) -> dict[str, list[int]]:
+    """The episodes that share each sidecar file (`sidecar_name`), in time order (first timestamp)."""
+    groups: dict[str, list[int]] = {}
+    for index, record in enumerate(dataset.records):
+        groups.setdefault(sidecar_name(record.episode_id, record.source), []).append(index)
+    for indices in groups.values():
+        indices.sort(key=lambda i: (float(dataset.timestamps(i)[0]), i))
+    return groups
 
 
 def sidecar_name(episode_id: str, source: Mapping[str, Any] | None) -> str:
@@ -262,8 +360,8 @@ def write_sidecar(path: Path, labels: Sequence[SidecarLabelYaml]) -> None:
     os.replace(staging, path)
 
 
-def _start_of(label: SidecarLabelYaml) -> float:
-    return label["start"]
+def _start_of(label: SidecarLabelYaml) -> tuple[float, int]:
+    return label["start"], label.get("start_skip", 0)
 
 
 def write_labels_out(
@@ -272,13 +370,13 @@ def write_labels_out(
     """Every episode's segments that ``keeps`` accepts as sidecar files in ``out_dir``, one per source
     (`sidecar_name`), times from the source's start (`PlayDataset.timestamps`), each entry's
     ``provenance(episode index)``: what `convert` reads back as the same segments. Returns the files."""
-    groups: dict[str, list[SidecarLabelYaml]] = {}
-    for index, record in enumerate(dataset.records):
-        kept = [s for s in dataset.segments(index, truth=True) if keeps(s)]
-        entries = sidecar_entries(kept, dataset.timestamps(index), provenance(index))
-        groups.setdefault(sidecar_name(record.episode_id, record.source), []).extend(entries)
     files = []
-    for name, labels in sorted(groups.items()):
+    for name, indices in sorted(episodes_by_file(dataset).items()):
+        times = EpisodeTimes([times_ns(dataset.timestamps(i)) for i in indices])
+        labels: list[SidecarLabelYaml] = []
+        for position, index in enumerate(indices):
+            kept = [s for s in dataset.segments(index, truth=True) if keeps(s)]
+            labels += sidecar_entries(kept, dataset.timestamps(index), provenance(index), times, position)
         files.append(out_dir / f"{name}.yaml")
         write_sidecar(files[-1], labels)
     return files

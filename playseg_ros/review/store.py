@@ -3,7 +3,8 @@ times from the bag's start; convert/annotations.py), plus the review state (whic
 which proposals were rejected) in ``review.json`` beside them.
 
 A label [t_s, t_e] covers the steps convert gives it: s the first step at or after t_s, e the last at or
-before t_e. Every save replaces its file atomically and only when the file is still the version the
+before t_e, with its skips where stamps repeat (`EpisodeTimes`, over the episodes that share the file).
+Every save replaces its file atomically and only when the file is still the version the
 page loaded (its digest): two tabs editing one episode never overwrite each other silently.
 """
 
@@ -18,16 +19,20 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import yaml
 
 from playseg_core.data.dataset import PlayDataset
+from playseg_core.data.episode import Segment
 from playseg_core.data.splits import ANNOTATED_SPLITS
 from playseg_core.errors import PlaysegError
 from playseg_ros.convert.annotations import (
+    EpisodeTimes,
     SidecarLabelYaml,
+    episodes_by_file,
     labels_from_file,
+    sidecar_entries,
     sidecar_name,
+    times_ns,
     write_sidecar,
 )
 
@@ -129,9 +134,11 @@ class LabelStore:
         self.dataset = dataset
         self.directory = directory
         self._lock = threading.Lock()
-        self._times_ns = [
-            np.round(np.asarray(dataset.timestamps(i)) * 1e9).astype(np.int64) for i in range(len(dataset))
-        ]
+        # per episode: the times of the episodes sharing its file, and its position among them
+        self._times: dict[int, tuple[EpisodeTimes, int]] = {}
+        for indices in episodes_by_file(dataset).values():
+            times = EpisodeTimes([times_ns(dataset.timestamps(i)) for i in indices])
+            self._times.update({index: (times, position) for position, index in enumerate(indices)})
         self.state_file = directory / "review.json"
 
     def file_of(self, index: int) -> Path:
@@ -154,10 +161,19 @@ class LabelStore:
             if path.is_file():
                 read_labels_file(path)
 
+    def _steps(self, index: int, entry: SidecarLabelYaml) -> tuple[int, int] | None:
+        """The observations [s, e] of this episode an entry names, as convert maps it (the episode holding
+        its first observation; cut at the episode's end); None when it starts in another episode."""
+        times, position = self._times[index]
+        first = times.first(round(float(entry["start"]) * 1e9), int(entry.get("start_skip", 0)))
+        if first == len(times.all) or times.episode_of(first) != position:
+            return None
+        offset = int(times.offsets[position])
+        last = times.last(round(float(entry["end"]) * 1e9), int(entry.get("end_skip", 0)))
+        return first - offset, min(last - offset, len(times.episodes[position]) - 1)
+
     def _covers(self, index: int, entry: SidecarLabelYaml) -> bool:
-        times = self._times_ns[index]
-        start = round(float(entry["start"]) * 1e9)
-        return bool(times[0] <= start <= times[-1])
+        return self._steps(index, entry) is not None
 
     def labels(self, index: int) -> list[Label] | None:
         """The episode's labels from its file; None when its file does not exist yet (the dataset's own
@@ -165,13 +181,12 @@ class LabelStore:
         path = self.file_of(index)
         if not path.is_file():
             return None
-        times = self._times_ns[index]
         labels = []
         for entry in read_labels_file(path):
-            if not self._covers(index, entry) or not entry["instruction"]:
+            steps = self._steps(index, entry)
+            if steps is None or not entry["instruction"]:
                 continue
-            start = int(np.searchsorted(times, round(float(entry["start"]) * 1e9), side="left"))
-            end = int(np.searchsorted(times, round(float(entry["end"]) * 1e9), side="right")) - 1
+            start, end = steps
             if end - start < 1:
                 continue
             confidence = entry.get("confidence", 1.0)
@@ -200,7 +215,7 @@ class LabelStore:
         """Replace the episode's labels in its file (other episodes' entries in the same file stay);
         VersionConflict when the episode's labels are no longer ``version``. Returns the new version."""
         path = self.file_of(index)
-        times = self.dataset.timestamps(index)
+        timestamps = self.dataset.timestamps(index)
         with self._lock:
             current = self.version(index)
             if current != version:
@@ -211,15 +226,11 @@ class LabelStore:
             others = (
                 [e for e in read_labels_file(path) if not self._covers(index, e)] if path.is_file() else []
             )
+            times, position = self._times[index]
             entries: list[SidecarLabelYaml] = []
             for label in labels:
-                entry: SidecarLabelYaml = {
-                    "start": float(times[label.start]),
-                    "end": float(times[label.end]),
-                    "instruction": label.instruction,
-                    "provenance": label.provenance,
-                    "confidence": round(label.confidence, 6),
-                }
+                segment = Segment(label.start, label.end, label.instruction, label.confidence)
+                (entry,) = sidecar_entries([segment], timestamps, label.provenance, times, position)
                 if label.reviewer:
                     entry["reviewer"] = label.reviewer
                 entries.append(entry)
