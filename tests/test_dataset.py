@@ -319,6 +319,22 @@ def test_generated_splits_never_leak(tmp_path: Path) -> None:
     assert summary.segments_per_split["test"] >= 20 and summary.segments_per_split["play"] >= 30
 
 
+def test_generated_episodes_name_their_generator_as_source(tmp_path: Path) -> None:
+    from playseg_core.domains.babyai.generate import SOURCE
+
+    summary = generate_dataset(tmp_path / "ds", MINI, seed=1, progress=False)
+    ds = PlayDataset.open(summary.path)
+    for record in ds.records:
+        assert record.source == {
+            "generator": "babyai", "preset": "mini", "seed": 1, "episode_seed": record.extra["seed"]
+        }  # fmt: skip
+    # the source is enough to make the episode again
+    record = ds.records[-1]
+    assert record.source is not None
+    again = SOURCE.episode_of(SOURCE.generate(MINI.play, record.source["episode_seed"]))
+    np.testing.assert_array_equal(again.actions, ds.episode(record.index).actions)
+
+
 @pytest.mark.slow
 def test_generation_is_byte_identical_for_any_worker_count(tmp_path: Path) -> None:
     one = generate_dataset(tmp_path / "one", MINI, seed=2, workers=1, progress=False)

@@ -187,6 +187,8 @@ def test_create_drag_relabel_save_and_reload(
 
     open_episode(browser, server, "annotated:0")
     assert [(lab["start"], lab["end"]) for lab in state(browser)["labels"]] == [(3, 12), (12, 25)]
+    shown = browser.find_element("id", "episode-source").text  # the bag it was recorded in
+    assert shown.startswith(f"source: bag {bags['annotated']} (/annotations, /camera/image_raw"), shown
     # drag the shared boundary at 12 to 15: both neighbours follow
     detail = browser.find_element("id", "detail")
     (x0, y0), (x1, _) = lane_point(browser, 12, "label"), lane_point(browser, 15, "label")

@@ -48,6 +48,10 @@ def test_same_seed_same_bytes_for_any_worker_count(tmp_path: Path) -> None:
     teleop = json.loads((tmp_path / "one" / "meta/info.json").read_text())["meta"]["teleop"]
     assert teleop["success_rate"] == pytest.approx(one.teleop.success_rate, abs=1e-4)
     assert teleop["instruction_steps"]["count"] == sum(one.segments_per_split.values())
+    assert [record.source for record in data.records] == [
+        {"generator": "tabletop", "preset": "tiny", "seed": 2, "episode_seed": record.extra["seed"]}
+        for record in data.records
+    ]
 
 
 def test_presets_follow_the_papers_calvin_split() -> None:

@@ -52,9 +52,9 @@ class Episode:
     segments: the labelled segments known for this episode (all, some or none of them), sorted, disjoint.
     timestamps: (T+1,) float64 recording time of each observation in seconds from its source's start (a
              bag's first message), non-decreasing; None when the source has no clock.
-    source:  where the episode was recorded, JSON-serialisable: ``{"bag": path, "topics": [...],
-             "start_ns": the bag's first message time}``, or
-             ``{"generator": name, ...}``; None when unknown.
+    source:  where the episode comes from, JSON-serialisable: ``{"bag": path, "topics": [...],
+             "start_ns": the bag's first message time}``, or ``{"generator": domain, "preset": name,
+             "seed": run seed, "episode_seed": seed}`` (docs/dataset-format.md); None when unknown.
 
     data/features.py names and describes these arrays (`Features`).
     """

@@ -166,6 +166,13 @@ class EpisodeSource(Generic[PlayT, ProducedT]):
     chunks_per_worker: int = 2
 
 
+def generated_source(domain: str, preset: str, seed: int, episode_seed: int) -> dict[str, Any]:
+    """A generated episode's ``source`` (docs/dataset-format.md): the domain whose generator made it, the
+    preset, the run's seed and the episode's own seed (the episode again: the domain's generator with the
+    preset's play settings and ``episode_seed``)."""
+    return {"generator": domain, "preset": preset, "seed": seed, "episode_seed": episode_seed}
+
+
 def write_dataset(
     out: str | os.PathLike[str],
     preset: Preset[PlayT],
@@ -181,7 +188,8 @@ def write_dataset(
 ) -> GenerateSummary:
     """Generate ``preset`` into the dataset directory ``out`` (streamed; written atomically at the end).
 
-    An episode without segments is skipped (nothing to learn from) and counted."""
+    Each episode's ``source`` names its generator (`generated_source`). An episode without segments is
+    skipped (nothing to learn from) and counted."""
     out = Path(out)
     targets = preset.targets
     assigner = SplitAssigner(targets)
@@ -200,7 +208,10 @@ def write_dataset(
         )
         try:
             for episode_seed_value, produced in stream:
-                episode = source.episode_of(produced)
+                episode = replace(
+                    source.episode_of(produced),
+                    source=generated_source(domain, preset.name, seed, episode_seed_value),
+                )
                 if not episode.segments:
                     skipped += 1
                     continue
@@ -242,6 +253,7 @@ __all__ = [
     "UnknownPresetError",
     "episode_seed",
     "episode_stream",
+    "generated_source",
     "get_preset",
     "write_dataset",
 ]

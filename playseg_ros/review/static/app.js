@@ -69,6 +69,7 @@ async function openEpisode(index) {
   S.view = { start: 0, end: Math.max(1, ep.num_steps) };
   $("reviewed").checked = ep.reviewed;
   $("episode-title").textContent = `${ep.episode_id} · ${ep.num_steps} steps · ${ep.fps} Hz · labels: ${ep.labels_file}`;
+  $("episode-source").textContent = ep.source_text ? `source: ${ep.source_text}` : "";
   const videos = $("videos");
   videos.innerHTML = "";
   for (const camera of ep.cameras) {
