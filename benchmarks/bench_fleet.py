@@ -1,8 +1,8 @@
 """A fleet live: N robots streaming standard messages at their own rates into the segmentation server.
 
-Each robot is its own process publishing, in real time, a 96x96 rgb8 camera at 30 Hz
-(sensor_msgs/Image), JointState at 100 Hz (7 joints) and a header-less Twist command at 30 Hz (half a
-frame ahead of the camera, as its own clock), on /robotI/... topics,
+Each robot is its own process publishing, in real time, the play of benchmarks/generic_robot.py's arm:
+a 96x96 rgb8 camera at 30 Hz (sensor_msgs/Image), JointState at 100 Hz (7 joints) and a header-less
+Twist command at 30 Hz (half a frame ahead of the camera, as its own clock), on /robotI/... topics,
 into its own topic_adapter (one PlayStep per camera frame; joints 'nearest', the command 'previous').
 Server side: one segmenter per robot (default) or one shared segmenter reading every robot's steps
 (`--shared`: the adapters publish to one topic, episodes told apart by their ids), and one recorder of
@@ -42,8 +42,9 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from generic_robot import JOINT_HZ, JOINT_NAMES, Camera, Play, write_robot_bag
 
-FPS, JOINT_HZ, JOINTS, SIZE = 30, 100, 7, 96
+FPS, SIZE = 30, 96
 CAMERA = "observation.images.front"
 LATENCY_BUDGET_MS = 50.0
 TAIL_S = 0.2
@@ -68,53 +69,6 @@ def mapping(robot: str) -> dict:
     }
 
 
-# --- the robot: skills in play, published in real time ---------------------------------------------
-
-SKILLS = ["pick the cup", "open the drawer", "push the button", "wipe the table"]
-
-
-class Play:
-    """A robot's play as functions of time: skills of 1-2 s one after another (never the same twice in a
-    row), each with its own arm motion, command and object in view, so a PS model can learn where one
-    ends."""
-
-    def __init__(self, seed: int, seconds: float) -> None:
-        rng = np.random.default_rng(seed)
-        self.skills: list[tuple[float, float, int]] = []  # (start s, end s, skill)
-        start, skill = 0.0, -1
-        while start < seconds:
-            skill = int((skill + rng.integers(1, len(SKILLS))) % len(SKILLS))
-            end = min(start + float(rng.uniform(1.0, 2.0)), seconds)
-            self.skills.append((start, end, skill))
-            start = end
-        self.targets = rng.uniform(-1.0, 1.0, (len(SKILLS), JOINTS))
-        self.colours = np.array([[220, 40, 40], [40, 200, 60], [50, 80, 230], [230, 200, 40]], np.uint8)
-
-    def at(self, t: float) -> tuple[int, float]:
-        """The skill at time ``t`` and how far it has come (0..1)."""
-        for start, end, skill in self.skills:
-            if t < end:
-                return skill, (t - start) / (end - start)
-        start, end, skill = self.skills[-1]
-        return skill, 1.0
-
-    def joints(self, t: float) -> np.ndarray:
-        skill, progress = self.at(t)
-        return self.targets[skill] * np.sin(np.pi * progress)
-
-    def command(self, t: float) -> tuple[float, float]:
-        skill, progress = self.at(t)
-        return 0.2 * np.cos(np.pi * skill / 2) * (1 - progress), 0.5 * np.sin(np.pi * skill / 2)
-
-    def image(self, t: float) -> np.ndarray:
-        skill, progress = self.at(t)
-        frame = np.full((SIZE, SIZE, 3), 90, np.uint8)
-        x = int(8 + progress * (SIZE - 32))
-        y = 16 + 16 * skill
-        frame[y : y + 16, x : x + 16] = self.colours[skill]
-        return frame
-
-
 # --- the robot: a process publishing its sensors in real time ----------------------------------------
 
 
@@ -137,7 +91,7 @@ def run_robot(robot: str, seconds: float, start_at: float, times_out: Path) -> N
         if time.monotonic() > deadline:
             raise SystemExit(f"{robot}: no topic_adapter subscribed within 120 s")
         time.sleep(0.05)
-    play = Play(int(robot.removeprefix("robot")) + 1, seconds)
+    play, view = Play(int(robot.removeprefix("robot")) + 1, seconds), Camera(SIZE, SIZE)
     published: dict[int, int] = {}  # camera stamp -> wall time sent, ns
     sent: dict[str, list[tuple[int, int]]] = {"joints": [], "command": []}  # (message time, wall time sent)
     time.sleep(max(0.0, start_at - time.time()))
@@ -159,14 +113,15 @@ def run_robot(robot: str, seconds: float, start_at: float, times_out: Path) -> N
         if due["joint"] <= now:
             msg = JointState()
             msg.header.stamp = stamp
-            msg.name = [f"joint{j}" for j in range(JOINTS)]
+            msg.name = list(JOINT_NAMES)
             msg.position = play.joints(now).tolist()
             sent["joints"].append((stamp.sec * 1_000_000_000 + stamp.nanosec, time.time_ns()))
             joints.publish(msg)
             joint_ticks += 1
         if due["command"] <= now:
             twist = Twist()
-            twist.linear.x, twist.angular.z = play.command(now)
+            linear, angular = twist.linear, twist.angular
+            linear.x, linear.y, linear.z, angular.x, angular.z = play.command(now)
             sent["command"].append((node.get_clock().now().nanoseconds, time.time_ns()))  # stamped on arrival
             command.publish(twist)
             commands += 1
@@ -174,7 +129,7 @@ def run_robot(robot: str, seconds: float, start_at: float, times_out: Path) -> N
             image = Image()
             image.header.stamp, image.header.frame_id = stamp, "camera"
             image.height, image.width, image.encoding, image.step = SIZE, SIZE, "rgb8", SIZE * 3
-            image.data = play.image(now).tobytes()
+            image.data = view.image(*play.pose(now)).tobytes()
             published[stamp.sec * 1_000_000_000 + stamp.nanosec] = time.time_ns()
             camera.publish(image)
             frames += 1
@@ -248,61 +203,14 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def write_robot_bag(bag: Path, play: Play, seconds: float) -> None:
-    """``seconds`` of ``play`` as robot0 records it (rosbags, MCAP), with its skills in a sidecar."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-
-    from playseg_ros.convert.source import convert_typestore
-
-    store = convert_typestore()
-    types = store.types
-    Time, Header = types["builtin_interfaces/msg/Time"], types["std_msgs/msg/Header"]
-    Vector3 = types["geometry_msgs/msg/Vector3"]
-    start = 1_700_000_000 * 10**9
-    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        topics = {
-            "camera": writer.add_connection("/robot0/camera/image_raw", "sensor_msgs/msg/Image", typestore=store),
-            "joints": writer.add_connection("/robot0/joint_states", "sensor_msgs/msg/JointState", typestore=store),
-            "cmd": writer.add_connection("/robot0/cmd_vel", "geometry_msgs/msg/Twist", typestore=store),
-        }  # fmt: skip
-        for tick in range(int(seconds * JOINT_HZ)):  # 100 Hz; a frame and a command every 3rd tick
-            t_ns = tick * 10**9 // JOINT_HZ
-            t = t_ns / 1e9
-            stamp = Time(sec=(start + t_ns) // 10**9, nanosec=(start + t_ns) % 10**9)
-            header = Header(stamp=stamp, frame_id="")
-            joint = types["sensor_msgs/msg/JointState"](
-                header=header, name=[f"joint{j}" for j in range(JOINTS)], position=play.joints(t),
-                velocity=np.zeros(0), effort=np.zeros(0),
-            )  # fmt: skip
-            writer.write(
-                topics["joints"], start + t_ns, store.serialize_cdr(joint, "sensor_msgs/msg/JointState")
-            )
-            if tick % 3 == 0:
-                image = types["sensor_msgs/msg/Image"](
-                    header=header, height=SIZE, width=SIZE, encoding="rgb8", is_bigendian=0, step=SIZE * 3,
-                    data=play.image(t).reshape(-1),
-                )  # fmt: skip
-                writer.write(
-                    topics["camera"], start + t_ns, store.serialize_cdr(image, "sensor_msgs/msg/Image")
-                )
-                vx, wz = play.command(t)
-                twist = types["geometry_msgs/msg/Twist"](
-                    linear=Vector3(x=vx, y=0, z=0), angular=Vector3(x=0, y=0, z=wz)
-                )  # fmt: skip
-                writer.write(
-                    topics["cmd"], start + t_ns, store.serialize_cdr(twist, "geometry_msgs/msg/Twist")
-                )
-    labels = [{"start": a, "end": b, "instruction": SKILLS[k]} for a, b, k in play.skills]
-    (bag / "labels.yaml").write_text(yaml.safe_dump({"annotations": labels}))
-
-
 def make_model(work: Path, bags: int, seconds: float, minutes: float) -> Path:
     """A PS model that `playseg train` learns from ``bags`` recorded bags of ``seconds`` of play each
     (other seeds than the fleet's robots), every skill labelled."""
     from playseg_ros.cli import main as cli
 
     for number in range(bags):
-        write_robot_bag(work / "probe_bags" / f"bag{number}", Play(1000 + number, seconds), seconds)
+        bag = work / "probe_bags" / f"bag{number}"
+        write_robot_bag(bag, Play(1000 + number, seconds), camera=Camera(SIZE, SIZE), seed=number)
     (work / "probe.yaml").write_text(
         yaml.safe_dump(mapping("robot0") | {"annotations": {"file": "labels.yaml"}})
     )
@@ -507,7 +415,9 @@ def main() -> None:
         help="reference-form segments (no steps inside; the recorder has them)",
     )
     parser.add_argument(
-        "--model", default="build/bench_fleet/fleet-ps.pt", help="the PS checkpoint (trained here if missing)"
+        "--model",
+        default="build/bench_fleet/generic-ps.pt",
+        help="the PS checkpoint (trained here if missing)",
     )
     parser.add_argument("--train-minutes", type=float, default=3.0, help="the training's --max-minutes")
     args = parser.parse_args()
