@@ -129,9 +129,11 @@ class CausalConvBlock(nn.Module):
 
     def forward(self, h: torch.Tensor) -> torch.Tensor:
         """(B, P, dim) -> (B, P, dim); output p depends on inputs <= p only."""
-        x = self.norm(h).transpose(1, 2)
-        x = self.conv(F.pad(x, (self.pad, 0)))  # left padding only: causal
-        return h + self.out(F.gelu(x.transpose(1, 2)))
+        x = F.pad(self.norm(h), (0, 0, self.pad, 0))  # zeros before the first position only: causal
+        # The Conv1d as a 2-D convolution over a (B, dim, 1, P) channels-last view of the (B, P, dim) rows:
+        # it reads and writes them in place, where transposing to (B, dim, P) and back copies them.
+        x = F.conv2d(x.unsqueeze(1).permute(0, 3, 1, 2), self.conv.weight.unsqueeze(2), self.conv.bias)
+        return h + self.out(F.gelu(x.permute(0, 2, 3, 1).squeeze(1)))
 
 
 class StartCausalTrunk(nn.Module):
@@ -288,15 +290,17 @@ def make_label_head(kind: str, in_dim: int, instructions: list[str]) -> nn.Modul
 
 FLOAT_BYTES = 4
 
-ENCODE_INPUT_BYTES = 24 * 2**20
+ENCODE_INPUT_BYTES = 4 * 2**20
 """Camera frames per encoder pass when encoding an episode, in bytes as the encoders read them (float32):
 the rows per pass follow from the frames' shapes (many small frames, few large ones), bounding the
-encoders' activations."""
+encoders' activations. Small on purpose: on the CPU, passes of a few MB stay in cache and reuse the
+allocator's memory, where passes of tens of MB fault in fresh pages every time and ran at half the speed
+(`benchmarks/bench_robot.py throughput`)."""
 
-SCORE_HIDDEN_BYTES = 13 * 2**20
+SCORE_HIDDEN_BYTES = 4 * 2**20
 """Trunk hidden states per pass when scoring an episode (windows x positions x hidden_dim, float32): the
 windows per pass follow from the window length and the trunk's width, so memory stays bounded on long
-episodes, long windows and wide trunks."""
+episodes, long windows and wide trunks (a few MB, as `ENCODE_INPUT_BYTES`)."""
 
 
 def episode_windows(features: torch.Tensor, window_len: int) -> torch.Tensor:
