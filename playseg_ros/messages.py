@@ -498,6 +498,7 @@ class EpisodeBuilder:
         self.states: list[np.ndarray] = []
         self.actions: list[np.ndarray] = []
         self.state_shape: tuple[int, ...] | None = None
+        self.stamps: list[int] = []  # each observation's header stamp, ns
         self.finished = False
 
     @property
@@ -536,6 +537,7 @@ class EpisodeBuilder:
             )
         self.state_shape, self.frame_shapes = state_shape, frame_shapes
         self.num_observations += 1
+        self.stamps.append(stamp_ns(msg.header))
         for name, frame in data.frames.items():
             self.frames.setdefault(name, []).append(frame)
         if data.state is not None:

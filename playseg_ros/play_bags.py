@@ -17,7 +17,7 @@ from __future__ import annotations
 import importlib
 import json
 from collections.abc import Callable, Collection, Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -265,6 +265,9 @@ def iter_play_bag(
     The PlaySteps' image is the declared camera; in a bag that declares none, ``camera`` (the feature a
     model reads, as the live segmenter does) or `DEFAULT_CAMERA`.
 
+    Each episode's ``source`` is the bag (path, the topics read, its first message time) and its
+    ``timestamps`` are its PlaySteps' header stamps, in seconds from that time (`_recorded`).
+
     Segments come from /play/annotations (episodes without annotations get none) or, with ``truth``,
     from /play/ground_truth. An episode whose stream stops before ``episode_end`` (e.g. a recovered
     recording) is a BagError with ``incomplete="error"``; with "drop" it is skipped, with "keep" it ends at
@@ -279,6 +282,8 @@ def iter_play_bag(
         image = info.camera if info.features is not None or camera is None else camera
         _check_topics(reader, [STEPS_TOPIC, GROUND_TRUTH_TOPIC] if truth else [STEPS_TOPIC])
         segments = _read_annotations(reader, segment_topic) if segment_topic in reader.topics else {}
+        topics = [STEPS_TOPIC] + ([segment_topic] if segment_topic in reader.topics else [])
+        source = {"bag": str(reader.path), "topics": topics, "start_ns": reader.start_time}
         open_episodes: dict[str, EpisodeBuilder] = {}
         finished: set[str] = set()
         for raw in reader.messages([STEPS_TOPIC]):
@@ -308,7 +313,7 @@ def iter_play_bag(
                     episode = builder.build(episode_segments)
                 except StepError as error:
                     raise _located(reader, STEPS_TOPIC, error) from None
-                yield info.conform(episode, reader.path)
+                yield info.conform(_recorded(episode, builder, reader, source), reader.path)
         if open_episodes and incomplete == "error":
             episode_id, builder = next(iter(open_episodes.items()))
             raise BagError(
@@ -328,7 +333,7 @@ def iter_play_bag(
                 episode = builder.build(
                     _fit_segments(reader, segment_topic, episode_id, kept, last), truncated=True
                 )
-                yield info.conform(episode, reader.path)
+                yield info.conform(_recorded(episode, builder, reader, source), reader.path)
         for episode_id, orphans in segments.items():
             if episode_id not in open_episodes:
                 raise BagError(
@@ -338,6 +343,28 @@ def iter_play_bag(
                     episode_id,
                     orphans[0].start,
                 )
+
+
+def _recorded(
+    episode: Episode, builder: EpisodeBuilder, reader: BagReader, source: dict[str, Any]
+) -> Episode:
+    """``episode`` with its bag as ``source`` and its PlaySteps' header stamps as timestamps, in seconds
+    from the bag's first message (as `playseg convert` counts a robot bag's times). Stamps that are all
+    zero (a publisher that does not stamp) are no clock: step / fps. A stamp earlier than the previous
+    step's is a BagError naming the step."""
+    stamps = np.asarray(builder.stamps[: episode.num_steps + 1], dtype=np.int64)
+    back = np.flatnonzero(np.diff(stamps) < 0)
+    if len(back):
+        step = int(back[0]) + 1
+        raise BagError(
+            reader.path,
+            f"header stamp {stamps[step]} ns is earlier than the previous step's ({stamps[step - 1]} ns)",
+            STEPS_TOPIC,
+            episode.episode_id,
+            builder.first_step + step,
+        )
+    times = (stamps - int(source["start_ns"])) / 1e9 if stamps.any() else None
+    return replace(episode, timestamps=times, source=source)
 
 
 def read_play_bag(path: Path | str, truth: bool = False, incomplete: str = "error") -> list[Episode]:

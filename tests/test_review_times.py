@@ -180,3 +180,74 @@ def test_a_bad_skip_is_one_line_naming_its_key(tmp_path: Path, value: object) ->
     file.write_text(yaml.safe_dump([{"start": 0.2, "end": 0.4, "instruction": "a", "end_skip": value}]))
     with pytest.raises(ConvertError, match=r"annotations\[0\], key 'end_skip': must be a whole number"):
         labels_from_file(tmp_path, file, T0)
+
+
+def write_stamped_play_bag(path: Path, stamps: list[list[int]], log_delay_ns: int) -> list[Episode]:
+    """A play bag (PlaySteps as a recorder writes them: each logged in arrival order, ``log_delay_ns``
+    after its header stamp) of one episode per entry of ``stamps``; the first is annotated."""
+    from dataclasses import replace
+
+    from playseg_core.data.features import infer_features
+    from playseg_ros.bag import BagWriter, topic_info
+    from playseg_ros.messages import ANNOTATION, PLAY_STEP, annotation_message, episode_messages
+    from playseg_ros.play_bags import ANNOTATIONS_TOPIC, STEPS_TOPIC, DataInfo
+    from playseg_ros.typestore import playseg_typestore
+
+    rng = np.random.default_rng(1)
+    episodes = [
+        Episode(
+            f"play-{k}",
+            rng.random((len(times) - 1, 2), np.float32),
+            images={"observation.images.top": rng.integers(0, 255, (len(times), 8, 8, 3), np.uint8)},
+            segments=[Segment(0, 2, "a"), Segment(2, len(times) - 1, "b")] if k == 0 else [],
+        )
+        for k, times in enumerate(stamps)
+    ]
+    info = DataInfo(replace(infer_features(episodes[0]), fps=10.0), None, ("a", "b"))
+    store = playseg_typestore()
+    with BagWriter(path, custom_data=info.custom_data()) as writer:
+        writer.add_topic(topic_info(STEPS_TOPIC, PLAY_STEP))
+        writer.add_topic(topic_info(ANNOTATIONS_TOPIC, ANNOTATION))
+        for episode, times in zip(episodes, stamps, strict=True):
+            for msg, arrival in zip(
+                episode_messages(episode, times), np.maximum.accumulate(times), strict=True
+            ):
+                writer.write(STEPS_TOPIC, store.serialize_cdr(msg, PLAY_STEP), int(arrival) + log_delay_ns)
+            for segment in episode.segments:
+                msg = annotation_message(episode.episode_id, segment, times[-1])
+                writer.write(
+                    ANNOTATIONS_TOPIC, store.serialize_cdr(msg, ANNOTATION), times[-1] + log_delay_ns
+                )
+    return episodes
+
+
+def test_play_bags_convert_with_their_header_stamps(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """playseg's own play bags (PlayStep) convert with each step's header stamp, not step / fps: irregular
+    steps, a repeated stamp and a pause keep their times, counted from the bag's first message."""
+    ms = 1_000_000
+    stamps = [
+        [T0 + t * ms for t in (0, 100, 100, 350, 400, 520)],
+        [T0 + t * ms for t in (2000, 2100, 2200, 2200)],
+    ]
+    bag = tmp_path / "recorded"
+    write_stamped_play_bag(bag, stamps, log_delay_ns=5 * ms)
+    assert main(["convert", str(bag), "--out", str(tmp_path / "data"), "--quiet"]) == 0, capsys.readouterr()
+    dataset = PlayDataset.open(tmp_path / "data")
+    start = T0 + 5 * ms  # the bag's first message: its log time
+    by_id = {record.episode_id: i for i, record in enumerate(dataset.records)}
+    for k, times in enumerate(stamps):
+        index = by_id[f"play-{k}"]
+        np.testing.assert_allclose(dataset.timestamps(index), (np.array(times) - start) / 1e9, atol=1e-9)
+        assert dataset.records[index].source == {
+            "bag": str(bag), "topics": ["/play/steps", "/play/annotations"], "start_ns": start
+        }  # fmt: skip
+    assert spans(dataset, by_id["play-0"]) == [(0, 2, "a"), (2, 5, "b")]
+
+    # a stamp that goes back in time: the bag fails with one line naming the episode and step
+    write_stamped_play_bag(tmp_path / "backwards", [[T0, T0 + 100 * ms, T0 + 50 * ms, T0 + 150 * ms]], 0)
+    capsys.readouterr()
+    assert main(["convert", str(tmp_path / "backwards"), "--out", str(tmp_path / "bad"), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "header stamp" in err and "'play-0'" in err and "step 2" in err, err

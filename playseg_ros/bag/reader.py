@@ -90,6 +90,12 @@ class BagReader:
         return self._reader.message_count
 
     @property
+    def start_time(self) -> int:
+        """The bag's first message time in nanoseconds (from metadata.yaml), as `playseg convert` counts
+        a bag's times from it."""
+        return int(self._reader.start_time)
+
+    @property
     def files(self) -> list[Path]:
         return list(self._files)
 
