@@ -331,3 +331,93 @@ def test_retrain_and_export_from_the_page(browser: Any, server: str, reviewed: d
     wait_for(browser, jobs + ".includes('export: done')", "the export", seconds=300)
     exported = json.loads((work / "lerobot" / "meta" / "info.json").read_text())
     assert exported["codebase_version"] == "v3.0"
+
+
+CODED_BITS = 7
+"""Each frame of the coded video shows its observation's index in binary, one wide bar per bit."""
+
+
+def coded_frames(count: int) -> Any:
+    import numpy as np
+
+    frames = np.full((count, 16, 8 * CODED_BITS, 3), 20, np.uint8)
+    for k in range(count):
+        for bit in range(CODED_BITS):
+            if k >> bit & 1:
+                frames[k, :, 8 * bit : 8 * bit + 8] = 230
+    return frames
+
+
+def shown_observation(driver: Any) -> int:
+    """The observation the first video shows, read off its pixels as a user's eye would."""
+    values = driver.execute_script(
+        """const v = document.querySelector('#videos video'), c = document.createElement('canvas');
+        c.width = v.videoWidth; c.height = v.videoHeight;
+        const g = c.getContext('2d'); g.drawImage(v, 0, 0);
+        const row = g.getImageData(0, 8, c.width, 1).data, bits = [];
+        for (let b = 0; b < arguments[0]; b++) bits.push(row[4 * (8 * b + 4)]);
+        return bits;""",
+        CODED_BITS,
+    )
+    return sum(1 << bit for bit, value in enumerate(values) if value > 128)
+
+
+def settled(driver: Any, chunk: int) -> None:
+    """Wait until the first video holds ``chunk`` and shows a decoded frame at rest."""
+    wait_for(
+        driver,
+        f"const v = document.querySelector('#videos video'); return v && v.dataset.chunk === '{chunk}' "
+        "&& v.readyState >= 2 && !v.seeking",
+        f"video chunk {chunk}",
+    )
+
+
+def test_a_long_episode_plays_and_seeks_across_video_chunks(browser: Any, tmp_path: Path) -> None:
+    """With 20 observations a video file, the page shows the right frame wherever the playhead goes, and
+    playing runs on from one file into the next."""
+    import numpy as np
+    from selenium.webdriver import ActionChains
+    from selenium.webdriver.common.keys import Keys
+
+    from playseg_core.data.dataset import DatasetWriter
+    from playseg_core.data.episode import Episode
+
+    with DatasetWriter(tmp_path / "coded", ["reach"], features=None) as writer:
+        actions = np.zeros((64, 1), np.float32)
+        writer.add(Episode("coded", actions, images={"observation.images.top": coded_frames(65)}), "play")
+    process = subprocess.Popen(
+        [sys.executable, "-m", "playseg_ros.cli", "review", str(tmp_path / "coded"), "--port", "0",
+         "--video-chunk", "20"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert process.stdout is not None
+    try:
+        line = process.stdout.readline()
+        assert line.startswith("playseg review: http://127.0.0.1:"), line + process.stderr.read()
+        open_episode(browser, line.split()[2], "coded")
+        settled(browser, 0)
+        assert shown_observation(browser) == 0
+        keys(browser, Keys.ARROW_RIGHT, Keys.ARROW_RIGHT, Keys.ARROW_RIGHT)
+        wait_for(browser, "return window.review.state.step === 3", "step 3")
+        settled(browser, 0)
+        assert shown_observation(browser) == 3
+        for _ in range(4):  # shift+right: ten steps on, into the third file
+            ActionChains(browser).key_down(Keys.SHIFT).send_keys(Keys.ARROW_RIGHT).key_up(
+                Keys.SHIFT
+            ).perform()
+        wait_for(browser, "return window.review.state.step === 43", "step 43")
+        settled(browser, 2)
+        assert shown_observation(browser) == 43
+        keys(browser, Keys.ARROW_LEFT * 5)  # back into the second file
+        settled(browser, 1)
+        assert shown_observation(browser) == 38
+        # play on past the end of the second file: the third one takes over
+        keys(browser, " ")
+        wait_for(browser, "return window.review.state.step >= 44", "playing into the third file")
+        keys(browser, " ")
+        step = browser.execute_script("return window.review.state.step")
+        settled(browser, step // 20)
+        assert shown_observation(browser) == step
+    finally:
+        process.terminate()
+        process.wait(timeout=10)

@@ -119,6 +119,35 @@ def test_video_is_encoded_once_and_served_in_ranges(tmp_path: Path, serve: Any) 
     assert int(np.argmin(errors)) == 5 and errors[5] < 10  # lossy, but that frame
 
 
+def test_a_long_episode_video_comes_in_chunks_encoded_on_demand(tmp_path: Path, serve: Any) -> None:
+    import av
+
+    data = write_dataset(tmp_path / "d", (44, 8), images=True)  # 45 observations: chunks of 20, 20, 5
+    url = serve(data, video_chunk=20)
+    assert json.loads(get(url + "api/episode/0")[2])["video_chunk"] == 20
+    video = url + "api/episode/0/video/observation.images.top"
+    status, _, last = get(video + "?chunk=2")
+    assert status == 200 and last[4:8] == b"ftyp"
+    status, _, body = get(video + "?chunk=3")
+    assert status == 400 and "chunks 0..2" in json.loads(body)["error"]
+    original = PlayDataset.open(data).episode(0).images["observation.images.top"]
+    cache = review_dir(data) / "video"
+    chunk_files = {len(f.read_bytes()): f for f in cache.glob("*.mp4")}
+    with av.open(str(chunk_files[len(last)])) as container:
+        frames = [frame.to_ndarray(format="rgb24")[:16, :20] for frame in container.decode(video=0)]
+    assert len(frames) == 5  # observations 40..44 only
+    for k, frame in enumerate(frames):
+        errors = [np.abs(frame.astype(int) - original[j].astype(int)).mean() for j in range(45)]
+        assert int(np.argmin(errors)) % 12 == (40 + k) % 12 and min(errors) < 10
+    # the first chunk, and only what was asked (and the chunk after it, encoded ahead) is encoded
+    assert get(video + "?chunk=0")[0] == 200 and get(video)[2] == get(video + "?chunk=0")[2]
+    for _ in range(100):  # the chunk encoded ahead, in the background
+        if len(list(cache.glob("*.mp4"))) == 3:
+            break
+        threading.Event().wait(0.1)
+    assert len(list(cache.glob("*.mp4"))) == 3
+
+
 def test_dataset_without_images_and_a_long_episode_load_in_windows(tmp_path: Path, serve: Any) -> None:
     data = write_dataset(tmp_path / "d", (30, LONG), images=False)
     url = serve(data)
@@ -268,7 +297,7 @@ def test_a_model_of_other_features_is_refused_at_start(
     assert code == 1 and err.count("\n") == 0 and "observation.images.top" in err and "ps.pt" in err
 
 
-def test_a_port_in_use_is_one_line(tmp_path: Path) -> None:
+def test_a_port_in_use_or_a_bad_video_chunk_is_one_line(tmp_path: Path) -> None:
     data = write_dataset(tmp_path / "d", (10,), images=False)
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
@@ -276,6 +305,8 @@ def test_a_port_in_use_is_one_line(tmp_path: Path) -> None:
         port = taken.getsockname()[1]
         code, err = review_cli(str(data), "--port", str(port))
     assert code == 1 and err.count("\n") == 0 and f"--port {port}: cannot listen on 127.0.0.1:{port}" in err
+    code, err = review_cli(str(data), "--port", "0", "--video-chunk", "0")
+    assert code == 1 and err.count("\n") == 0 and "--video-chunk 0: must be at least 1 frame" in err
 
 
 def post(url: str, body: dict[str, Any]) -> dict[str, Any]:

@@ -15,6 +15,7 @@ from playseg_core.data.splits import annotated_splits
 from playseg_core.errors import PlaysegError
 from playseg_ros.review.server import ReviewServer
 from playseg_ros.review.session import Job, ReviewSession
+from playseg_ros.review.video import CHUNK_FRAMES
 
 LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
 RETRAIN_STEPS = 300
@@ -174,11 +175,13 @@ def start(
     port: int = 8765,
     token: str | None = None,
     work: Path | None = None,
+    video_chunk: int = CHUNK_FRAMES,
 ) -> tuple[ReviewServer, str]:
     """The server (not yet serving) and its URL. A host other than localhost gets a random token in the URL
-    unless ``token`` is given. ``work`` holds labels, videos and models (default `review_dir`)."""
+    unless ``token`` is given. ``work`` holds labels, videos and models (default `review_dir`);
+    ``video_chunk``: observations per video file (video.py)."""
     work = work or review_dir(dataset)
-    session = ReviewSession(dataset, labels or work / "labels", work / "video", model)
+    session = ReviewSession(dataset, labels or work / "labels", work / "video", model, video_chunk)
     if token is None and host not in LOCAL_HOSTS:
         token = secrets.token_urlsafe(16)
     try:
@@ -193,12 +196,27 @@ def start(
 
 
 def review(
-    inputs: list[str], model: str | None, labels: str | None, host: str, port: int, mapping: str | None = None
+    inputs: list[str],
+    model: str | None,
+    labels: str | None,
+    host: str,
+    port: int,
+    mapping: str | None = None,
+    video_chunk: int | None = None,
 ) -> int:
     """`playseg review`: serve until interrupted."""
+    video_chunk = CHUNK_FRAMES if video_chunk is None else video_chunk
+    if video_chunk < 1:
+        raise PlaysegError(f"--video-chunk {video_chunk}: must be at least 1 frame")
     path, work = dataset_of([Path(p) for p in inputs], Path(mapping) if mapping else None)
     server, url = start(
-        path, Path(model) if model else None, Path(labels) if labels else None, host, port, work=work
+        path,
+        Path(model) if model else None,
+        Path(labels) if labels else None,
+        host,
+        port,
+        work=work,
+        video_chunk=video_chunk,
     )
     if server.session.segmenter is not None:
         server.session.start_job("propose", server.session.propose)

@@ -29,10 +29,16 @@ def add_review_command(sub: argparse._SubParsersAction) -> None:
         help="address to bind (default localhost; any other gets a token in the URL)",
     )
     review.add_argument("--port", type=int, default=8765, help="port (default 8765; 0: any free port)")
+    review.add_argument(
+        "--video-chunk",
+        type=int,
+        metavar="FRAMES",
+        help="observations per video file, each encoded when first shown (default 300)",
+    )
     review.set_defaults(func=_cmd_review)
 
 
 def _cmd_review(args: argparse.Namespace) -> int:
     from playseg_ros.review.app import review
 
-    return review(args.inputs, args.model, args.labels, args.host, args.port, args.mapping)
+    return review(args.inputs, args.model, args.labels, args.host, args.port, args.mapping, args.video_chunk)

@@ -10,7 +10,8 @@ another site open in the same browser can neither read nor write through it:
     GET  /api/info                          dataset, vocabulary, episodes in queue order, model, jobs
     GET  /api/episode/<i>                   an episode's labels, proposals, version, cameras, signals
     GET  /api/episode/<i>/signals?start=&end=&points=   plotted channels over a window of observations
-    GET  /api/episode/<i>/video/<camera>    MP4 (encoded once, cached), with HTTP range requests
+    GET  /api/episode/<i>/video/<camera>?chunk=<c>   MP4 of the episode's c-th chunk of observations
+                                            (video.py; encoded once, cached), with HTTP range requests
     POST /api/episode/<i>/save              {labels, version, reviewed, rejected} -> {version} or 409
     POST /api/propose | /api/retrain        start a background job; GET /api/jobs polls them
     GET  /api/export/preview                the language_persistent rows an export would write
@@ -35,7 +36,7 @@ from urllib.parse import parse_qs, unquote, urlsplit
 from playseg_core.errors import PlaysegError
 from playseg_ros.review.session import ReviewSession
 from playseg_ros.review.store import VersionConflict
-from playseg_ros.review.video import episode_video
+from playseg_ros.review.video import episode_video, prefetch_chunk
 
 STATIC = Path(__file__).with_name("static")
 LOCAL_NAMES = frozenset({"127.0.0.1", "localhost", "::1"})
@@ -136,7 +137,10 @@ class ReviewHandler(BaseHTTPRequestHandler):
                 session.check_index(index)
                 if camera not in session.dataset.features.cameras:
                     raise PlaysegError(f"no camera {camera!r} in this dataset")
-                self._file(episode_video(session.dataset, index, camera, session.cache_dir), ranges=True)
+                chunk, frames = int(query.get("chunk", 0)), session.video_chunk
+                video = episode_video(session.dataset, index, camera, session.cache_dir, chunk, frames)
+                prefetch_chunk(session.dataset, index, camera, session.cache_dir, chunk + 1, frames)
+                self._file(video, ranges=True)
             else:
                 self._json({"error": f"no page {path}"}, HTTPStatus.NOT_FOUND)
             return

@@ -17,6 +17,7 @@ from playseg_core.data.splits import ANNOTATED_SPLITS
 from playseg_core.errors import PlaysegError
 from playseg_ros.convert.annotations import model_provenance
 from playseg_ros.review.store import Label, LabelStore
+from playseg_ros.review.video import CHUNK_FRAMES
 
 MAX_SIGNALS = 12
 """Signal channels plotted (the first ones of the state, then of the action)."""
@@ -76,15 +77,24 @@ class Job:
 
 
 class ReviewSession:
-    """One dataset under review: labels in ``labels_dir``, videos cached in ``cache_dir``; proposals from
+    """One dataset under review: labels in ``labels_dir``, videos cached in ``cache_dir`` (``video_chunk``
+    observations a file: video.py); proposals from
     the dataset's own model segments and, with ``model``, from that PS checkpoint (computed in the
     background for the episodes without labels)."""
 
     def __init__(
-        self, dataset_path: Path, labels_dir: Path, cache_dir: Path, model: Path | None = None
+        self,
+        dataset_path: Path,
+        labels_dir: Path,
+        cache_dir: Path,
+        model: Path | None = None,
+        video_chunk: int = CHUNK_FRAMES,
     ) -> None:
+        if video_chunk < 1:
+            raise PlaysegError(f"--video-chunk {video_chunk}: must be at least 1 frame")
         self.dataset = PlayDataset.open(dataset_path)
         self.labels_dir, self.cache_dir = labels_dir, cache_dir
+        self.video_chunk = video_chunk
         self.store = LabelStore(self.dataset, labels_dir)
         self.store.check_files()
         self.model_path = model
@@ -186,6 +196,7 @@ class ReviewSession:
             "source": record.source,
             "source_text": source_text(record.source),
             "cameras": list(self.dataset.features.cameras),
+            "video_chunk": self.video_chunk,
             "signals": self.signal_names,
             "labels": [label.to_json() for label in self.store.initial_labels(index)],
             "proposals": [p.to_json() for p in self.open_proposals(index)],

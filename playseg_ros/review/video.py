@@ -1,7 +1,11 @@
-"""Each camera of an episode as an MP4 (H.264 through PyAV), encoded once and cached.
+"""Each camera of an episode as MP4 files (H.264 through PyAV) of `CHUNK_FRAMES` observations each,
+encoded on demand, once, and cached.
 
-One video frame per observation at the dataset's rate, so observation k is shown from k / fps to
-(k + 1) / fps; a keyframe every `GOP` frames and no B-frames keep seeking exact and cheap.
+Chunk c of an episode holds observations c * chunk .. (c + 1) * chunk - 1, one video frame each at the
+dataset's rate, so its observation k is shown from k / fps to (k + 1) / fps of that file; each file starts
+on a keyframe, with one every `GOP` frames and no B-frames, so seeking is exact and cheap. A long
+episode's first request encodes one chunk, not the whole episode; asking for a chunk starts encoding the
+next one in the background (`prefetch_chunk`), so playing on does not wait for it.
 """
 
 from __future__ import annotations
@@ -14,8 +18,11 @@ from pathlib import Path
 import numpy as np
 
 from playseg_core.data.dataset import INFO_FILE, PlayDataset
+from playseg_core.errors import PlaysegError
 
 GOP = 10
+CHUNK_FRAMES = 300
+"""Observations per video file (30 s at 10 Hz): what a first request encodes."""
 DEFAULT_FPS = 10.0
 _locks: dict[Path, threading.Lock] = {}
 _locks_guard = threading.Lock()
@@ -48,21 +55,67 @@ def encode_mp4(frames: np.ndarray, path: Path, fps: float) -> None:
     os.replace(staging, path)
 
 
-def episode_video(dataset: PlayDataset, index: int, camera: str, cache: Path) -> Path:
-    """The MP4 of ``camera`` in episode ``index``, from ``cache`` or encoded into it."""
+def chunk_count(num_observations: int, chunk_frames: int) -> int:
+    """The number of video files of an episode of ``num_observations``."""
+    return max(1, -(-num_observations // chunk_frames))
+
+
+def chunk_path(
+    dataset: PlayDataset, index: int, camera: str, cache: Path, chunk: int, chunk_frames: int = CHUNK_FRAMES
+) -> Path:
+    """Where chunk ``chunk`` of ``camera`` in episode ``index`` is cached; PlaysegError when the episode has
+    no such chunk."""
     record = dataset.records[index]
+    chunks = chunk_count(record.num_steps + 1, chunk_frames)
+    if not 0 <= chunk < chunks:
+        raise PlaysegError(
+            f"episode {index} has video chunks 0..{chunks - 1} of {chunk_frames} frames, not {chunk}"
+        )
     # the dataset's own file too: a dataset written again in place (a bag converted again) is new video
     written = (dataset.path / INFO_FILE).stat()
     key = (
         f"{dataset.path.resolve()}|{written.st_mtime_ns}|{written.st_size}|{record.episode_id}|"
-        f"{record.observation_start}|{record.num_steps}|{camera}"
+        f"{record.observation_start}|{record.num_steps}|{camera}|{chunk_frames}|{chunk}"
     )
-    name = f"{hashlib.sha256(key.encode()).hexdigest()[:16]}.mp4"
-    path = cache / name
+    return cache / f"{hashlib.sha256(key.encode()).hexdigest()[:16]}.mp4"
+
+
+def _lock(path: Path) -> threading.Lock:
     with _locks_guard:
-        lock = _locks.setdefault(path, threading.Lock())
-    with lock:
+        return _locks.setdefault(path, threading.Lock())
+
+
+def episode_video(
+    dataset: PlayDataset,
+    index: int,
+    camera: str,
+    cache: Path,
+    chunk: int = 0,
+    chunk_frames: int = CHUNK_FRAMES,
+) -> Path:
+    """The MP4 of chunk ``chunk`` of ``camera`` in episode ``index``, from ``cache`` or encoded into it;
+    PlaysegError when the episode has no such chunk."""
+    path = chunk_path(dataset, index, camera, cache, chunk, chunk_frames)
+    with _lock(path):
         if not path.is_file():
             cache.mkdir(parents=True, exist_ok=True)
-            encode_mp4(np.asarray(dataset.episode(index).images[camera]), path, video_fps(dataset))
+            frames = dataset.episode(index).images[camera][chunk * chunk_frames : (chunk + 1) * chunk_frames]
+            encode_mp4(np.asarray(frames), path, video_fps(dataset))
     return path
+
+
+def prefetch_chunk(
+    dataset: PlayDataset, index: int, camera: str, cache: Path, chunk: int, chunk_frames: int = CHUNK_FRAMES
+) -> threading.Thread | None:
+    """Encode chunk ``chunk`` in a background thread, unless the episode has no such chunk or it is cached
+    or being encoded already; the thread, or None."""
+    if not 0 <= chunk < chunk_count(dataset.records[index].num_steps + 1, chunk_frames):
+        return None
+    path = chunk_path(dataset, index, camera, cache, chunk, chunk_frames)
+    if path.is_file() or _lock(path).locked():
+        return None
+    thread = threading.Thread(
+        target=episode_video, args=(dataset, index, camera, cache, chunk, chunk_frames), daemon=True
+    )
+    thread.start()
+    return thread

@@ -1,6 +1,8 @@
 // playseg review: the page (plain JavaScript, no library). Steps are observation indices: a segment
-// [start, end) covers actions start..end-1 and observations start..end; the video shows observation k
-// from k / fps to (k + 1) / fps.
+// [start, end) covers actions start..end-1 and observations start..end. A camera's video comes in files of
+// ep.video_chunk observations (chunk c: observations c * video_chunk ...); a file shows its k-th
+// observation from k / fps to (k + 1) / fps. A video element holds one chunk and moves to another when
+// the playhead does.
 "use strict";
 
 const token = new URLSearchParams(location.search).get("token");
@@ -75,9 +77,10 @@ async function openEpisode(index) {
   for (const camera of ep.cameras) {
     const figure = document.createElement("figure");
     const video = document.createElement("video");
-    video.src = withToken(`/api/episode/${index}/video/${encodeURIComponent(camera)}`);
     video.preload = "auto"; video.muted = true; video.dataset.camera = camera;
     video.addEventListener("timeupdate", onVideoTime);
+    video.addEventListener("loadedmetadata", onVideoLoaded);
+    video.addEventListener("ended", onVideoEnded);
     figure.appendChild(video);
     figure.insertAdjacentHTML("beforeend", `<figcaption>${escapeHtml(camera)}</figcaption>`);
     videos.appendChild(figure);
@@ -96,10 +99,35 @@ async function openEpisode(index) {
 const videos = () => Array.from(document.querySelectorAll("#videos video"));
 const clampStep = (k) => Math.max(0, Math.min(S.ep.num_steps, Math.round(k)));
 
+// the observation a video element shows: its chunk's first plus the frame at its time
+const videoStep = (v) => Number(v.dataset.chunk) * S.ep.video_chunk + Math.floor(v.currentTime * S.ep.fps);
+
+function showStep(v, step) {
+  // the middle of the observation's frame in the chunk holding it; another chunk loads first
+  const chunk = Math.floor(step / S.ep.video_chunk), time = (step - chunk * S.ep.video_chunk + 0.5) / S.ep.fps;
+  if (v.dataset.chunk === String(chunk) && v.readyState >= 1) { v.currentTime = time; return; }
+  v.dataset.time = time;
+  if (v.dataset.chunk === String(chunk)) return;  // loading: onVideoLoaded seeks there
+  v.dataset.chunk = chunk;
+  v.src = withToken(`/api/episode/${S.ep.index}/video/${encodeURIComponent(v.dataset.camera)}?chunk=${chunk}`);
+}
+
+function onVideoLoaded(event) {
+  const v = event.target;
+  v.currentTime = Number(v.dataset.time);
+  if (S.playing) { v.playbackRate = parseFloat($("speed").value); v.play().catch(() => {}); }
+}
+
+function onVideoEnded(event) {
+  // a chunk played to its end: go on in the next one
+  const next = (Number(event.target.dataset.chunk) + 1) * S.ep.video_chunk;
+  if (S.playing && next <= S.ep.num_steps) showStep(event.target, next);
+}
+
 function seek(step) {
   if (!S.ep) return;
   S.step = clampStep(step);
-  for (const v of videos()) if (!S.playing || Math.abs(v.currentTime * S.ep.fps - S.step) > 1.5) v.currentTime = (S.step + 0.5) / S.ep.fps;
+  for (const v of videos()) if (!S.playing || Math.abs(videoStep(v) - S.step) > 1.5) showStep(v, S.step);
   if (S.step < S.view.start || S.step > S.view.end) {
     const width = S.view.end - S.view.start;
     S.view.start = Math.max(0, Math.min(S.step - width / 2, S.ep.num_steps - width));
@@ -111,8 +139,7 @@ function seek(step) {
 
 function onVideoTime(event) {
   if (!S.playing || event.target !== videos()[0]) return;
-  const step = Math.floor(event.target.currentTime * S.ep.fps);
-  S.step = clampStep(step);
+  S.step = clampStep(videoStep(event.target));
   checkLoop();
   draw();
 }
@@ -139,7 +166,7 @@ function play() {
   clearInterval(S.timer);
   S.timer = setInterval(() => {
     if (!videos().length) { S.step = clampStep(S.step + 1); checkLoop(); draw(); }
-    else { const v = videos()[0]; S.step = clampStep(Math.floor(v.currentTime * S.ep.fps)); checkLoop(); draw(); }
+    else { const v = videos()[0]; S.step = clampStep(videoStep(v)); checkLoop(); draw(); }
   }, 1000 / (S.ep.fps * (videos().length ? 2 : rate)));
 }
 
