@@ -165,6 +165,13 @@ def _normaliser(config: dict[str, Any], size: int, name: str) -> tuple[torch.Ten
     return mean, std
 
 
+def pixels(frames: torch.Tensor) -> torch.Tensor:
+    """(N, H, W, 3) uint8 frames -> (N, 3, H, W) floats in [0, 1] for a convolution, channels innermost in
+    memory as the frames have them (the convolutions' fast layout on the CPU). Scaled in place in a copy:
+    one pass less over the frames, which outgrow the cache."""
+    return frames.permute(0, 3, 1, 2).to(torch.float32, copy=True).div_(255.0)
+
+
 @register_encoder("image_cnn")
 class ImageEncoder(ObservationEncoder):
     """A small CNN for a camera of any size, trained from scratch (no download).
@@ -191,13 +198,13 @@ class ImageEncoder(ObservationEncoder):
 
     def forward(self, frames: torch.Tensor) -> torch.Tensor:
         """(N, H, W, 3) uint8 -> (N, dim)."""
-        return self.proj(self.convs(frames.permute(0, 3, 1, 2).float() / 255.0))
+        return self.proj(self.convs(pixels(frames)))
 
     def encode_with_entities(
         self, frames: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
         """(N, dim), and the last convolution's cells (before the pool) as entities."""
-        cells = self.convs[:-1](frames.permute(0, 3, 1, 2).float() / 255.0)
+        cells = self.convs[:-1](pixels(frames))
         return self.proj(self.convs[-1](cells)), *cell_entities(cells)
 
 

@@ -297,10 +297,10 @@ encoders' activations. Small on purpose: on the CPU, passes of a few MB stay in 
 allocator's memory, where passes of tens of MB fault in fresh pages every time and ran at half the speed
 (`benchmarks/bench_robot.py throughput`)."""
 
-SCORE_HIDDEN_BYTES = 4 * 2**20
+SCORE_HIDDEN_BYTES = 2 * 2**20
 """Trunk hidden states per pass when scoring an episode (windows x positions x hidden_dim, float32): the
 windows per pass follow from the window length and the trunk's width, so memory stays bounded on long
-episodes, long windows and wide trunks (a few MB, as `ENCODE_INPUT_BYTES`)."""
+episodes, long windows and wide trunks (small on purpose, as `ENCODE_INPUT_BYTES`)."""
 
 
 def episode_windows(features: torch.Tensor, window_len: int) -> torch.Tensor:
