@@ -290,12 +290,12 @@ def make_label_head(kind: str, in_dim: int, instructions: list[str]) -> nn.Modul
 
 FLOAT_BYTES = 4
 
-ENCODE_INPUT_BYTES = 4 * 2**20
+ENCODE_INPUT_BYTES = 2 * 2**20
 """Camera frames per encoder pass when encoding an episode, in bytes as the encoders read them (float32):
 the rows per pass follow from the frames' shapes (many small frames, few large ones), bounding the
-encoders' activations. Small on purpose: on the CPU, passes of a few MB stay in cache and reuse the
-allocator's memory, where passes of tens of MB fault in fresh pages every time and ran at half the speed
-(`benchmarks/bench_robot.py throughput`)."""
+encoders' activations. Small on purpose: on the CPU, passes of a couple of MB mostly reuse the memory the
+previous pass freed, where passes of tens of MB faulted in fresh pages every time and ran at half the speed
+(`benchmarks/bench_robot.py throughput`; docs/segmentation.md, "Long episodes")."""
 
 SCORE_HIDDEN_BYTES = 2 * 2**20
 """Trunk hidden states per pass when scoring an episode (windows x positions x hidden_dim, float32): the
