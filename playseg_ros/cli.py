@@ -400,9 +400,11 @@ def _add_segmentation_commands(sub: argparse._SubParsersAction) -> None:
     )
     train.add_argument(
         "--augment",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
+        default=None,
         help="each training clip under a random symmetry of the domain's world, its instruction turned with "
-        "it (the domain's clip_symmetries); for a domain without symmetries, rotate/mirror the camera frames "
+        "it (the domain's clip_symmetries; the default for a domain that declares them, --no-augment to "
+        "train on the clips as recorded); for a domain without symmetries, rotate/mirror the camera frames "
         "by a random multiple of 90 degrees (with --actions none; only where instructions and ends do not "
         "depend on orientation: a room seen from above, not 'push the block left'); PS and the labelling model",
     )

@@ -193,7 +193,7 @@ def train(
     method: str = "ps",
     encoders_from: str | None = None,
     label_head: str | None = None,
-    augment: bool = False,
+    augment: bool | None = None,
     label_accuracy: float | None = None,
     end_lookahead: int | None = None,
     budget: dict[str, Any] | None = None,
@@ -206,7 +206,8 @@ def train(
 
     ``bounds`` (min_len, max_len, k_max; None = derived, see `segment_bounds`) and ``encoders``
     (``FEATURE=KIND`` overrides of the step encoders) and ``label_head`` (None: the domain's, else
-    linear) and ``augment`` (training clips under the domain's symmetries, or rotated/mirrored frames)
+    linear) and ``augment`` (training clips under the domain's symmetries, or rotated/mirrored frames;
+    None: under the domain's symmetries where it declares them and the method augments, else not)
     and ``end_lookahead`` (None: the domain's, else 0) come from the command line;
     ``budget`` (max_steps, max_minutes, patience; None = the method's default) bounds the run on
     ``device``. Without annotated val episodes, ``val_share`` of the annotated training episodes are
@@ -295,6 +296,8 @@ def train(
         seed=seed, k_max=chosen.k_max, **{key: value for key, value in given.items() if value is not None}
     )
     features, read_actions = _action_features(actions, dataset.features)
+    if augment is None:  # a world's declared symmetries are free data: train on them unless told not to
+        augment = get_method(method).augments and clip_symmetries_of(dataset.domain) is not None
     if augment and read_actions and clip_symmetries_of(dataset.domain) is None:
         raise PlaysegError(
             "--augment: only with --actions none (a mirror would swap left and right turns), or for a "
@@ -356,8 +359,18 @@ def train(
         if model_cfg.end_lookahead
         else ""
     )
+    symmetries = clip_symmetries_of(dataset.domain)
+    turned = (
+        (
+            f"; clips under the domain's {symmetries.count} symmetries"
+            if symmetries
+            else "; clips rotated/mirrored"
+        )
+        if augment
+        else ""
+    )
     print(
-        f"model reads {read}{unread}; {model_cfg.label_head} label head{ahead}; {chosen.describe()}; "
+        f"model reads {read}{unread}; {model_cfg.label_head} label head{ahead}; {chosen.describe()}{turned}; "
         f"device {resolved}",
         flush=True,
     )

@@ -11,6 +11,7 @@ import torch
 
 from playseg_core.data.dataset import PlayDataset
 from playseg_core.domains.tabletop.instructions import INSTRUCTIONS
+from playseg_core.ps.model import load_model
 from playseg_ros.cli import main as cli_main
 
 torch.set_num_threads(1)
@@ -30,6 +31,9 @@ def test_generate_train_segment_evaluate(tmp_path: Path, capsys) -> None:
     # action; each instruction has its own label weights (the domain's LABEL_HEAD).
     assert "tabletop.object_maps" in out and "state_mlp" in out and "continuous_action" in out
     assert "linear label head" in out
+    # The table's symmetries are declared by the domain, so training uses them unless told not to.
+    assert "clips under the domain's 8 symmetries" in out
+    assert load_model(model)[1]["train"]["augment"] is True
 
     argv = ["segment", "--model", str(model), "--input", str(data), "--out", str(pred), "--splits", "test"]
     assert cli_main(argv) == 0
@@ -47,3 +51,14 @@ def test_generate_train_segment_evaluate(tmp_path: Path, capsys) -> None:
     assert metrics["episodes"] == len(test_episodes)
     assert metrics["true_segments"] == sum(len(truth.segments(i, truth=True)) for i in test_episodes)
     assert 0.0 <= metrics["boundary_f1_tol2"] <= 1.0 and 0.0 <= metrics["label_accuracy"] <= 1.0
+
+
+def test_no_augment_trains_on_the_clips_as_recorded(tmp_path: Path, capsys) -> None:
+    data, model = tmp_path / "data", tmp_path / "ps.pt"
+    assert (
+        cli_main(["generate", "--domain", "tabletop", "--preset", "tiny", "--out", str(data), "--quiet"]) == 0
+    )
+    argv = ["train", "--data", str(data), "--out", str(model), "--max-steps", "2", "--no-augment"]
+    assert cli_main(argv) == 0
+    assert "symmetries" not in capsys.readouterr().out
+    assert load_model(model)[1]["train"]["augment"] is False
