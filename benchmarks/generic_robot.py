@@ -56,7 +56,8 @@ SKILLS = (
                                  (0.0, 1.4, -0.4, 0.2, 0.0))),
 )  # fmt: skip
 INSTRUCTIONS = tuple(skill.instruction for skill in SKILLS)
-HOME = np.array(SKILLS[4].waypoints[0])
+HOME_SKILL = SKILLS[4]
+HOME = np.array(HOME_SKILL.waypoints[0])
 GRIP_SECONDS = 0.4
 
 
@@ -104,7 +105,7 @@ class Play:
         q = HOME + rng.normal(0.0, 0.05, ARM_JOINTS)
         grip = 0.0
         t = _grid(float(rng.uniform(0.3, 1.0)))  # the operator takes the controls
-        skill = -1
+        skill = SKILLS.index(HOME_SKILL)  # the arm starts at home: the first skill goes elsewhere
         while True:
             skill = int((skill + rng.integers(1, len(SKILLS))) % len(SKILLS))
             phases, q_end, grip_end = self._plan(SKILLS[skill], q, grip, t, rng)
@@ -352,16 +353,18 @@ def write_robot_bag(
         (bag / LABELS_FILE).write_text(truth)
 
 
-def write_fleet(root: Path, bags: int, seconds: float, annotated_every: int = 4, seed: int = 0) -> list[Path]:
-    """``bags`` bags of ``seconds`` each under ``root`` (run_000, ...), every ``annotated_every``-th one
-    annotated (labels.yaml), each with its ground truth; the two mappings next to them: ``map.yaml`` (the
-    labels) and ``map_truth.yaml`` (the ground truth, for scoring)."""
-    camera = Camera()
+def write_fleet(
+    root: Path, bags: int, seconds: float, annotated: int, seed: int = 0, camera: Camera | None = None
+) -> list[Path]:
+    """``bags`` bags of ``seconds`` each under ``root`` (run_000, ...), ``annotated`` of them spread
+    evenly with their skills as labels (labels.yaml), each with its ground truth; the two mappings next
+    to them: ``map.yaml`` (the labels) and ``map_truth.yaml`` (the ground truth, for scoring)."""
+    camera = camera or Camera()
     paths = []
     for number in range(bags):
         path = root / "bags" / f"run_{number:03d}"
         write_robot_bag(
-            path, Play(seed * 100_000 + number, seconds), annotated=number % annotated_every == 0,
+            path, Play(seed * 100_000 + number, seconds), annotated=number * annotated % bags < annotated,
             camera=camera, seed=seed * 100_000 + number,
         )  # fmt: skip
         paths.append(path)
