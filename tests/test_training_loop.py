@@ -103,6 +103,22 @@ def test_early_stopping_stops_on_a_plateau_and_keeps_the_best_weights() -> None:
     assert _same(_weights(result.model), _weights(capped.model))
 
 
+def test_patience_also_waits_a_number_of_steps_since_the_best() -> None:
+    # A measure that dips for a few evaluations and then improves again (a small val split's noise):
+    # best at 20, worse at 25-40, better at 45. Three evaluations alone stop it at 35; patience_steps 25
+    # keeps it going past the dip to the better weights of step 45.
+    def measure_at(step: int) -> float:
+        return 10.0 - step / 5 if step <= 20 else (9.0 if step < 45 else 1.0)
+
+    impatient = train_loop(_toy_task(measure_at=measure_at), LoopConfig(steps=60, eval_every=5, patience=3))
+    assert impatient.stopped == "plateau" and impatient.steps == 35 and impatient.best_step == 20
+    waiting = LoopConfig(steps=80, eval_every=5, patience=3, patience_steps=25)
+    result = train_loop(_toy_task(measure_at=measure_at), waiting)
+    assert result.best_step == 45 and result.best["val_loss"] == 1.0
+    # from step 45 on nothing improves: 3 evaluations would be 60, 25 steps make it 70
+    assert result.stopped == "plateau" and result.steps == 70
+
+
 def test_max_steps_and_max_minutes_bound_the_run() -> None:
     assert train_loop(_toy_task(), LoopConfig(steps=7)).steps == 7
     result = train_loop(_toy_task(), LoopConfig(steps=1000, eval_every=500, max_minutes=1e-9))

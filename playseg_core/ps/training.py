@@ -47,7 +47,10 @@ class TrainConfig:
     # ... but at least this many steps: small data learns the labels late (docs/segmentation.md "Training")
     min_steps: int = 3200
     cap_steps: int = 50_000
-    patience: int = 8  # evaluations without a better val loss
+    patience: int = 8  # evaluations without a better val measure ...
+    # ... spanning at least this share of the step cap: a small val split's measure dips for a few
+    # evaluations while it still improves (docs/segmentation.md "Training")
+    patience_share: float = 0.15
     eval_every: int | None = None
     segments_per_batch: int = 16  # drawn from all annotated episodes; small batches = more steps
     lr: float = 3e-3
@@ -445,6 +448,7 @@ def _fit(model, loss_fn, train_eps, val_eps, instructions, cfg: TrainConfig, nam
         steps=cap,
         eval_every=evaluation_interval(cfg, epoch_steps),
         patience=cfg.patience if cfg.epochs is None and val_items else 0,
+        patience_steps=int(cfg.patience_share * cap),
         max_minutes=cfg.max_minutes,
         grad_clip=5.0,
         device=device,

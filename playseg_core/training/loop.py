@@ -81,6 +81,7 @@ class LoopConfig:
     steps: int  # the step cap
     eval_every: int = 0  # evaluate every so many steps (0: only after the last)
     patience: int = 0  # evaluations without improvement that end the run (0: never early)
+    patience_steps: int = 0  # ... and at least this many steps since the best (a noisy measure's dips)
     min_improvement: float = 1e-3  # relative: a measure must beat the best by this share to count
     max_minutes: float | None = None
     grad_clip: float | None = 5.0
@@ -357,4 +358,6 @@ def _record_evaluation(
     if cfg.log:
         shown = " ".join(f"{key} {value:.4f}" for key, value in entry.items() if key not in ("step", "lr"))
         cfg.log(f"[{task.name}] step {progress.step}/{cfg.steps} lr {entry['lr']:.2e} {shown}")
-    return bool(cfg.patience) and progress.since_best >= cfg.patience
+    if not cfg.patience or progress.since_best < cfg.patience:
+        return False
+    return progress.best_step is None or progress.step - progress.best_step >= cfg.patience_steps
