@@ -319,3 +319,42 @@ def test_the_blocks_are_encoded_once_per_episode_and_symmetry() -> None:
     with torch.no_grad():
         expected = model.encoders.encoders[0](torch.from_numpy(namesake.images[CAMERA][:4].copy()))
     torch.testing.assert_close(fixed.clip_rows(namesake, 0, 3)[CAMERA], expected, atol=1e-5, rtol=0)
+
+
+def test_the_blocks_turn_as_the_table_without_encoding_the_turned_frames() -> None:
+    """The blocks' rows of a turned clip are the recorded rows turned (`turn_block_rows`), equal to
+    encoding the turned frames, so the cache encodes an episode's frames once for all 8 symmetries."""
+    from playseg_core.domains.tabletop.encoder import ObjectMapConfig, object_map_spec
+    from playseg_core.domains.tabletop.play import PlayConfig
+    from playseg_core.domains.tabletop.symmetry import transform_frames, turn_block_rows
+    from playseg_core.ps.encoders import StepEncoders
+    from playseg_core.ps.fixed_features import FixedFeatureCache
+
+    features = PlayConfig().features
+    spec = object_map_spec(features[CAMERA], ObjectMapConfig(pooling="blocks", twins_by_size=True))
+    rng = np.random.default_rng(5)
+    renderer, sim, frames = Renderer(96), TabletopSim(), []
+    for _ in range(12):
+        sim.place_randomly(rng)
+        frames.append(renderer.render(sim.scene()))
+    frames = np.stack(frames)
+    encoders = StepEncoders([spec], features)
+    encoder = encoders.encoders[0]
+    with torch.no_grad():
+        recorded = encoder(torch.from_numpy(frames))
+        for number, (quarter_turns, mirror) in enumerate(SYMMETRIES):
+            turned = np.ascontiguousarray(transform_frames(frames, quarter_turns, mirror))
+            expected = encoder(torch.from_numpy(turned))
+            torch.testing.assert_close(turn_block_rows(spec, recorded, number), expected, atol=1e-5, rtol=0)
+    # another encoder's rows are not the domain's to turn
+    assert turn_block_rows(object_map_spec(features[CAMERA]), recorded, 1) is None
+
+    calls = []
+    original = encoder.forward
+    encoder.forward = lambda rows: calls.append(len(rows)) or original(rows)
+    episode = Episode("e", np.zeros((11, 2), np.float32), {CAMERA: frames})
+    cache = FixedFeatureCache(encoders)
+    with torch.no_grad():
+        rows = [cache.clip_rows(episode, 0, 11, n, tabletop.CLIP_SYMMETRIES)[CAMERA] for n in range(8)]
+    assert sum(calls) == len(frames)  # the recorded frames, once
+    torch.testing.assert_close(rows[3], turn_block_rows(spec, recorded, 3))

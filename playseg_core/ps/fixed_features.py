@@ -32,6 +32,7 @@ class FixedFeatureCache:
             for spec, encoder in zip(encoders.specs, encoders.encoders, strict=True)
             if isinstance(encoder, ObservationEncoder) and not encoder.learns
         }
+        self.specs = {spec.feature: spec for spec in encoders.specs if spec.feature in self.fixed}
         # keyed by the episode object (held here, so its id stays its own): two episodes may share an id
         self._rows: dict[tuple[int, int], tuple[Episode, dict[str, torch.Tensor]]] = {}
 
@@ -65,16 +66,28 @@ class FixedFeatureCache:
     ) -> dict[str, torch.Tensor]:
         if symmetry and symmetries is None:
             raise PlaysegError(f"symmetry {symmetry} asked of the cache without the symmetries")
-        parts: dict[str, list[torch.Tensor]] = {feature: [] for feature in self.fixed}
+        turned: dict[str, torch.Tensor] = {}
+        if symmetry and symmetries.turn_encoded is not None:  # turn the recorded rows where the domain can
+            recorded_rows = self.clip_rows(episode, 0, episode.num_steps)
+            for feature, spec in self.specs.items():
+                rows = symmetries.turn_encoded(spec, recorded_rows[feature], symmetry)
+                if rows is not None:
+                    turned[feature] = rows
+        if len(turned) == len(self.fixed):
+            return turned
+        parts: dict[str, list[torch.Tensor]] = {
+            feature: [] for feature in self.fixed if feature not in turned
+        }
         for first in range(0, episode.num_steps + 1, ENCODE_ROWS):  # a chunk in memory at a time
             last = min(first + ENCODE_ROWS, episode.num_steps + 1) - 1
             recorded = self.encoders.recorded_clip(episode, first, last, self.features)
             if symmetry:
                 recorded = symmetries.turn_clip(recorded, symmetry)
-            for feature, encoder in self.fixed.items():
+            for feature in parts:
+                encoder = self.fixed[feature]
                 rows = torch.from_numpy(np.array(recorded[feature])).to(_device_of(encoder))
                 parts[feature].append(encoder(rows).cpu())  # batches carry CPU rows to any device
-        return {feature: torch.cat(chunks) for feature, chunks in parts.items()}
+        return {**turned, **{feature: torch.cat(chunks) for feature, chunks in parts.items()}}
 
 
 def _device_of(module: torch.nn.Module) -> torch.device:

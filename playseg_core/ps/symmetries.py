@@ -6,8 +6,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import torch
+
+    from playseg_core.ps.encoders import EncoderSpec
 
 
 @dataclass(frozen=True)
@@ -18,11 +24,16 @@ class ClipSymmetries:
     the actions that led to them, by feature; any may be absent) under symmetry ``number``, as new arrays.
     ``turn_instruction(text, number)``: what the instruction says of the turned world. A domain's own
     are its ``clip_symmetries`` (playseg_core/domains); `camera_symmetries` turns the frames only.
+    ``turn_encoded(spec, rows, number)`` (optional): the output rows of an encoder that learns nothing
+    (`spec`) for the turned clip, from its rows of the clip as recorded, where the domain knows how that
+    encoder's output turns (object positions turn as the world does), else None: training then encodes
+    each symmetry's frames once instead of every symmetry's (ps/fixed_features.py).
     """
 
     count: int
     turn_clip: Callable[[dict[str, np.ndarray], int], dict[str, np.ndarray]]
     turn_instruction: Callable[[str, int], str]
+    turn_encoded: Callable[[EncoderSpec, torch.Tensor, int], torch.Tensor | None] | None = None
 
 
 def camera_symmetries(cameras: Sequence[str]) -> ClipSymmetries:

@@ -66,8 +66,14 @@ def _turn_instruction(text: str, number: int) -> str:
     return turn_instruction(text, number)
 
 
+def _turn_encoded(spec: EncoderSpec, rows: Any, number: int) -> Any:
+    from playseg_core.domains.tabletop.symmetry import turn_block_rows
+
+    return turn_block_rows(spec, rows, number)
+
+
 # 8 = len(symmetry.SYMMETRIES), written out: symmetry.py imports the simulator, this package must not
-CLIP_SYMMETRIES = ClipSymmetries(8, _turn_clip, _turn_instruction)
+CLIP_SYMMETRIES = ClipSymmetries(8, _turn_clip, _turn_instruction, _turn_encoded)
 """The table's 8 symmetries (symmetry.py `SYMMETRIES`: quarter turns, each also mirrored) that
 ``playseg train --augment`` trains PS on: frames, state, commands and the instruction's words turn alike."""
 

@@ -14,8 +14,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+import torch
 
 from playseg_core.data.features import ACTION, STATE
+from playseg_core.domains.tabletop.encoder import KIND as OBJECT_MAPS
 from playseg_core.domains.tabletop.instructions import (
     DIRECTIONS,
     FAMILIES,
@@ -24,6 +26,7 @@ from playseg_core.domains.tabletop.instructions import (
     Task,
 )
 from playseg_core.domains.tabletop.spec import CAMERA, TABLE_SIZE
+from playseg_core.ps.encoders import EncoderSpec
 
 _QUARTER_TURN = np.array([[0, -1], [1, 0]])
 _MIRROR = np.array([[-1, 0], [0, 1]])
@@ -140,6 +143,20 @@ def turn_instruction(text: str, number: int) -> str:
     return transform_instruction(text, symmetry_matrix(*SYMMETRIES[number]))
 
 
+def turn_block_rows(spec: EncoderSpec, rows: torch.Tensor, number: int) -> torch.Tensor | None:
+    """The object-map encoder's blocks (`ObjectMapConfig` pooling "blocks": each block's image
+    coordinates, x right and y down, about the frame's centre) for the frames under ``SYMMETRIES[number]``,
+    from its rows of the frames as recorded: the positions turn as the table does, the blocks keep their
+    order. None for any other encoder (its rows are encoded from the turned frames)."""
+    if spec.kind != OBJECT_MAPS or spec.config.get("pooling") != "blocks":
+        return None
+    matrix = symmetry_matrix(*SYMMETRIES[number])
+    flip = np.diag([1, -1])  # image y runs down, the table's up
+    image_matrix = torch.as_tensor(flip @ matrix @ flip, dtype=rows.dtype)
+    points = rows.reshape(rows.shape[0], -1, 2)
+    return (points @ image_matrix.T).reshape(rows.shape)
+
+
 def _transform_state(state: np.ndarray, matrix: np.ndarray) -> np.ndarray:
     state = np.array(state, copy=True)
     state[:, :2] = transform_points(state[:, :2], matrix)  # spec.STATE_NAMES: x, y, vx, vy
@@ -153,6 +170,7 @@ def _transform_vectors(vectors: np.ndarray, matrix: np.ndarray) -> np.ndarray:
 
 __all__ = [
     "SYMMETRIES",
+    "turn_block_rows",
     "apply_symmetries",
     "random_symmetry",
     "symmetry_matrix",
