@@ -206,7 +206,8 @@ def main() -> None:
         dataset = PlayDataset.open(data)
         indices = dataset.episode_indices(args.split)[: args.episodes]
         total = sum(len(dataset.segments(i, truth=True)) for i in indices)
-        print(f"{args.domain} {args.preset}: pool of {len(indices)} {args.split} episodes, {total} true segments "
+        name = f"{args.domain} {data.name if args.data else args.preset}"
+        print(f"{name}: pool of {len(indices)} {args.split} episodes, {total} true segments "
               f"(from scratch: {total} actions; 0.90 without a model: {int(np.ceil(0.9 * total))})")  # fmt: skip
         for strategy in args.strategies.split(","):
             run(args, strategy, dataset, work)
