@@ -296,9 +296,10 @@ def train(
         seed=seed, k_max=chosen.k_max, **{key: value for key, value in given.items() if value is not None}
     )
     features, read_actions = _action_features(actions, dataset.features)
+    symmetries = clip_symmetries_of(dataset.domain)
     if augment is None:  # a world's declared symmetries are free data: train on them unless told not to
-        augment = get_method(method).augments and clip_symmetries_of(dataset.domain) is not None
-    if augment and read_actions and clip_symmetries_of(dataset.domain) is None:
+        augment = get_method(method).augments and symmetries is not None
+    if augment and read_actions and symmetries is None:
         raise PlaysegError(
             "--augment: only with --actions none (a mirror would swap left and right turns), or for a "
             "domain whose symmetries turn the actions too (its clip_symmetries)"
@@ -359,16 +360,13 @@ def train(
         if model_cfg.end_lookahead
         else ""
     )
-    symmetries = clip_symmetries_of(dataset.domain)
-    turned = (
-        (
+    turned = ""
+    if augment:
+        turned = (
             f"; clips under the domain's {symmetries.count} symmetries"
             if symmetries
             else "; clips rotated/mirrored"
         )
-        if augment
-        else ""
-    )
     print(
         f"model reads {read}{unread}; {model_cfg.label_head} label head{ahead}; {chosen.describe()}{turned}; "
         f"device {resolved}",
