@@ -89,8 +89,8 @@ def _print_calibration(calibrated: dict[str, dict]) -> None:
     bias, labels = calibrated["end_bias"], calibrated["calibration"]
     print(
         f"end bias {bias['bias']:+.2f}: val boundary P {bias['precision']:.3f} R {bias['recall']:.3f} "
-        f"F1 {bias['f1']:.3f} (best F1 {bias['best_f1']:.3f} +- {bias['f1_standard_error']:.3f}; "
-        f"{bias['f1_without_bias']:.3f} without a bias)"
+        f"F1 {bias['f1']:.3f} within +-{bias['tolerance']} steps ({bias['num_boundaries']} boundaries; "
+        f"F1 {bias['f1_without_bias']:.3f} without a bias)"
     )
     print(
         f"label threshold {labels['threshold']:.3f} for {labels['target_accuracy']:.2f} accuracy "

@@ -23,7 +23,7 @@ from playseg_core.ps.calibration import (
 )
 from playseg_core.ps.decoding import OnlineDecoder
 from playseg_core.ps.labelling import KeepRule, label_segments, segment_probability
-from playseg_core.ps.metrics import evaluate
+from playseg_core.ps.metrics import BoundaryCounts, match_boundaries
 from playseg_core.ps.reference_style import reference_style_segment
 from playseg_core.ps.segmentation import segment_episode
 
@@ -120,10 +120,14 @@ def test_calibrate_on_annotated_and_keep_by_label() -> None:
     assert all(s.confidence >= calibration.threshold for s in kept)
 
 
-def _boundary_f1(model, episodes) -> float:
-    pred = {ep.episode_id: segment_episode(model, ep) for ep in episodes}
-    truth = {ep.episode_id: ep.segments for ep in episodes}
-    return evaluate(pred, truth, {ep.episode_id: ep.num_steps for ep in episodes})["boundary_f1_tol0"]
+def _boundary_scores(model, episodes, tolerance: int) -> tuple[float, float]:
+    """Boundary precision and F1 within ``tolerance`` of ``model``'s segmentation of ``episodes``."""
+    counts = BoundaryCounts(0, 0, 0)
+    for ep in episodes:
+        pred = [s.end for s in segment_episode(model, ep)]
+        truth = [s.end for s in ep.segments]
+        counts += BoundaryCounts(match_boundaries(pred, truth, tolerance), len(pred), len(truth))
+    return counts.precision, counts.f1
 
 
 @pytest.mark.slow
@@ -131,19 +135,23 @@ def test_calibrated_end_bias_is_the_best_candidate_when_segmenting() -> None:
     model = tiny_ps_model(max_len=5, seed=4)
     episodes = [synthetic_episode(s, num_segments=4, max_seg_len=4) for s in range(4)]
     candidates = (-4.0, -2.0, 0.0, 2.0, 4.0)
-    result = calibrate_end_bias(model, episodes, candidates)
-    assert model.end_bias.item() == 0.0  # calibration alone does not change the model
-    f1 = {}
-    for bias in candidates:  # the production path with the bias set: the calibration's choice wins
-        model.end_bias.fill_(bias)
-        f1[bias] = _boundary_f1(model, episodes)
-    assert len(set(f1.values())) > 1  # the candidates really segment differently
-    assert result.best_f1 == pytest.approx(max(f1.values())) and result.f1_standard_error > 0
-    assert result.bias in candidates and result.f1 == pytest.approx(f1[result.bias])
-    # one-standard-error rule: within one SE of the best F1, the highest precision
-    eligible = [b for b in candidates if f1[b] >= result.best_f1 - result.f1_standard_error - 1e-9]
-    assert result.precision == pytest.approx(max(p for b, p, _, _ in result.sweep if b in eligible))
-    assert result.f1_without_bias == pytest.approx(f1[0.0]) and result.num_episodes == 4
+    for tolerance in (0, 1):
+        result = calibrate_end_bias(model, episodes, candidates, tolerance=tolerance)
+        assert model.end_bias.item() == 0.0  # calibration alone does not change the model
+        scores = {}
+        for bias in candidates:  # the production path with the bias set: the calibration's choice wins
+            model.end_bias.fill_(bias)
+            scores[bias] = _boundary_scores(model, episodes, tolerance)
+        model.end_bias.fill_(0.0)
+        assert len(set(scores.values())) > 1  # the candidates really segment differently
+        best = max(f1 for _, f1 in scores.values())
+        assert result.bias in candidates and result.f1 == pytest.approx(best)
+        # ties on F1 go to the higher precision
+        assert result.precision == pytest.approx(
+            max(p for p, f1 in scores.values() if f1 == pytest.approx(best))
+        )
+        assert result.tolerance == tolerance and result.f1_without_bias == pytest.approx(scores[0.0][1])
+        assert result.num_episodes == 4 and result.num_boundaries == sum(len(ep.segments) for ep in episodes)
     unannotated = Episode(
         "play-0", np.zeros((2, 1), np.float32), {CAMERA: np.zeros((3, 64, 64, 3), np.uint8)}
     )

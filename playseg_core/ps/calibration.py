@@ -2,7 +2,7 @@
 
 Both are chosen on the annotated validation split, never on the play being segmented:
 - `calibrate_end_bias`: the bias added to the end logit when segmenting (``PSModel.end_bias``), for the
-  best exact boundary F1 (one-standard-error rule). Training weights the rare positive ends, which inflates the end probability
+  best boundary F1 within `END_BIAS_TOLERANCE` steps. Training weights the rare positive ends, which inflates the end probability
   the decoder reads as a hazard; the bias takes that back by as much as held-out play says.
 - `calibrate_on_annotated` / `calibrate_threshold`: the lowest label confidence whose kept segments
   reach a target label accuracy (e.g. 0.95), used to filter extracted segments (labelling.py).
@@ -38,10 +38,18 @@ END_BIAS_CANDIDATES: tuple[float, ...] = tuple(float(b) for b in np.arange(-3.0,
 """End biases `calibrate_end_bias` tries by default."""
 
 
+END_BIAS_TOLERANCE = 2
+"""Steps a predicted end may lie from a true one and still count when `calibrate_end_bias` scores a bias:
+the tolerance segmentation is judged at (boundary F1 +-2 steps). Annotated ends are a human's choice to
+a step or two; scored exactly, a bias that finds every skill's end a step early looks no better than one
+that merges skills."""
+
+
 @dataclass(frozen=True)
 class EndBiasCalibration:
     """The end bias chosen on held-out annotated episodes, and the boundary scores it gave there.
 
+    Scores are boundary precision / recall / F1 within ``tolerance`` steps, final boundary included.
     sweep: (bias, precision, recall, F1) of every candidate, for reports.
     """
 
@@ -49,24 +57,27 @@ class EndBiasCalibration:
     precision: float
     recall: float
     f1: float
-    best_f1: float  # the highest F1 of any candidate
-    f1_standard_error: float  # of best_f1, from the number of true boundaries
+    tolerance: int
     f1_without_bias: float  # at bias 0 (the raw end head), for comparison
     num_episodes: int
+    num_boundaries: int  # true boundaries of the held-out episodes the scores count
     sweep: list[tuple[float, float, float, float]]
 
 
 @torch.no_grad()
 def calibrate_end_bias(
-    model: PSModel, episodes: Iterable[Episode], candidates: Sequence[float] = END_BIAS_CANDIDATES
+    model: PSModel,
+    episodes: Iterable[Episode],
+    candidates: Sequence[float] = END_BIAS_CANDIDATES,
+    tolerance: int = END_BIAS_TOLERANCE,
 ) -> EndBiasCalibration:
-    """The end bias to segment with, chosen on annotated `episodes` by exact boundary F1 (final boundary
-    included), with the one-standard-error rule: among the candidates whose F1 is within one standard
-    error of the best, the one with the highest precision (ties: the lower bias).
+    """The end bias to segment with: of the `candidates`, the one whose segmentation of the annotated
+    `episodes` has the best boundary F1 within `tolerance` steps (final boundary included); ties go to
+    the higher precision, then the lower bias (fewer cuts).
 
-    Why the rule: F1 can be flat over a wide range of biases (extra cuts trade one-for-one with missed
-    ends), and where held-out data cannot tell candidates apart, fewer and surer cuts are preferred. The model is not changed: set
-    ``model.end_bias`` to the result's bias to segment with it (`calibrate_ps_model` does).
+    The best F1, not a cautious pick near it: a bias below the best merges neighbouring instructions,
+    and a merged segment takes one label for both, so label accuracy falls with recall. The model is not
+    changed: set ``model.end_bias`` to the result's bias to segment with it (`calibrate_ps_model` does).
     """
     if not candidates:
         raise PlaysegError("calibrate_end_bias needs at least one candidate bias")
@@ -90,21 +101,18 @@ def calibrate_end_bias(
             min_len = min(model.cfg.min_len, max_len)  # segmenting cuts with the model's L_min too
             decoded = decode_segments(logits[:, :max_len] + bias, min_len=min_len, max_len=max_len)
             pred = [end for _, end in decoded.segments]
-            counts += BoundaryCounts(match_boundaries(pred, ends), len(pred), len(ends))
+            counts += BoundaryCounts(match_boundaries(pred, ends, tolerance), len(pred), len(ends))
         scores[bias] = counts
-    best_f1 = max(scores[b].f1 for b in allowed)
-    standard_error = math.sqrt(best_f1 * (1.0 - best_f1) / scores[allowed[0]].num_truth)
-    eligible = [b for b in allowed if scores[b].f1 >= best_f1 - standard_error - 1e-12]
-    chosen = max(eligible, key=lambda b: (scores[b].precision, -b))
+    chosen = max(allowed, key=lambda b: (scores[b].f1, scores[b].precision, -b))
     return EndBiasCalibration(
         bias=chosen,
         precision=scores[chosen].precision,
         recall=scores[chosen].recall,
         f1=scores[chosen].f1,
-        best_f1=best_f1,
-        f1_standard_error=standard_error,
+        tolerance=tolerance,
         f1_without_bias=scores[0.0].f1,
         num_episodes=len(raw_logits),
+        num_boundaries=scores[chosen].num_truth,
         sweep=[(b, scores[b].precision, scores[b].recall, scores[b].f1) for b in allowed],
     )
 
