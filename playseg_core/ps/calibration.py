@@ -34,7 +34,7 @@ from playseg_core.ps.metrics import BoundaryCounts, match_boundaries
 from playseg_core.ps.model import LabelModel, PSModel
 from playseg_core.ps.segmentation import segment_episode
 
-END_BIAS_CANDIDATES: tuple[float, ...] = tuple(float(b) for b in np.arange(-3.0, 1.01, 0.25))
+END_BIAS_CANDIDATES: tuple[float, ...] = tuple(float(b) for b in np.arange(-3.0, 3.01, 0.25))
 """End biases `calibrate_end_bias` tries by default."""
 
 
