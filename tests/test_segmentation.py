@@ -146,10 +146,9 @@ def test_calibrated_end_bias_is_the_best_candidate_when_segmenting() -> None:
         assert len(set(scores.values())) > 1  # the candidates really segment differently
         best = max(f1 for _, f1 in scores.values())
         assert result.bias in candidates and result.f1 == pytest.approx(best)
-        # ties on F1 go to the higher precision
-        assert result.precision == pytest.approx(
-            max(p for p, f1 in scores.values() if f1 == pytest.approx(best))
-        )
+        # ties on F1 go to the bias nearest 0
+        tied = [b for b, (_, f1) in scores.items() if f1 == pytest.approx(best)]
+        assert abs(result.bias) == min(abs(b) for b in tied)
         assert result.tolerance == tolerance and result.f1_without_bias == pytest.approx(scores[0.0][1])
         assert result.num_episodes == 4 and result.num_boundaries == sum(len(ep.segments) for ep in episodes)
     unannotated = Episode(

@@ -73,7 +73,8 @@ def calibrate_end_bias(
 ) -> EndBiasCalibration:
     """The end bias to segment with: of the `candidates`, the one whose segmentation of the annotated
     `episodes` has the best boundary F1 within `tolerance` steps (final boundary included); ties go to
-    the higher precision, then the lower bias (fewer cuts).
+    the bias nearest 0, the least correction of the trained end head (held-out play that cannot tell
+    biases apart is no reason to move far from what training learnt).
 
     The best F1, not a cautious pick near it: a bias below the best merges neighbouring instructions,
     and a merged segment takes one label for both, so label accuracy falls with recall. The model is not
@@ -103,7 +104,7 @@ def calibrate_end_bias(
             pred = [end for _, end in decoded.segments]
             counts += BoundaryCounts(match_boundaries(pred, ends, tolerance), len(pred), len(ends))
         scores[bias] = counts
-    chosen = max(allowed, key=lambda b: (scores[b].f1, scores[b].precision, -b))
+    chosen = max(allowed, key=lambda b: (scores[b].f1, -abs(b), -b))
     return EndBiasCalibration(
         bias=chosen,
         precision=scores[chosen].precision,
