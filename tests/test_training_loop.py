@@ -119,6 +119,15 @@ def test_patience_also_waits_a_number_of_steps_since_the_best() -> None:
     assert result.stopped == "plateau" and result.steps == 70
 
 
+def test_a_plateau_reached_at_the_cap_is_reported_as_the_cap() -> None:
+    # Best at 20, patience 3 evaluations of 5: the plateau holds at 35, the cap's step.
+    result = train_loop(
+        _toy_task(measure_at=lambda step: abs(step - 20) + 1), LoopConfig(steps=35, eval_every=5, patience=3)
+    )
+    assert result.steps == 35 and result.stopped == "step cap" and result.best_step == 20
+    assert "stopped by step cap" in result.summary()
+
+
 def test_max_steps_and_max_minutes_bound_the_run() -> None:
     assert train_loop(_toy_task(), LoopConfig(steps=7)).steps == 7
     result = train_loop(_toy_task(), LoopConfig(steps=1000, eval_every=500, max_minutes=1e-9))

@@ -302,7 +302,8 @@ def train_loop(task: TrainingTask, cfg: LoopConfig) -> LoopResult:
             if due or last or out_of_time:
                 progress.seconds = time.perf_counter() - began
                 plateau = _record_evaluation(task, model, cfg, progress, bar) if main else False
-                if distributed.agree(plateau, cfg.device):
+                # At the cap the cap stopped it, whatever the plateau says (every process agrees on `last`).
+                if not last and distributed.agree(plateau, cfg.device):
                     stopped = "plateau"
                     break
                 if cfg.state_path is not None and not last and main:
