@@ -62,8 +62,10 @@ bags: setup
 	$(PY) -m playseg_ros.cli generate --preset sample --seed 0 --out build/sample --workers 2 --overwrite --quiet --bag
 	rm -rf bags/annotated bags/play bags/test
 	cp -r build/sample/bags/annotated build/sample/bags/play build/sample/bags/test bags/
-	# tabletop play as a robot records it (standard messages, docs/tabletop.md): one annotated bag, one not
-	$(PY) -m playseg_ros.tabletop.bags --out bags/tabletop --episodes 2 --annotated 1 --images jpeg --overwrite
+	# tabletop play of CALVIN's 32 task types as a robot records it (standard messages, docs/tabletop.md): an
+	# annotated bag of 6 tasks, unannotated ones of 4 and 30 (the demo replays the long one)
+	$(PY) -m playseg_ros.tabletop.bags --out bags/tabletop --tasks 6 4 30 --annotated 1 --task-set calvin \
+		--images jpeg --overwrite
 
 # The sample PS models the demo uses (bags/models, bags/README.md): BabyAI's trained on bags/annotated,
 # the tabletop's on generated play (playseg_ros/demo.py TABLETOP_RECIPE). Without them `make demo` trains

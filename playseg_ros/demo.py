@@ -32,12 +32,12 @@ BABYAI_MODEL = "babyai-ps.pt"
 TABLETOP_MODEL = "tabletop-ps.pt"
 """The sample models next to the sample bags (bags/models/, written by `make models`): with them the demo
 trains no PS model."""
-TABLETOP_RECIPE = {"preset": "paper", "seed": 0, "epochs": 12}
-"""How `make models` trains the tabletop sample model: generated play of this preset and seed, its train
-split for this many epochs (calibrated on its val split)."""
-TABLETOP_STAND_IN = {"preset": "small", "seed": 0, "epochs": 8}
-"""What the demo trains when the sample tabletop model is missing or stale: minutes, not hours, and far
-weaker (it says so)."""
+TABLETOP_RECIPE = {"preset": "calvin", "seed": 0}
+"""How `make models` trains the tabletop sample model: generated play of this preset and seed, `playseg
+train` with its defaults on the train split (calibrated on its val split), scored on its test split."""
+TABLETOP_STAND_IN = {"preset": "calvin-small", "seed": 0, "max_steps": 500}
+"""What the demo trains when the sample tabletop model is missing or stale: minutes, not the sample
+model's ten, and weaker (it says so)."""
 DEMO_POLICY = {"train_steps": 400, "batch_size": 128, "policy_channels": 32, "eval_episodes": 512}
 """The trainer node's policy settings in the demo: a short budget, so that both halves fit 5 minutes."""
 DEMO_POLICY_SEED_STD = 0.007
@@ -144,9 +144,10 @@ def ensure_ps_model(annotated_bag: Path, cache_dir: Path, shipped: Path | None =
 
 
 def _recipe_text(recipe: dict) -> str:
+    cap = f" --max-steps {recipe['max_steps']}" if "max_steps" in recipe else ""
     return (
         f"playseg generate --domain tabletop --preset {recipe['preset']} --seed {recipe['seed']}; "
-        f"PS trained {recipe['epochs']} epochs on its train split"
+        f"playseg train{cap} on its train split"
     )
 
 
@@ -155,38 +156,59 @@ def _stand_in_text() -> str:
     return f"{_recipe_text(TABLETOP_STAND_IN)}; code {_code_digest()}"
 
 
+def held_out_figures(model_path: Path, dataset) -> dict:
+    """A PS checkpoint's figures on ``dataset``'s held-out test split, as `playseg segment` + `playseg
+    evaluate` give them: boundary F1 exact and within 2 steps, label accuracy."""
+    from playseg_core.baselines.registry import load_segmenter
+    from playseg_core.ps.metrics import evaluate
+
+    segmenter = load_segmenter("ps", model_path)
+    test = list(dataset.episodes("test", truth=True))
+    predicted = {episode.episode_id: segmenter.segment(episode) for episode in test}
+    metrics = evaluate(
+        predicted,
+        {episode.episode_id: episode.segments for episode in test},
+        {episode.episode_id: episode.num_steps for episode in test},
+    )
+    return {
+        "episodes": len(test),
+        "true_segments": metrics["true_segments"],
+        "f1_exact": metrics["boundary_f1_tol0"],
+        "f1_tol2": metrics["boundary_f1_tol2"],
+        "label_accuracy": metrics["label_accuracy"],
+    }
+
+
 def train_tabletop_model(
     recipe: dict, work_dir: Path, model_path: Path, trained_on: str | None = None
 ) -> Path:
-    """Generate tabletop play as ``recipe`` says and train and calibrate a PS model on it (the domain's
-    step encoders and label head)."""
+    """Generate tabletop play as ``recipe`` says, train and calibrate a PS model on it with `playseg
+    train`'s defaults, and keep its test-split figures in the checkpoint's meta (``test``)."""
     from playseg_core.data.dataset import PlayDataset
     from playseg_core.domains import load_domain
-    from playseg_core.ps.calibration import calibrate_ps_model
-    from playseg_core.ps.model import save_model
-    from playseg_core.ps.training import TrainConfig, model_config_for, segment_bounds, train_ps
+    from playseg_core.ps.model import load_model, save_model
+    from playseg_ros.offline import train
 
     data = work_dir / f"tabletop-{recipe['preset']}-{recipe['seed']}"
     if not (data / "meta" / "info.json").is_file():
         _log(f"generating tabletop play ({recipe['preset']} preset) into {data} ...")
         load_domain("tabletop").generate_dataset(data, recipe["preset"], recipe["seed"], 2, False, True)
     dataset = PlayDataset.open(data)
-    train, val = list(dataset.episodes("train")), list(dataset.episodes("val"))
-    bounds = segment_bounds(train, dataset.domain)
-    model_cfg = model_config_for(
-        dataset.features, dataset.domain, len(dataset.instructions), max_len=bounds.max_len, episodes=train,
-        min_len=bounds.min_len,
-    )  # fmt: skip
-    _log(
-        f"training the tabletop PS model on {sum(len(e.segments) for e in train)} annotated segments, "
-        f"{recipe['epochs']} epochs ..."
-    )
-    config = TrainConfig(k_max=bounds.k_max, epochs=recipe["epochs"], progress=sys.stderr.isatty())
-    result = train_ps(train, val, dataset.instructions, config, model_cfg)
-    calibrated = calibrate_ps_model(result.model, val)
+    segments = sum(len(episode.segments) for episode in dataset.episodes("train"))
+    _log(f"training the tabletop PS model on {segments} annotated segments ({_recipe_text(recipe)}) ...")
+    began = time.monotonic()
     model_path.parent.mkdir(parents=True, exist_ok=True)
-    save_model(model_path, result.model, {"trained_on": trained_on or _recipe_text(recipe), **calibrated})
-    _log(f"tabletop PS model trained in {result.seconds:.0f} s -> {model_path}")
+    budget = {"max_steps": recipe.get("max_steps")}
+    if train(str(data), str(model_path), None, None, None, 0, None, overwrite=True, budget=budget) != 0:
+        raise PlaysegError(f"training the tabletop PS model on {data} failed (see above)")
+    figures = held_out_figures(model_path, dataset)
+    model, meta = load_model(model_path, ("ps",))
+    save_model(model_path, model, {**meta, "trained_on": trained_on or _recipe_text(recipe), "test": figures})
+    _log(
+        f"tabletop PS model trained in {time.monotonic() - began:.0f} s -> {model_path}; its test split: "
+        f"F1 {figures['f1_exact']:.3f} exact, {figures['f1_tol2']:.3f} within 2 steps, label accuracy "
+        f"{figures['label_accuracy']:.3f} ({figures['true_segments']} segments)"
+    )
     return model_path
 
 
@@ -433,6 +455,13 @@ def run_demo(bags_dir: Path = Path("bags"), out_dir: Path = DEMO_DIR) -> int:
         f"label accuracy {r['label_accuracy']:.3f}; convert --segment stored the {r['stored_segments']} at or above "
         f"the label threshold {threshold}, the same as live: {r['live_equals_convert']}"
     )
+    held_out = r["model_test"]
+    if held_out:
+        _log(
+            f"the same model on its training play's held-out test split ({held_out['true_segments']} segments, "
+            f"`make models`): F1 {held_out['f1_exact']:.3f} exact, {held_out['f1_tol2']:.3f} within 2 steps, "
+            f"label accuracy {held_out['label_accuracy']:.3f}"
+        )
     lerobot = r["lerobot"]
     _log(
         f"LeRobot {lerobot['codebase_version']} dataset {lerobot['path']}: {lerobot['episodes']} episodes, "

@@ -2,8 +2,8 @@
 
 1. Bring up topic_adapter (the bag's mapping file: camera, joint states and velocity commands at their own
    rates -> PlaySteps), segmenter and recorder as separate ROS 2 processes.
-2. The bag player replays the unannotated tabletop bag (bags/tabletop/tabletop-1) at recorded speed with
-   its /clock; the segmenter publishes a LabelledSegment as soon as its online decoder decides one.
+2. The bag player replays the long unannotated tabletop bag (bags/tabletop/tabletop-2, 30 tasks) at twice
+   its recorded speed with its /clock; the segmenter publishes a LabelledSegment as soon as its online decoder decides one.
 3. Score the recorded segments against the bag's ground truth (its sidecar, read through
    mapping_truth.yaml), exact and within 2 steps.
 4. `playseg convert --format lerobot --segment MODEL` over both tabletop bags: a LeRobot v3 dataset whose
@@ -22,12 +22,13 @@ from pathlib import Path
 
 from playseg_core.errors import PlaysegError
 
-PLAY_BAG = "tabletop-1"
+PLAY_BAG = "tabletop-2"
 ANNOTATED_BAG = "tabletop-0"
 STREAM_TIMEOUT_S = 120.0
-REPLAY_RATE = 1.0
-"""Recorded speed: /cmd_vel has no header, so its time is the adapter's clock (the replay's /clock); as fast
-as possible the clock runs ahead of the messages still queued in the adapter."""
+REPLAY_RATE = 2.0
+"""Twice the recorded speed, so that 30 segments of play fit the demo's minutes. Not as fast as possible:
+/cmd_vel has no header, so its time is the adapter's clock (the replay's /clock), and unthrottled the clock
+runs ahead of the messages still queued in the adapter."""
 RECORDER_SETTLE_S = 1.0
 IDLE_TIMEOUT_S = 4.0  # the adapter ends the episode after this long without a message (the bag is over)
 
@@ -93,7 +94,7 @@ def _stream_live(play_bag: Path, mapping: Path, model: Path, run_dir: Path, expe
                     # The replay's /clock stamps the header-less /cmd_vel with its recorded time.
                     {
                         "mapping": str(mapping),
-                        "episode_id": PLAY_BAG,
+                        "episode_id": play_bag.name,
                         "idle_timeout_s": IDLE_TIMEOUT_S,
                         "use_sim_time": True,
                         "wait_for_subscribers": 3,  # segmenter, recorder and this process
@@ -193,11 +194,15 @@ def _lerobot_summary(root: Path) -> dict:
     }
 
 
-def run_robot_half(bags_dir: Path, run_dir: Path, model: Path) -> RobotHalfResult:
-    """The robot half of the demo (module docstring); ``model`` is a tabletop PS checkpoint."""
+def run_robot_half(
+    bags_dir: Path, run_dir: Path, model: Path, play_bag_name: str = PLAY_BAG
+) -> RobotHalfResult:
+    """The robot half of the demo (module docstring); ``model`` is a tabletop PS checkpoint, ``play_bag_name``
+    the unannotated bag of bags/tabletop it replays."""
     from playseg_core.data.dataset import PlayDataset
     from playseg_core.ps.labelling import threshold_json
     from playseg_core.ps.metrics import evaluate, format_metrics_table
+    from playseg_core.ps.model import load_model
     from playseg_ros.convert import SegmentationSpec, convert, load_mapping
     from playseg_ros.convert.run import playseg_copy
     from playseg_ros.convert.segmenting import keep_rule
@@ -205,7 +210,7 @@ def run_robot_half(bags_dir: Path, run_dir: Path, model: Path) -> RobotHalfResul
 
     tabletop = bags_dir / "tabletop"
     play_bag, mapping, mapping_truth = (
-        tabletop / PLAY_BAG,
+        tabletop / play_bag_name,
         tabletop / "mapping.yaml",
         tabletop / "mapping_truth.yaml",
     )
@@ -226,7 +231,7 @@ def run_robot_half(bags_dir: Path, run_dir: Path, model: Path) -> RobotHalfResul
     table = format_metrics_table(metrics)
 
     _log(
-        f"playseg convert --format lerobot --segment {model}: {ANNOTATED_BAG} (annotated) and {PLAY_BAG} ..."
+        f"playseg convert --format lerobot --segment {model}: {ANNOTATED_BAG} (annotated) and {play_bag.name} ..."
     )
     lerobot_dir = robot_dir / "lerobot"
     segmentation = SegmentationSpec.of(model)
@@ -255,6 +260,8 @@ def run_robot_half(bags_dir: Path, run_dir: Path, model: Path) -> RobotHalfResul
         "f1_tol2": metrics["boundary_f1_tol2"],
         "label_accuracy": metrics["label_accuracy"],
         "label_threshold": threshold_json(rule.threshold),
+        # the same model on its training play's held-out test split (`make models` keeps them in its meta)
+        "model_test": load_model(model, ("ps",))[1].get("test"),
         "stored_segments": len(stored),
         "live_equals_convert": same,
         "lerobot": {"path": str(lerobot_dir), **_lerobot_summary(lerobot_dir)},

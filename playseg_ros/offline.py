@@ -320,6 +320,7 @@ def train(
             "lr": lr,
             "batch_size": batch_segments,
             "device": str(resolved),
+            "progress": True,  # step / cap, loss, ETA on stderr, as PS shows them
         }
         given |= {
             key: value
@@ -327,7 +328,10 @@ def train(
             if key in ("max_steps", "max_minutes", "patience", "num_threads")
         }
         val_ids = sorted(episode.episode_id for episode in annotated_val)
-        what = (method, sorted((k, v) for k, v in given.items() if k not in ("device", "max_minutes")))
+        what = (
+            method,
+            sorted((k, v) for k, v in given.items() if k not in ("device", "max_minutes", "progress")),
+        )
         what += (bounds, encoders, encoders_from, augment, read_actions)
         given |= {
             "state_path": str(train_state_path(out)),

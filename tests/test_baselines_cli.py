@@ -46,6 +46,9 @@ def test_train_segment_evaluate_round_trip(method: str, dataset: Path, tmp_path:
     argv = ["train", "--method", method, "--data", str(dataset), "--out", str(model), "--epochs", "1"]
     assert cli_main(argv) == 0
     kind = {"ps": "ps", "unloc": "unloc", "tridet": "tridet"}.get(method, "labeller")
+    if kind in ("unloc", "tridet"):  # a long run shows where it is, as PS's does
+        shown = capsys.readouterr().err
+        assert f"{method}:" in shown and "step/s" in shown, shown
     checkpoint = read_checkpoint(model, (kind,))
     assert checkpoint.kind == kind and "observation.state" in checkpoint.features.by_name
     if kind == "labeller":

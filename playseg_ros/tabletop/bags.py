@@ -287,14 +287,22 @@ def write_sample_bags(
     images: str = "raw",
     state_hz: float = DEFAULT_STATE_HZ,
     tasks_per_episode: tuple[int, int] = (4, 6),
+    tasks: Sequence[int] | None = None,
+    task_set: str = "all",
     image_size: int = DEFAULT_IMAGE_SIZE,
     storage: str = "mcap",
     overwrite: bool = False,
 ) -> list[WrittenBag]:
     """``episodes`` tabletop play episodes (seeds ``seed * 10**9 + i``, as `playseg generate`) as robot
     bags in ``out``, recorded one after the other (`EPISODE_GAP_NS` apart); the first ``annotated`` of
-    them carry the annotations topic."""
+    them carry the annotations topic. ``tasks``, when given, is each bag's number of solved tasks (one bag
+    per entry, in place of ``episodes`` and ``tasks_per_episode``); ``task_set`` the instructions play
+    gives (`PlayConfig.task_set`)."""
     _check_images(images)
+    if tasks is not None:
+        if not tasks or any(count < 1 for count in tasks):
+            raise PlaysegError(f"tabletop sample bags: tasks must be counts >= 1, got {list(tasks)}")
+        episodes = len(tasks)
     if episodes < 1 or not 0 <= annotated <= episodes:
         raise PlaysegError(
             f"tabletop sample bags: need episodes >= 1 and 0 <= annotated <= episodes, got {episodes}, {annotated}"
@@ -306,7 +314,7 @@ def write_sample_bags(
         if not (out / MANIFEST_FILE).is_file():
             raise FileExistsError(f"{out}: exists and holds no {MANIFEST_FILE}; refusing to replace it")
         shutil.rmtree(out)
-    config = PlayConfig(tasks_per_episode=tasks_per_episode, image_size=image_size)
+    config = PlayConfig(tasks_per_episode=tasks_per_episode, image_size=image_size, task_set=task_set)
     staging = out.with_name(f".{out.name}.partial")
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)
@@ -314,7 +322,8 @@ def write_sample_bags(
     try:
         start_ns = LOG_START_NS
         for index in range(episodes):
-            log = record_robot_log(config, episode_seed(seed, index), state_hz=state_hz, start_ns=start_ns)
+            played = config if tasks is None else replace(config, tasks_per_episode=(tasks[index],) * 2)
+            log = record_robot_log(played, episode_seed(seed, index), state_hz=state_hz, start_ns=start_ns)
             start_ns = log.end_ns + EPISODE_GAP_NS
             bag = write_robot_bag(
                 log, staging / log.episode_id, annotate=index < annotated, images=images, storage=storage
@@ -324,6 +333,7 @@ def write_sample_bags(
         manifest = {
             "domain": DOMAIN,
             "seed": seed,
+            "task_set": task_set,
             "images": images,
             "state_hz": state_hz,
             "bags": [{**asdict(bag), "path": bag.path.name} for bag in written],
@@ -461,6 +471,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="tabletop play as standard-message robot bags")
     parser.add_argument("--out", required=True, help="directory to create (one bag per episode inside)")
     parser.add_argument("--episodes", type=int, default=3)
+    parser.add_argument(
+        "--tasks",
+        type=int,
+        nargs="+",
+        help="each bag's number of solved tasks, one bag per value (in place of --episodes)",
+    )
+    parser.add_argument(
+        "--task-set", default="all", help="the instructions play gives: all (197) or calvin (32 task types)"
+    )
     parser.add_argument("--annotated", type=int, default=1, help="how many of the bags carry /annotations")
     parser.add_argument("--images", choices=IMAGE_CHOICES, default="jpeg")
     parser.add_argument("--seed", type=int, default=0)
@@ -471,6 +490,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.out,
             seed=args.seed,
             episodes=args.episodes,
+            tasks=args.tasks,
+            task_set=args.task_set,
             annotated=args.annotated,
             images=args.images,
             overwrite=args.overwrite,
