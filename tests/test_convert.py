@@ -498,6 +498,8 @@ def test_inspect_proposes_a_mapping_that_converts(tmp_path: Path, capsys: pytest
         ("fps: 0\nprimary: x\nfeatures: {}\n", "fps", "positive number"),
         ("fps: 10\nprimary: observation.state\nfeatures:\n  observation.state: {topic: /j, field: position, align: cubic}\n"
          "  action: {derive: next, of: observation.state}\n", "features.observation.state.align", "'cubic' is not one of"),
+        ("fps: 10\nprimary: observation.state\ndomain: tabeltop\nfeatures:\n  observation.state: {topic: /j, field: position}\n"
+         "  action: {derive: next, of: observation.state}\n", "domain", "unknown domain 'tabeltop'"),
     ],
 )  # fmt: skip
 def test_mapping_errors_name_the_file_and_key(tmp_path: Path, text: str, key: str, detail: str) -> None:

@@ -60,6 +60,7 @@ def test_convert_gives_back_the_dataset_episodes(generated: Path, tmp_path: Path
         want = episodes_of(dataset, name, truth)
         assert want, f"the tiny preset has no episodes for the {name} bags"
         converted = PlayDataset.open(out)
+        assert converted.domain == dataset.domain == "tabletop"  # the mapping names it: its encoders train
         got = {Path(r.extra["bag"]).name: converted.episode(r.index, truth=True) for r in converted.records}
         assert sorted(got) == sorted(want)
         for episode_id, episode in got.items():

@@ -12,6 +12,7 @@ A new robot's domain is a new package here (its ROS side, if any, is ``playseg_r
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -93,6 +94,14 @@ DOMAINS: Registry[Domain] = Registry("domain")
 def register_domain(domain: Domain) -> Domain:
     """Make ``domain`` known by its name (a domain package calls this once, on import)."""
     return DOMAINS.register(domain.name, domain)
+
+
+def has_domain_package(name: str) -> bool:
+    """Whether ``name`` names a domain package (playseg_core.domains.<name>), found without importing it:
+    a dataset's domain can be checked where its package's dependencies (torch) are not installed."""
+    if not re.fullmatch(r"[a-z][a-z0-9_]*", name or ""):
+        return False
+    return name in DOMAINS or importlib.util.find_spec(f"{__name__}.{name}") is not None
 
 
 def load_domain(name: str) -> Domain:

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any, Literal, NotRequired, TypedDict
 
 from playseg_core.data.features import ACTION, IMAGE_PREFIX, STATE
+from playseg_core.domains import has_domain_package
 from playseg_core.yaml_io import YamlFileError, load_yaml
 from playseg_ros.convert.errors import MappingError
 
@@ -88,9 +89,12 @@ class MappingYaml(TypedDict):
     features: dict[str, FeatureYaml]
     annotations: NotRequired[AnnotationsYaml]
     episodes: NotRequired[EpisodesYaml]
+    domain: NotRequired[str]
 
 
-TOP_KEYS = ("fps", "primary", "tolerance_ms", "align", "clock", "features", "annotations", "episodes")
+TOP_KEYS = (
+    "fps", "primary", "tolerance_ms", "align", "clock", "features", "annotations", "episodes", "domain",
+)  # fmt: skip
 TOPIC_FEATURE_KEYS = ("topic", "field", "fields", "joints", "align", "tolerance_ms", "resize", "low", "high")
 DERIVED_ACTION_KEYS = ("derive", "of", "low", "high")
 ANNOTATION_KEYS = ("topic", "file", "allow_outside_bag")
@@ -161,6 +165,9 @@ class ConvertMapping:
     min_steps: int
     digest: str
     """sha256 of the mapping's content: a dataset converted with another mapping is not resumed."""
+    domain: str | None = None
+    """The world the bags record (a playseg_core.domains package), stamped on the dataset so that
+    training uses its encoders and symmetries; None: a robot without a domain package (generic ones)."""
 
     @property
     def period_ns(self) -> int:
@@ -268,6 +275,11 @@ def parse_mapping(raw: Any, path: Path) -> ConvertMapping:
     min_steps = episodes.get("min_steps", DEFAULT_MIN_STEPS)
     if isinstance(min_steps, bool) or not isinstance(min_steps, int) or min_steps < 1:
         raise MappingError(path, "episodes.min_steps", f"must be a whole number >= 1, got {_show(min_steps)}")
+    domain = _optional_str(top.get("domain"), path, "domain")
+    if domain is not None and not has_domain_package(domain):
+        raise MappingError(
+            path, "domain", f"unknown domain {_show(domain)} (no playseg_core.domains package)"
+        )
     digest = hashlib.sha256(json.dumps(raw, sort_keys=True, default=str).encode()).hexdigest()
     return ConvertMapping(
         path=path,
@@ -285,6 +297,7 @@ def parse_mapping(raw: Any, path: Path) -> ConvertMapping:
         gap_ns=gap_ns,
         min_steps=min_steps,
         digest=digest,
+        domain=domain,
     )
 
 

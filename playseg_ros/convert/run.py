@@ -521,7 +521,10 @@ def _merge(
             plan.append((part, index, _unique_id(record.episode_id, str(record.extra.get("bag")), used)))
     annotated = [eid for source, index, eid in plan if source.records[index].split in ANNOTATED_SPLITS]
     splits = annotated_splits(annotated, val_share)
-    with DatasetWriter(out, sorted(instructions), meta=meta, overwrite=True, features=features) as writer:
+    domain = mapping.domain if mapping else None
+    with DatasetWriter(
+        out, sorted(instructions), meta=meta, overwrite=True, features=features, domain=domain
+    ) as writer:
         for source, index, episode_id in plan:
             record, episode = source.records[index], source.episode(index, truth=True)
             if episode.episode_id != episode_id:

@@ -265,6 +265,7 @@ features:
     high: {_numbers(action.high)}
 annotations: {annotations}
 episodes: {{split: bag}}
+domain: {DOMAIN}                         # train with the tabletop's encoders and symmetries
 """
 
 
