@@ -199,7 +199,8 @@ def train_tabletop_model(
     began = time.monotonic()
     model_path.parent.mkdir(parents=True, exist_ok=True)
     budget = {"max_steps": recipe.get("max_steps")}
-    if train(str(data), str(model_path), None, None, None, 0, None, overwrite=True, budget=budget) != 0:
+    given = {"epochs": None, "lr": None, "batch_segments": None, "seed": 0, "labeller": None}  # the CLI's
+    if train(str(data), str(model_path), **given, overwrite=True, budget=budget) != 0:
         raise PlaysegError(f"training the tabletop PS model on {data} failed (see above)")
     figures = held_out_figures(model_path, dataset)
     model, meta = load_model(model_path, ("ps",))

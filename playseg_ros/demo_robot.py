@@ -3,7 +3,8 @@
 1. Bring up topic_adapter (the bag's mapping file: camera, joint states and velocity commands at their own
    rates -> PlaySteps), segmenter and recorder as separate ROS 2 processes.
 2. The bag player replays the long unannotated tabletop bag (bags/tabletop/tabletop-2, 30 tasks) at twice
-   its recorded speed with its /clock; the segmenter publishes a LabelledSegment as soon as its online decoder decides one.
+   its recorded speed with its /clock; the segmenter publishes a LabelledSegment as soon as its online
+   decoder decides one.
 3. Score the recorded segments against the bag's ground truth (its sidecar, read through
    mapping_truth.yaml), exact and within 2 steps.
 4. `playseg convert --format lerobot --segment MODEL` over both tabletop bags: a LeRobot v3 dataset whose
