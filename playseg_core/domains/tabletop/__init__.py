@@ -177,8 +177,9 @@ def experiment() -> ExperimentSpec:
                 0.25,
                 {"steps": 1000, "batch_size": 64, "task_set": "calvin"},
                 100,
-                segmenter_steps=400,
-                description="CALVIN's shape, small: 400 annotated start segments of a 1,600-segment pool",
+                description="CALVIN's shape, small: 400 annotated start segments of a 1,600-segment pool; "
+                "the segmenters at their default budgets, as `playseg train` trains them",
+                segmenter_augment=True,
                 segmenter_label_accuracy=CALVIN_LABEL_ACCURACY,
             ),
             "calvin": ExperimentScale(
@@ -187,7 +188,8 @@ def experiment() -> ExperimentSpec:
                 {"steps": 6000, "batch_size": 32, "task_set": "calvin"},
                 500,
                 description="CALVIN's shape: 1,800 annotated start segments (>= 30 per task type) of a "
-                "7,200-segment pool; the segmenters at their default budgets",
+                "7,200-segment pool; the segmenters at their default budgets, as `playseg train` trains them",
+                segmenter_augment=True,
                 segmenter_label_accuracy=CALVIN_LABEL_ACCURACY,
             ),
         },  # fmt: skip
