@@ -19,6 +19,7 @@ from playseg_core.ps.calibration import (
     calibrate_threshold,
     check_own_cuts,
     majority_instructions,
+    pick_end_bias,
     steps_labelled_right,
 )
 from playseg_core.ps.decoding import OnlineDecoder
@@ -131,7 +132,7 @@ def _boundary_scores(model, episodes, tolerance: int) -> tuple[float, float]:
 
 
 @pytest.mark.slow
-def test_calibrated_end_bias_is_the_best_candidate_when_segmenting() -> None:
+def test_calibrated_end_bias_is_the_one_nearest_0_within_noise_of_the_best() -> None:
     model = tiny_ps_model(max_len=5, seed=4)
     episodes = [synthetic_episode(s, num_segments=4, max_seg_len=4) for s in range(4)]
     candidates = (-4.0, -2.0, 0.0, 2.0, 4.0)
@@ -145,10 +146,12 @@ def test_calibrated_end_bias_is_the_best_candidate_when_segmenting() -> None:
         model.end_bias.fill_(0.0)
         assert len(set(scores.values())) > 1  # the candidates really segment differently
         best = max(f1 for _, f1 in scores.values())
-        assert result.bias in candidates and result.f1 == pytest.approx(best)
-        # ties on F1 go to the bias nearest 0
-        tied = [b for b, (_, f1) in scores.items() if f1 == pytest.approx(best)]
-        assert abs(result.bias) == min(abs(b) for b in tied)
+        # within one standard error of the best F1 (a proportion over the true boundaries), the bias
+        # nearest 0; the production path's F1 at it is the one the calibration reports
+        noise = math.sqrt(best * (1 - best) / result.num_boundaries)
+        near_best = [b for b, (_, f1) in scores.items() if f1 >= best - noise - 1e-12]
+        assert result.bias == min(near_best, key=lambda b: (abs(b), -b))
+        assert result.f1 == pytest.approx(scores[result.bias][1])
         assert result.tolerance == tolerance and result.f1_without_bias == pytest.approx(scores[0.0][1])
         assert result.num_episodes == 4 and result.num_boundaries == sum(len(ep.segments) for ep in episodes)
     unannotated = Episode(
@@ -156,6 +159,14 @@ def test_calibrated_end_bias_is_the_best_candidate_when_segmenting() -> None:
     )
     with pytest.raises(ValueError, match="annotated episodes"):
         calibrate_end_bias(model, [unannotated])
+
+
+def test_a_sweep_within_its_noise_keeps_the_bias_nearest_0() -> None:
+    # a small held-out split (69 boundaries): +2 wins by less than its standard error (0.059)
+    sweep = {-1.0: 0.377, -0.25: 0.366, 0.0: 0.328, 1.0: 0.365, 2.0: 0.414, 3.0: 0.349}
+    assert pick_end_bias(sweep, 69) == -0.25
+    assert pick_end_bias(sweep, 10_000) == 2.0  # many boundaries: the best F1
+    assert pick_end_bias({-0.5: 0.5, 0.5: 0.5, 1.0: 0.4}, 50) == 0.5  # a tie in distance: the higher
 
 
 def test_calibrate_ps_model_sets_the_end_bias_and_records_both_calibrations() -> None:

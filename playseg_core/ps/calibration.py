@@ -1,9 +1,10 @@
 """Calibration of a trained PS model on held-out annotated play: the end bias and the label threshold.
 
 Both are chosen on the annotated validation split, never on the play being segmented:
-- `calibrate_end_bias`: the bias added to the end logit when segmenting (``PSModel.end_bias``), for the
-  best boundary F1 within `END_BIAS_TOLERANCE` steps. Training weights the rare positive ends, which inflates the end probability
-  the decoder reads as a hazard; the bias takes that back by as much as held-out play says.
+- `calibrate_end_bias`: the bias added to the end logit when segmenting (``PSModel.end_bias``): the
+  one nearest 0 whose boundary F1 within `END_BIAS_TOLERANCE` steps is within noise of the best
+  (`pick_end_bias`). Training weights the rare positive ends, which inflates the end probability the
+  decoder reads as a hazard; the bias takes that back by as much as held-out play says.
 - `calibrate_on_annotated` / `calibrate_threshold`: the lowest label confidence whose kept segments
   reach a target label accuracy (e.g. 0.95), used to filter extracted segments (labelling.py).
 - `check_own_cuts`: what that threshold keeps of the model's *own* segmentation of the held-out
@@ -20,7 +21,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -64,6 +65,15 @@ class EndBiasCalibration:
     sweep: list[tuple[float, float, float, float]]
 
 
+def pick_end_bias(f1_by_bias: Mapping[float, float], num_boundaries: int) -> float:
+    """Of the biases whose boundary F1 is no more than one standard error (sqrt(F1 (1 - F1) / n) at the
+    best F1, n the true boundaries scored) below the best, the one nearest 0; on a tie, the higher."""
+    best = max(f1_by_bias.values())
+    noise = math.sqrt(best * (1.0 - best) / max(1, num_boundaries))
+    near_best = [bias for bias, f1 in f1_by_bias.items() if f1 >= best - noise]
+    return min(near_best, key=lambda bias: (abs(bias), -bias))
+
+
 @torch.no_grad()
 def calibrate_end_bias(
     model: PSModel,
@@ -71,14 +81,16 @@ def calibrate_end_bias(
     candidates: Sequence[float] = END_BIAS_CANDIDATES,
     tolerance: int = END_BIAS_TOLERANCE,
 ) -> EndBiasCalibration:
-    """The end bias to segment with: of the `candidates`, the one whose segmentation of the annotated
-    `episodes` has the best boundary F1 within `tolerance` steps (final boundary included); ties go to
-    the bias nearest 0, the least correction of the trained end head (held-out play that cannot tell
-    biases apart is no reason to move far from what training learnt).
+    """The end bias to segment with: of the `candidates` whose segmentation of the annotated `episodes`
+    scores a boundary F1 within `tolerance` steps (final boundary included) no more than one standard
+    error below the best, the one nearest 0 (on a tie, the higher).
 
-    The best F1, not a cautious pick near it: a bias below the best merges neighbouring instructions,
-    and a merged segment takes one label for both, so label accuracy falls with recall. The model is not
-    changed: set ``model.end_bias`` to the result's bias to segment with it (`calibrate_ps_model` does).
+    Nearest 0: the least correction of the trained end head. A few held-out episodes cannot tell biases
+    apart whose F1 differ by less than their noise (a bias of +2 that wins a sweep over 69 boundaries by
+    0.05 cuts play into twice as many segments as it holds); the standard error is that of a proportion
+    over the true boundaries, sqrt(F1 (1 - F1) / n). With many held-out boundaries the error shrinks and
+    the pick is the best F1. The model is not changed: set ``model.end_bias`` to the result's bias to
+    segment with it (`calibrate_ps_model` does).
     """
     if not candidates:
         raise PlaysegError("calibrate_end_bias needs at least one candidate bias")
@@ -104,7 +116,7 @@ def calibrate_end_bias(
             pred = [end for _, end in decoded.segments]
             counts += BoundaryCounts(match_boundaries(pred, ends, tolerance), len(pred), len(ends))
         scores[bias] = counts
-    chosen = max(allowed, key=lambda b: (scores[b].f1, -abs(b), -b))
+    chosen = pick_end_bias({b: scores[b].f1 for b in allowed}, scores[allowed[0]].num_truth)
     return EndBiasCalibration(
         bias=chosen,
         precision=scores[chosen].precision,
