@@ -67,7 +67,9 @@ def test_sizes_match_the_sample_preset(sample: dict[str, list[Episode]]) -> None
         segments = sum(len(e.segments) for e in sample[name])
         assert target <= segments < target + max_tasks, (name, segments)
     size = sum(f.stat().st_size for f in BAGS.rglob("*.mcap"))
-    assert size < 5_000_000, f"sample bags are {size / 1e6:.1f} MB; they must stay small"
+    # BabyAI's 1.9 MB and the tabletop's 7.2 MB: the demo's robot half replays 30 tasks of camera play
+    # (bags/README.md), which JPEG frames at 10 Hz make 5.5 MB of the total
+    assert size < 10_000_000, f"sample bags are {size / 1e6:.1f} MB; they must stay small"
 
 
 def test_annotations_equal_ground_truth_in_the_annotated_bag(sample: dict[str, list[Episode]]) -> None:
