@@ -200,10 +200,10 @@ def run_robot_half(
 ) -> RobotHalfResult:
     """The robot half of the demo (module docstring); ``model`` is a tabletop PS checkpoint, ``play_bag_name``
     the unannotated bag of bags/tabletop it replays."""
+    from playseg_core.checkpoint import read_checkpoint
     from playseg_core.data.dataset import PlayDataset
     from playseg_core.ps.labelling import threshold_json
     from playseg_core.ps.metrics import evaluate, format_metrics_table
-    from playseg_core.ps.model import load_model
     from playseg_ros.convert import SegmentationSpec, convert, load_mapping
     from playseg_ros.convert.run import playseg_copy
     from playseg_ros.convert.segmenting import keep_rule
@@ -262,7 +262,7 @@ def run_robot_half(
         "label_accuracy": metrics["label_accuracy"],
         "label_threshold": threshold_json(rule.threshold),
         # the same model on its training play's held-out test split (`make models` keeps them in its meta)
-        "model_test": load_model(model, ("ps",))[1].get("test"),
+        "model_test": read_checkpoint(model, ("ps",)).meta.get("test"),
         "stored_segments": len(stored),
         "live_equals_convert": same,
         "lerobot": {"path": str(lerobot_dir), **_lerobot_summary(lerobot_dir)},

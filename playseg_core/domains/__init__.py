@@ -91,6 +91,10 @@ DOMAINS: Registry[Domain] = Registry("domain")
 """The domains whose packages have been imported (`load_domain` imports one on first use)."""
 
 
+_DOMAIN_NAME = re.compile(r"[a-z][a-z0-9_]*")
+"""What a domain's name may be: a Python package name under playseg_core.domains."""
+
+
 def register_domain(domain: Domain) -> Domain:
     """Make ``domain`` known by its name (a domain package calls this once, on import)."""
     return DOMAINS.register(domain.name, domain)
@@ -99,14 +103,14 @@ def register_domain(domain: Domain) -> Domain:
 def has_domain_package(name: str) -> bool:
     """Whether ``name`` names a domain package (playseg_core.domains.<name>), found without importing it:
     a dataset's domain can be checked where its package's dependencies (torch) are not installed."""
-    if not re.fullmatch(r"[a-z][a-z0-9_]*", name or ""):
+    if not _DOMAIN_NAME.fullmatch(name or ""):
         return False
     return name in DOMAINS or importlib.util.find_spec(f"{__name__}.{name}") is not None
 
 
 def load_domain(name: str) -> Domain:
     """The domain ``name``, its package imported on first use; PlaysegError naming it when there is none."""
-    if not re.fullmatch(r"[a-z][a-z0-9_]*", name or ""):
+    if not _DOMAIN_NAME.fullmatch(name or ""):
         raise PlaysegError(f"invalid domain name {name!r}")
     if name not in DOMAINS:
         try:
