@@ -24,6 +24,7 @@ from typing import Any
 
 import torch
 from playseg_msgs.msg import LabelledSegment, PlayStep
+from rclpy.event_handler import PublisherEventCallbacks, QoSPublisherMatchedInfo
 from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 
 from playseg_core.augment.buffer import MODEL_DIGEST_CHARS, MODEL_DIGEST_SEP
@@ -175,7 +176,14 @@ class SegmenterNode(ReleasingLifecycleNode):
             self._frame_shapes = {name: features[name].shape for name in cameras}
             if cameras:
                 self._frame_shapes[""] = features[cameras[0]].shape
-            self._pub = self.create_publisher(LabelledSegment, self.segments_topic, qos.SEGMENTS)
+            # /segments is volatile: a reader that matches after a segment left never gets it, so each
+            # change in the matched readers is logged (operators and tests can wait for their consumers).
+            self._pub = self.create_publisher(
+                LabelledSegment,
+                self.segments_topic,
+                qos.SEGMENTS,
+                event_callbacks=PublisherEventCallbacks(matched=self._on_segments_matched),
+            )
             self._timer = self.create_timer(min(5.0, self.episode_timeout_s / 2), self._drop_silent_episodes)
             self._graph_timer = self.create_timer(DUPLICATE_CHECK_S, self._check_duplicate_name)
             self._wait_timer = self.create_timer(0.1, self._subscribe_when_heard, autostart=False)
@@ -195,6 +203,9 @@ class SegmenterNode(ReleasingLifecycleNode):
             f"({form} segments; kept: {self.keep_rule.describe()})"
         )
         return TransitionCallbackReturn.SUCCESS
+
+    def _on_segments_matched(self, info: QoSPublisherMatchedInfo) -> None:
+        self.get_logger().info(f"{self.segments_topic}: {info.current_count} subscriber(s) matched")
 
     @property
     def reference(self) -> bool:
