@@ -13,7 +13,7 @@ import torch
 
 from playseg_core.data.episode import Episode
 from playseg_core.data.features import Feature, FeatureError
-from playseg_core.domains.tabletop import BLOCK_POSITION_SCALE
+from playseg_core.domains.tabletop import BLOCK_POSITION_SCALE, PERIODIC_FREQUENCIES
 from playseg_core.domains.tabletop.encoder import KIND, ObjectMapConfig, ObjectMapEncoder, object_map_spec
 from playseg_core.domains.tabletop.play import PlayConfig
 from playseg_core.domains.tabletop.render import VIEW_BORDER, Renderer
@@ -209,6 +209,42 @@ def test_the_domain_chooses_the_scaled_blocks_and_the_linear_head_and_checkpoint
     torch.testing.assert_close(scaled, unscaled * BLOCK_POSITION_SCALE)
     hidden = torch.randn(5, config.trunk.hidden_dim)
     torch.testing.assert_close(loaded.label_head(hidden), model.label_head(hidden))
+
+
+def test_the_trunk_reads_the_blocks_through_periodic_embeddings_and_segmenting_scores_as_training(
+    tmp_path: Path,
+) -> None:
+    features = PlayConfig().features
+    instructions = ["push the red cube left", "push the blue cube right", "move the arm to the centre"]
+    episode = tabletop_shaped_episode(12)
+    config = model_config_for(features, DOMAIN, len(instructions), episodes=[episode], max_len=6)
+    assert config.trunk.periodic_frequencies == PERIODIC_FREQUENCIES
+    torch.manual_seed(0)
+    model = PSModel(config, instructions).eval()
+    # the blocks' 16 coordinates are the only columns an encoder that learns nothing writes
+    assert model.encoders.fixed_observation_columns == list(range(16))
+    assert model.trunk.periodic is not None and model.trunk.periodic.columns.tolist() == list(range(16))
+    with torch.no_grad():
+        step_features = model.encode_episode(episode)
+        matrix = model.end_logits(step_features)
+        # the end matrix (windows made by forward_over_steps) is what one window through the trunk gives
+        lookahead = model.lookahead
+        padded = torch.cat([step_features, step_features.new_zeros(lookahead, step_features.shape[1])])
+        for t in range(1, episode.num_steps + 1):
+            window = padded[max(0, t - model.max_len) : t + 1 + lookahead]
+            column = model.end_column(window, starts_episode=t <= model.max_len)
+            for k in range(min(t, model.max_len)):
+                torch.testing.assert_close(column[k], matrix[t - k - 1, k], rtol=1e-4, atol=1e-4)
+        # the embeddings take part: without their projection the logits differ
+        saved = model.trunk.periodic.proj.weight.clone()
+        model.trunk.periodic.proj.weight.zero_()
+        assert not torch.allclose(model.end_logits(step_features), matrix)
+        model.trunk.periodic.proj.weight.copy_(saved)
+    save_model(tmp_path / "m.pt", model)
+    loaded, _ = load_model(tmp_path / "m.pt")
+    assert loaded.cfg.trunk.periodic_frequencies == PERIODIC_FREQUENCIES
+    with torch.no_grad():
+        torch.testing.assert_close(loaded.end_logits(loaded.encode_episode(episode)), matrix)
 
 
 @pytest.mark.slow

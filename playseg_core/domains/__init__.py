@@ -67,6 +67,8 @@ class Domain:
     - ``label_head``: the label head its PS and labelling models use (ps/model.py `LABEL_HEADS`).
     - ``end_lookahead``: steps past a candidate end its PS end head reads (ps/model.py
       `ModelConfig.end_lookahead`).
+    - ``periodic_frequencies``: learnt frequencies of the periodic embeddings its PS and labelling
+      models' trunk gives the fixed observation features (ps/model.py `TrunkConfig`); 0: none.
     - ``clip_symmetries``: the symmetries of its world, what ``playseg train --augment`` trains on
       (ps/symmetries.py); without them ``--augment`` turns camera frames only.
     - ``policies``: policy name -> factory (config -> `augment.policy.PolicyLearner`), each reached as
@@ -80,6 +82,7 @@ class Domain:
     segment_bounds: Mapping[str, int] | None = None
     label_head: str = "linear"
     end_lookahead: int = 0
+    periodic_frequencies: int = 0
     clip_symmetries: ClipSymmetries | None = None
     policies: Mapping[str, Callable[[dict[str, Any]], PolicyLearner]] = field(default_factory=dict)
     preset_names: tuple[str, ...] = ()

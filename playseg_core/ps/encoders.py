@@ -281,6 +281,17 @@ class StepEncoders(nn.Module):
         return sum(e.out_dim for e in self.encoders if not isinstance(e, PreviousActionEncoder))
 
     @property
+    def fixed_observation_columns(self) -> list[int]:
+        """The columns of step features that observation encoders which learn nothing write (measured
+        values, such as positions found in a camera frame)."""
+        columns, first = [], 0
+        for encoder in self.encoders:
+            if isinstance(encoder, ObservationEncoder) and not encoder.learns:
+                columns.extend(range(first, first + encoder.out_dim))
+            first += encoder.out_dim
+        return columns
+
+    @property
     def reads_actions(self) -> bool:
         return any(isinstance(e, PreviousActionEncoder) for e in self.encoders)
 

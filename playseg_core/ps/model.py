@@ -38,6 +38,9 @@ class TrunkConfig:
     num_layers: int = 2
     kernel_size: int = 5
     max_len: int = 25
+    # Periodic embeddings (`PeriodicEmbedding`) of the fixed observation features, with this many learnt
+    # frequencies per value; 0: none.
+    periodic_frequencies: int = 0
 
 
 @dataclass
@@ -136,6 +139,33 @@ class CausalConvBlock(nn.Module):
         return h + self.out(F.gelu(x.permute(0, 2, 3, 1).squeeze(1)))
 
 
+class PeriodicEmbedding(nn.Module):
+    """sin and cos of 2 pi f v for learnt frequencies f of every value v of the given columns of the
+    observation o_t and of its change o_t - o_start, projected to the trunk's width.
+
+    For measured quantities (positions from a camera: `StepEncoder.learns` False) whose ends are
+    thresholds: a task is done when a thing has moved so far, or is inside a region. After one linear
+    projection and a LayerNorm, a threshold that must fall between two consecutive steps is too soft to
+    place; a bank of frequencies makes sharp functions of each value linear (the periodic embeddings of
+    numerical features in tabular deep learning, Gorishniy et al. 2022).
+    """
+
+    SCALE = 1.0  # the frequencies' initial standard deviation, per unit of the features
+
+    def __init__(self, columns: list[int], frequencies: int, out_dim: int) -> None:
+        super().__init__()
+        self.register_buffer("columns", torch.tensor(columns, dtype=torch.long), persistent=False)
+        self.frequency = nn.Parameter(torch.randn(2 * len(columns), frequencies) * self.SCALE)
+        self.proj = nn.Linear(2 * len(columns) * 2 * frequencies, out_dim)
+
+    def forward(self, windows: torch.Tensor, start: torch.Tensor) -> torch.Tensor:
+        """(B, P, d) rows of windows and (B, P, d) their start rows -> (B, P, out_dim)."""
+        values = windows[..., self.columns]
+        values = torch.cat([values, values - start[..., self.columns]], dim=-1)
+        angles = (2 * torch.pi) * values.unsqueeze(-1) * self.frequency
+        return self.proj(torch.cat([angles.sin(), angles.cos()], dim=-1).flatten(-2))
+
+
 class StartCausalTrunk(nn.Module):
     """Windows of frame features -> per-position hidden states, causal from the window start.
 
@@ -145,9 +175,16 @@ class StartCausalTrunk(nn.Module):
     segment, which the negatives teach the model to look for.
     """
 
-    def __init__(self, step_dim: int, cfg: TrunkConfig, lookahead: int = 0) -> None:
+    def __init__(
+        self, step_dim: int, cfg: TrunkConfig, lookahead: int = 0, periodic_columns: list[int] | None = None
+    ) -> None:
         super().__init__()
         self.in_proj = nn.Linear(3 * step_dim, cfg.hidden_dim)
+        self.periodic = (
+            PeriodicEmbedding(periodic_columns, cfg.periodic_frequencies, cfg.hidden_dim)
+            if cfg.periodic_frequencies and periodic_columns
+            else None
+        )
         self.in_norm = nn.LayerNorm(cfg.hidden_dim)
         # Positions 0 .. max_len hold a segment; ``lookahead`` more, the steps its end head reads past it.
         self.offset = nn.Embedding(cfg.max_len + 1 + lookahead, cfg.hidden_dim)
@@ -168,9 +205,10 @@ class StartCausalTrunk(nn.Module):
         starts_episode: (B,) bool, True where i = 0.
         """
         start = windows[:, :1].expand_as(windows)
-        return self._from_projection(
-            self.in_proj(torch.cat([windows, start, windows - start], dim=-1)), starts_episode
-        )
+        projected = self.in_proj(torch.cat([windows, start, windows - start], dim=-1))
+        if self.periodic is not None:
+            projected = projected + self.periodic(windows, start)
+        return self._from_projection(projected, starts_episode)
 
     def forward_over_steps(
         self, features: torch.Tensor, num_windows: int, width: int, starts_episode: torch.Tensor
@@ -181,8 +219,11 @@ class StartCausalTrunk(nn.Module):
 
         The input projection of [o, o_i, o - o_i] is linear, so it splits into a part of each step, computed
         once per step here instead of once per window holding it (``width`` times), and a part of each
-        window's start: segmenting reads every step in up to L_max windows.
+        window's start: segmenting reads every step in up to L_max windows. Periodic embeddings do not
+        split so: with them the windows are made and go through `forward`.
         """
+        if self.periodic is not None:
+            return self.forward(episode_windows(features, width)[:num_windows], starts_episode)
         dim = features.shape[-1]
         weight = self.in_proj.weight
         own, start, difference = weight[:, :dim], weight[:, dim : 2 * dim], weight[:, 2 * dim :]
@@ -318,7 +359,9 @@ class StepModel(nn.Module):
         self.cfg = cfg
         self.instructions = _class_names(instructions, cfg.num_classes)
         self.encoders = StepEncoders(cfg.encoders, cfg.features)
-        self.trunk = StartCausalTrunk(self.encoders.step_dim, cfg.trunk, self.lookahead)
+        self.trunk = StartCausalTrunk(
+            self.encoders.step_dim, cfg.trunk, self.lookahead, self.encoders.fixed_observation_columns
+        )
 
     @property
     def max_len(self) -> int:

@@ -148,7 +148,7 @@ def model_config_for(
         encoders,
         read,
         num_classes,
-        TrunkConfig(max_len=max_len),
+        TrunkConfig(max_len=max_len, periodic_frequencies=known.periodic_frequencies),
         min_len=min_len,
         label_head=known.label_head if label_head is None else label_head,
         end_lookahead=known.end_lookahead if end_lookahead is None else end_lookahead,

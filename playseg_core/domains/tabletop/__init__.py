@@ -6,8 +6,9 @@ The data is robot-shaped (a camera, a state vector, a continuous 2-D velocity ac
 encoders read the state and the action; the camera gets this package's object-map encoder (encoder.py)
 as the 8 blocks' positions, found by colour and size, and the label heads score each instruction with
 its own weights (``LABEL_HEAD``). PS trains on the table's symmetries with ``--augment``
-(``CLIP_SYMMETRIES``); its end head reads two steps past an end (``END_LOOKAHEAD``). No segment-length
-bounds: the ones derived from the annotated segments apply.
+(``CLIP_SYMMETRIES``); its end head reads two steps past an end (``END_LOOKAHEAD``), its trunk the
+blocks' positions through periodic embeddings (``PERIODIC_FREQUENCIES``). No segment-length bounds: the
+ones derived from the annotated segments apply.
 Its policy ``tabletop.bc`` is the generic ``bc`` policy evaluated in the simulator (learner.py,
 evaluation.py), with a choice of camera encoder and the table's 8 symmetries to train on (symmetry.py).
 Importing it registers the encoder and imports neither pymunk nor OpenCV; the modules that run the
@@ -39,6 +40,11 @@ END_LOOKAHEAD = 2
 ends when the oracle says done, a state the operator's next command reveals (it turns to the next task
 or hesitates) far better than the state itself does. Val exact boundary F1 after 1,500 steps: 0.13
 without, 0.41 with 1 step, 0.43 with 2 (docs/tabletop.md)."""
+
+PERIODIC_FREQUENCIES = 16
+"""PS's trunk reads the blocks' positions and how far each moved since the segment's start through 16
+learnt frequencies each (ps/model.py `PeriodicEmbedding`): a push in a direction ends when its block has
+moved 10 cm, between two steps ~1 cm apart (docs/tabletop.md)."""
 
 BLOCK_POSITION_SCALE = 15.0
 """PS reads the blocks' image coordinates times this: a push moves a block ~0.3 image units, while the
@@ -207,6 +213,7 @@ register_domain(
         step_encoders=step_encoders,
         label_head=LABEL_HEAD,
         end_lookahead=END_LOOKAHEAD,
+        periodic_frequencies=PERIODIC_FREQUENCIES,
         clip_symmetries=CLIP_SYMMETRIES,
         policies=POLICIES,
         preset_names=PRESET_NAMES,
@@ -219,6 +226,7 @@ register_domain(
 __all__ = [
     "BLOCK_POSITION_SCALE",
     "END_LOOKAHEAD",
+    "PERIODIC_FREQUENCIES",
     "LABEL_HEAD",
     "CAMERA",
     "CLIP_SYMMETRIES",
