@@ -406,9 +406,12 @@ class StepModel(nn.Module):
         )
 
     def score_chunk(self, window_len: int) -> int:
-        """Windows of ``window_len`` positions per trunk pass: those whose hidden states fill
-        `SCORE_HIDDEN_BYTES`."""
-        return max(1, SCORE_HIDDEN_BYTES // (window_len * self.cfg.trunk.hidden_dim * FLOAT_BYTES))
+        """Windows of ``window_len`` positions per trunk pass: those whose hidden states (and periodic
+        embeddings, which are wider) fill `SCORE_HIDDEN_BYTES`."""
+        row = self.cfg.trunk.hidden_dim
+        if self.trunk.periodic is not None:
+            row += self.trunk.periodic.proj.in_features
+        return max(1, SCORE_HIDDEN_BYTES // (window_len * row * FLOAT_BYTES))
 
     @property
     def device(self) -> torch.device:
