@@ -197,6 +197,10 @@ def test_the_domain_chooses_the_scaled_blocks_and_the_linear_head_and_checkpoint
     config = model_config_for(features, DOMAIN, len(instructions), episodes=[episode])
     blocks = ObjectMapConfig(pooling="blocks", twins_by_size=True, position_scale=BLOCK_POSITION_SCALE)
     assert config.encoders[0] == object_map_spec(features[CAMERA], blocks) and config.label_head == "linear"
+    # the domain's state spec names its own setting only; the training data's statistics are added to it
+    state = config.encoders[1]
+    assert state.kind == "state_mlp" and state.config["measured"] is True
+    np.testing.assert_allclose(state.config["mean"], episode.state.mean(axis=0), rtol=1e-5)
     assert model_config_for(features, DOMAIN, 3, episodes=[episode], label_head="text").label_head == "text"
     torch.manual_seed(0)
     model = PSModel(config, instructions).eval()
@@ -221,9 +225,16 @@ def test_the_trunk_reads_the_blocks_through_periodic_embeddings_and_segmenting_s
     assert config.trunk.periodic_frequencies == PERIODIC_FREQUENCIES
     torch.manual_seed(0)
     model = PSModel(config, instructions).eval()
-    # the blocks' 16 coordinates are the only columns an encoder that learns nothing writes
-    assert model.encoders.fixed_observation_columns == list(range(16))
-    assert model.trunk.periodic is not None and model.trunk.periodic.columns.tolist() == list(range(16))
+    # measured values: the blocks' 16 coordinates, then the 4 state values the state encoder writes
+    # before its learnt features (the action's columns come last and are not measured)
+    measured = list(range(16 + 4))
+    assert model.encoders.measured_columns == measured
+    assert model.trunk.periodic is not None and model.trunk.periodic.columns.tolist() == measured
+    state_encoder = model.encoders.encoders[1]
+    rows = torch.from_numpy(episode.state[:3])
+    standardised = (rows - state_encoder.mean) / state_encoder.std
+    torch.testing.assert_close(state_encoder(rows)[:, :4], standardised)
+    assert state_encoder.out_dim == 4 + 64
     with torch.no_grad():
         step_features = model.encode_episode(episode)
         matrix = model.end_logits(step_features)

@@ -53,6 +53,12 @@ class StepEncoder(nn.Module):
     # training then encodes each row once (ps/fixed_features.py), not in every batch that reads it
     learns: bool = True
 
+    @property
+    def measured_columns(self) -> range:
+        """The output columns that are values measured from the input row, not learnt features (all of
+        them for an encoder that learns nothing): what PS's trunk may read through periodic embeddings."""
+        return range(0) if self.learns else range(self.out_dim)
+
     def input_rows(self, episode: Episode, where: str) -> np.ndarray:
         """The encoder's input for every observation o_0..o_T of ``episode`` (T+1 rows)."""
         raise NotImplementedError
@@ -210,19 +216,30 @@ class ImageEncoder(ObservationEncoder):
 
 @register_encoder("state_mlp")
 class StateEncoder(ObservationEncoder):
-    """An MLP over the (flattened) state vector, standardised with the training data's mean and std."""
+    """An MLP over the (flattened) state vector, standardised with the training data's mean and std.
+
+    With ``measured`` (config), the standardised state itself comes first in the output, as measured
+    values (`measured_columns`), then the MLP's features.
+    """
 
     def __init__(self, feature: Feature, config: dict[str, Any]) -> None:
         super().__init__(feature)
-        self.out_dim = int(config.get("dim", 64))
+        dim = int(config.get("dim", 64))
         mean, std = _normaliser(config, feature.size, feature.name)
         self.register_buffer("mean", mean)
         self.register_buffer("std", std)
         hidden = int(config.get("hidden", 128))
-        self.mlp = nn.Sequential(nn.Linear(feature.size, hidden), nn.GELU(), nn.Linear(hidden, self.out_dim))
+        self.mlp = nn.Sequential(nn.Linear(feature.size, hidden), nn.GELU(), nn.Linear(hidden, dim))
+        self.measured = bool(config.get("measured", False))
+        self.out_dim = dim + (feature.size if self.measured else 0)
+
+    @property
+    def measured_columns(self) -> range:
+        return range(self.mean.numel() if self.measured else 0)
 
     def forward(self, rows: torch.Tensor) -> torch.Tensor:
-        return self.mlp((rows.reshape(rows.shape[0], -1).float() - self.mean) / self.std)
+        state = (rows.reshape(rows.shape[0], -1).float() - self.mean) / self.std
+        return torch.cat([state, self.mlp(state)], dim=1) if self.measured else self.mlp(state)
 
 
 @register_encoder("continuous_action")
@@ -281,13 +298,13 @@ class StepEncoders(nn.Module):
         return sum(e.out_dim for e in self.encoders if not isinstance(e, PreviousActionEncoder))
 
     @property
-    def fixed_observation_columns(self) -> list[int]:
-        """The columns of step features that observation encoders which learn nothing write (measured
-        values, such as positions found in a camera frame)."""
+    def measured_columns(self) -> list[int]:
+        """The columns of step features that hold measured values (`StepEncoder.measured_columns` of the
+        observation encoders: positions found in a camera frame, a state read as it is)."""
         columns, first = [], 0
         for encoder in self.encoders:
-            if isinstance(encoder, ObservationEncoder) and not encoder.learns:
-                columns.extend(range(first, first + encoder.out_dim))
+            if isinstance(encoder, ObservationEncoder):
+                columns.extend(first + column for column in encoder.measured_columns)
             first += encoder.out_dim
         return columns
 
@@ -445,6 +462,17 @@ def _default_spec(kind: str, feature: Feature, statistics: dict[str, dict[str, l
     return EncoderSpec(kind, feature.name, config)
 
 
+def _with_statistics(
+    spec: EncoderSpec, feature: Feature, statistics: dict[str, dict[str, list[float]]]
+) -> EncoderSpec:
+    """A domain's spec of a generic kind that standardises (its own settings, such as a state's
+    ``measured``), given the training data's statistics as the generic default gets them."""
+    if spec.kind not in ("state_mlp", "continuous_action") or "mean" in spec.config:
+        return spec
+    default = _default_spec(spec.kind, feature, statistics)
+    return EncoderSpec(spec.kind, spec.feature, {**spec.config, **default.config})
+
+
 def choose_encoders(
     features: Features,
     choice: Callable[[Features], Mapping[str, EncoderSpec | None]] | None = None,
@@ -481,7 +509,7 @@ def choose_encoders(
                 specs.append(_default_spec(kind, features[name], statistics))
         elif name in chosen:
             if chosen[name] is not None:
-                specs.append(chosen[name])
+                specs.append(_with_statistics(chosen[name], features[name], statistics))
         elif name in defaults:
             specs.append(_default_spec(defaults[name], features[name], statistics))
     if not any(spec.feature != action.name for spec in specs):

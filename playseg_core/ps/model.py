@@ -38,7 +38,7 @@ class TrunkConfig:
     num_layers: int = 2
     kernel_size: int = 5
     max_len: int = 25
-    # Periodic embeddings (`PeriodicEmbedding`) of the fixed observation features, with this many learnt
+    # Periodic embeddings (`PeriodicEmbedding`) of the measured observation values, with this many learnt
     # frequencies per value; 0: none.
     periodic_frequencies: int = 0
 
@@ -143,11 +143,11 @@ class PeriodicEmbedding(nn.Module):
     """sin and cos of 2 pi f v for learnt frequencies f of every value v of the given columns of the
     observation o_t and of its change o_t - o_start, projected to the trunk's width.
 
-    For measured quantities (positions from a camera: `StepEncoder.learns` False) whose ends are
-    thresholds: a task is done when a thing has moved so far, or is inside a region. After one linear
-    projection and a LayerNorm, a threshold that must fall between two consecutive steps is too soft to
-    place; a bank of frequencies makes sharp functions of each value linear (the periodic embeddings of
-    numerical features in tabular deep learning, Gorishniy et al. 2022).
+    For measured values (`StepEncoders.measured_columns`: positions found in a camera frame, a state read
+    as it is), on which tasks end at thresholds: a thing has moved so far, or is inside a region. After
+    one linear projection and a LayerNorm, a threshold that must fall between two consecutive steps is too
+    soft to place; a bank of frequencies makes sharp functions of each value linear (the periodic
+    embeddings of numerical features in tabular deep learning, Gorishniy et al. 2022).
     """
 
     SCALE = 1.0  # the frequencies' initial standard deviation, per unit of the features
@@ -360,7 +360,7 @@ class StepModel(nn.Module):
         self.instructions = _class_names(instructions, cfg.num_classes)
         self.encoders = StepEncoders(cfg.encoders, cfg.features)
         self.trunk = StartCausalTrunk(
-            self.encoders.step_dim, cfg.trunk, self.lookahead, self.encoders.fixed_observation_columns
+            self.encoders.step_dim, cfg.trunk, self.lookahead, self.encoders.measured_columns
         )
 
     @property
