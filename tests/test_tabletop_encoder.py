@@ -19,6 +19,7 @@ from playseg_core.domains.tabletop.play import PlayConfig
 from playseg_core.domains.tabletop.render import VIEW_BORDER, Renderer
 from playseg_core.domains.tabletop.sim import TabletopSim
 from playseg_core.domains.tabletop.spec import BLOCKS, CAMERA, COLOURS, DOMAIN, TABLE_SIZE
+from playseg_core.ps.incremental import IncrementalEndScorer
 from playseg_core.ps.model import PSModel, TextLabelHead, load_model, make_label_head, save_model
 from playseg_core.ps.training import model_config_for
 
@@ -246,6 +247,15 @@ def test_the_trunk_reads_the_blocks_through_periodic_embeddings_and_segmenting_s
             column = model.end_column(window, starts_episode=t <= model.max_len)
             for k in range(min(t, model.max_len)):
                 torch.testing.assert_close(column[k], matrix[t - k - 1, k], rtol=1e-4, atol=1e-4)
+        # the live segmenter's incremental scorer gives the same columns
+        scorer = IncrementalEndScorer(model)
+        for t in range(episode.num_steps + 1 + lookahead):
+            scorer.push(padded[t])
+            end = t - lookahead
+            if end >= 1:
+                column = scorer.column(max(0, end - model.max_len))
+                for k in range(min(end, model.max_len)):
+                    torch.testing.assert_close(column[k], matrix[end - k - 1, k], rtol=1e-4, atol=1e-4)
         # the embeddings take part: without their projection the logits differ
         saved = model.trunk.periodic.proj.weight.clone()
         model.trunk.periodic.proj.weight.zero_()

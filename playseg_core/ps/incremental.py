@@ -7,7 +7,8 @@ window's state at position p follows from its state up to p - 1 and the new step
 need the last kernel-1 normalised inputs of each layer, its running max the maximum so far. This module
 keeps that state for every window start still in reach and advances each by the new step: one position
 per start per step. The columns equal `end_column`'s up to float rounding (the same operations, summed in
-another order).
+another order). Periodic embeddings (ps/model.py `PeriodicEmbedding`) read the change since each start,
+so the kept starts' rows are kept too.
 """
 
 from __future__ import annotations
@@ -55,6 +56,8 @@ class IncrementalEndScorer:
         self.first_start = 0  # the kept starts are steps first_start .. t
         self._descending = torch.arange(self.reach, -1, -1, device=device)  # positions, oldest start first
         self.start_part = torch.zeros(0, hidden, device=device, dtype=dtype)
+        # the kept starts' rows, for the periodic embeddings of the change since the start (not linear)
+        self.start_rows = torch.zeros(0, step_dim, device=device, dtype=dtype)
         self.caches = [
             torch.zeros(0, self.kernel - 1, hidden, device=device, dtype=dtype) for _ in trunk.blocks
         ]
@@ -71,12 +74,17 @@ class IncrementalEndScorer:
         new_start = F.linear(feature, self.start_weight, self.start_bias)
         hidden = self.start_part.shape[1]
         self.start_part = torch.cat([self.start_part, new_start[None]])
+        if trunk.periodic is not None:
+            self.start_rows = torch.cat([self.start_rows, feature[None]])
         self.caches = [torch.cat([c, c.new_zeros(1, self.kernel - 1, hidden)]) for c in self.caches]
         self.maxima = torch.cat([self.maxima, self.maxima.new_full((1, hidden), float("-inf"))])
         self.recent = torch.cat([self.recent, self.recent.new_zeros(1, *self.recent.shape[1:])])
 
         kept = self.t - self.first_start + 1
-        h = trunk.in_norm(F.linear(feature, self.step_weight)[None] + self.start_part)
+        projected = F.linear(feature, self.step_weight)[None] + self.start_part
+        if trunk.periodic is not None:
+            projected = projected + trunk.periodic(feature[None].expand(kept, -1), self.start_rows)
+        h = trunk.in_norm(projected)
         h = h + trunk.offset.weight[self._descending[-kept:]]  # start s is at position t - s
         if self.first_start == 0:  # the window starting the episode is flagged, as in training
             h[0] = h[0] + trunk.episode_start
@@ -113,6 +121,6 @@ class IncrementalEndScorer:
         if drop <= 0:
             return
         self.first_start = first
-        self.start_part = self.start_part[drop:]
+        self.start_part, self.start_rows = self.start_part[drop:], self.start_rows[drop:]
         self.caches = [cache[drop:] for cache in self.caches]
         self.maxima, self.recent = self.maxima[drop:], self.recent[drop:]
