@@ -239,9 +239,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if os.environ.get("RANK", "0") != "0":  # launched by torchrun: process 0 prints
         sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - for the life of the process
     try:
-        return _train_from(args)
-    finally:
-        distributed.leave()
+        code = _train_from(args)
+    except BaseException:
+        distributed.leave(wait_for_peers=False)
+        raise
+    distributed.leave(wait_for_peers=code == 0)
+    return code
 
 
 def _train_from(args: argparse.Namespace) -> int:

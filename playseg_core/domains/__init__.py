@@ -68,7 +68,7 @@ class Domain:
     - ``end_lookahead``: steps past a candidate end its PS end head reads (ps/model.py
       `ModelConfig.end_lookahead`).
     - ``periodic_frequencies``: learnt frequencies of the periodic embeddings its PS and labelling
-      models' trunk gives the fixed observation features (ps/model.py `TrunkConfig`); 0: none.
+      models' trunk gives the measured observation values (ps/model.py `TrunkConfig`); 0: none.
     - ``clip_symmetries``: the symmetries of its world, what ``playseg train --augment`` trains on
       (ps/symmetries.py); without them ``--augment`` turns camera frames only.
     - ``policies``: policy name -> factory (config -> `augment.policy.PolicyLearner`), each reached as

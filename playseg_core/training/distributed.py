@@ -58,9 +58,14 @@ def join(device: torch.device) -> torch.device:
     return device
 
 
-def leave() -> None:
-    """Close the process group, if one is open."""
+def leave(wait_for_peers: bool = True) -> None:
+    """Close the process group, if one is open; with ``wait_for_peers`` (a run that ended normally in
+    every process) once every process has come to close it: a gloo process that tore its group down
+    while a peer was still in its last collective was seen to abort ("terminate called without an
+    active exception"). A failing process closes it at once (its peers may be in another collective)."""
     if dist.is_available() and dist.is_initialized():
+        if wait_for_peers and dist.get_world_size() > 1:
+            dist.barrier()
         dist.destroy_process_group()
 
 
@@ -114,7 +119,7 @@ def _run_rank(rank: int, nproc: int, port: int, target: Callable[..., int], args
         LOCAL_WORLD_SIZE=str(nproc),
     )
     code = target(*args)
-    leave()
+    leave(wait_for_peers=not code)
     if code:
         raise SystemExit(code)
 
