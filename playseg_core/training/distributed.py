@@ -13,9 +13,11 @@ alone evaluates, decides when to stop (broadcast to the others), logs and writes
 
 from __future__ import annotations
 
+import gc
 import os
 import signal
 import socket
+import sys
 import warnings
 from collections.abc import Callable
 from typing import Any
@@ -119,9 +121,17 @@ def _run_rank(rank: int, nproc: int, port: int, target: Callable[..., int], args
         LOCAL_WORLD_SIZE=str(nproc),
     )
     code = target(*args)
+    # Data-parallel wrappers sit in reference cycles: freed here, while the group is open, not by the
+    # interpreter's teardown, where gloo's threads still holding their work abort the process
+    # ("terminate called without an active exception").
+    gc.collect()
     leave(wait_for_peers=not code)
     if code:
         raise SystemExit(code)
+    # A worker that ended well leaves as multiprocessing's forked workers do, without the teardown.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
 
 
 def launch(nproc: int, target: Callable[..., int], *args: Any) -> int:
