@@ -12,8 +12,8 @@ import torch
 from playseg_core.data.dataset import DatasetWriter, PlayDataset
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.data.features import ACTION, STATE, Feature, Features
-from playseg_core.ps.encoders import feature_statistics
-from playseg_core.ps.model import ModelConfig, PSModel, load_model
+from playseg_core.ps.encoders import EncoderSpec, choose_encoders, feature_statistics
+from playseg_core.ps.model import PERIODIC_FREQUENCIES, TRUNK_DROPOUT, ModelConfig, PSModel, load_model
 from playseg_core.ps.segmentation import segment_episode
 from playseg_core.ps.streaming import StreamingSegmenter
 from playseg_core.ps.training import TrainConfig, model_config_for, segment_bounds, train_ps
@@ -122,6 +122,35 @@ def test_bounds_and_statistics_come_from_the_annotated_data() -> None:
     all_actions = np.concatenate([ep.actions for ep in episodes])
     np.testing.assert_allclose(stats[ACTION]["mean"], all_actions.mean(0), atol=1e-5)
     np.testing.assert_allclose(stats[ACTION]["std"], all_actions.std(0), atol=1e-5)
+
+
+def test_a_robots_model_reads_its_state_as_measured_values_and_drops_out_in_training_only() -> None:
+    features = robot_features({FRONT: (12, 16)}, state=True)
+    episodes = [robot_episode(s, features, "state") for s in range(2)]
+    config = model_config_for(features, None, len(INSTRUCTIONS), episodes=episodes)
+    assert config.trunk.periodic_frequencies == PERIODIC_FREQUENCIES > 0
+    model = PSModel(config, INSTRUCTIONS).eval()
+    # the camera's encoder learns: of the step features, only the state's values are measured
+    size = features[STATE].size
+    first = model.encoders.encoders[0].out_dim
+    assert model.encoders.measured_columns == list(range(first, first + size))
+    assert model.trunk.periodic is not None
+    # the trunk's dropout acts in training only: segmenting is deterministic
+    assert config.trunk.dropout == TRUNK_DROPOUT > 0
+    features_of_steps = model.encode_episode(episodes[0]).detach()
+    with torch.no_grad():
+        assert torch.equal(model.end_logits(features_of_steps), model.end_logits(features_of_steps))
+        windows = features_of_steps[None, :10]
+        model.train()
+        assert not torch.equal(model.trunk(windows), model.trunk(windows))
+        model.eval()
+    # a domain that names the generic kind with settings of its own gets the statistics too
+    spec = choose_encoders(
+        features,
+        lambda f: {STATE: EncoderSpec("state_mlp", STATE, {"hidden": 32})},
+        feature_statistics(episodes, [STATE, ACTION]),
+    )[1]
+    assert spec.config["hidden"] == 32 and len(spec.config["mean"]) == size
 
 
 @pytest.mark.slow

@@ -13,14 +13,21 @@ import torch
 
 from playseg_core.data.episode import Episode
 from playseg_core.data.features import Feature, FeatureError
-from playseg_core.domains.tabletop import BLOCK_POSITION_SCALE, PERIODIC_FREQUENCIES
+from playseg_core.domains.tabletop import BLOCK_POSITION_SCALE
 from playseg_core.domains.tabletop.encoder import KIND, ObjectMapConfig, ObjectMapEncoder, object_map_spec
 from playseg_core.domains.tabletop.play import PlayConfig
 from playseg_core.domains.tabletop.render import VIEW_BORDER, Renderer
 from playseg_core.domains.tabletop.sim import TabletopSim
 from playseg_core.domains.tabletop.spec import BLOCKS, CAMERA, COLOURS, DOMAIN, TABLE_SIZE
 from playseg_core.ps.incremental import IncrementalEndScorer
-from playseg_core.ps.model import PSModel, TextLabelHead, load_model, make_label_head, save_model
+from playseg_core.ps.model import (
+    PERIODIC_FREQUENCIES,
+    PSModel,
+    TextLabelHead,
+    load_model,
+    make_label_head,
+    save_model,
+)
 from playseg_core.ps.training import model_config_for
 
 PARKED = np.array([[0.05 + 0.055 * i, 0.45] for i in range(8)])
@@ -198,7 +205,7 @@ def test_the_domain_chooses_the_scaled_blocks_and_the_linear_head_and_checkpoint
     config = model_config_for(features, DOMAIN, len(instructions), episodes=[episode])
     blocks = ObjectMapConfig(pooling="blocks", twins_by_size=True, position_scale=BLOCK_POSITION_SCALE)
     assert config.encoders[0] == object_map_spec(features[CAMERA], blocks) and config.label_head == "linear"
-    # the domain's state spec names its own setting only; the training data's statistics are added to it
+    # the generic state encoder, read as measured values, standardised with the training data's statistics
     state = config.encoders[1]
     assert state.kind == "state_mlp" and state.config["measured"] is True
     np.testing.assert_allclose(state.config["mean"], episode.state.mean(axis=0), rtol=1e-5)
@@ -224,6 +231,7 @@ def test_the_trunk_reads_the_blocks_through_periodic_embeddings_and_segmenting_s
     episode = tabletop_shaped_episode(12)
     config = model_config_for(features, DOMAIN, len(instructions), episodes=[episode], max_len=6)
     assert config.trunk.periodic_frequencies == PERIODIC_FREQUENCIES
+    assert config.trunk.dropout == 0.0  # the domain's choice over the generic default
     torch.manual_seed(0)
     model = PSModel(config, instructions).eval()
     # measured values: the blocks' 16 coordinates, then the 4 state values the state encoder writes

@@ -513,8 +513,9 @@ def masked_cross_entropy(logits: torch.Tensor, target: torch.Tensor, valid: torc
 
 
 def step_encoders_for(data: TrainingData) -> tuple[list[EncoderSpec], Features]:
-    """The step encoders PS would read ``data`` with (ps.encoders.choose_encoders via model_config_for),
-    and the features they read (the action always recorded), as a checkpoint stores them; with
+    """The step encoders PS would read ``data`` with (ps.encoders.choose_encoders via model_config_for;
+    the state through its MLP only: these trunks have no periodic embeddings to read it as measured
+    values), and the features they read (the action always recorded), as a checkpoint stores them; with
     ``data.encoders_from``, that checkpoint's (`freeze_pretrained_encoders` then loads their weights)."""
     from playseg_core.ps.model import load_model
     from playseg_core.ps.training import model_config_for
@@ -531,6 +532,7 @@ def step_encoders_for(data: TrainingData) -> tuple[list[EncoderSpec], Features]:
         read_actions=data.read_actions,
         episodes=data.train,
         overrides=data.encoder_overrides,
+        measured_state=False,
     )
     return config.encoders, config.features
 

@@ -68,7 +68,10 @@ class Domain:
     - ``end_lookahead``: steps past a candidate end its PS end head reads (ps/model.py
       `ModelConfig.end_lookahead`).
     - ``periodic_frequencies``: learnt frequencies of the periodic embeddings its PS and labelling
-      models' trunk gives the measured observation values (ps/model.py `TrunkConfig`); 0: none.
+      models' trunk gives the measured observation values (ps/model.py `TrunkConfig`); 0: none,
+      None: the generic default (ps/model.py `PERIODIC_FREQUENCIES`).
+    - ``trunk_dropout``: the dropout of its PS and labelling models' trunk (ps/model.py `TrunkConfig`);
+      None: the generic default (ps/model.py `TRUNK_DROPOUT`).
     - ``clip_symmetries``: the symmetries of its world, what ``playseg train --augment`` trains on
       (ps/symmetries.py); without them ``--augment`` turns camera frames only.
     - ``policies``: policy name -> factory (config -> `augment.policy.PolicyLearner`), each reached as
@@ -82,7 +85,8 @@ class Domain:
     segment_bounds: Mapping[str, int] | None = None
     label_head: str = "linear"
     end_lookahead: int = 0
-    periodic_frequencies: int = 0
+    periodic_frequencies: int | None = None
+    trunk_dropout: float | None = None
     clip_symmetries: ClipSymmetries | None = None
     policies: Mapping[str, Callable[[dict[str, Any]], PolicyLearner]] = field(default_factory=dict)
     preset_names: tuple[str, ...] = ()

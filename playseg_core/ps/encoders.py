@@ -218,8 +218,9 @@ class ImageEncoder(ObservationEncoder):
 class StateEncoder(ObservationEncoder):
     """An MLP over the (flattened) state vector, standardised with the training data's mean and std.
 
-    With ``measured`` (config), the standardised state itself comes first in the output, as measured
-    values (`measured_columns`), then the MLP's features.
+    With ``measured`` (config; `choose_encoders` sets it for a model whose trunk reads measured values),
+    the standardised state itself comes first in the output, as measured values (`measured_columns`),
+    then the MLP's features.
     """
 
     def __init__(self, feature: Feature, config: dict[str, Any]) -> None:
@@ -479,6 +480,7 @@ def choose_encoders(
     statistics: dict[str, dict[str, list[float]]] | None = None,
     read_actions: bool = True,
     overrides: dict[str, str] | None = None,
+    measured_state: bool = False,
 ) -> list[EncoderSpec]:
     """Step encoders for data with ``features``, in order: every camera, the state, then the previous
     action (observation encoders first: the auxiliary frame-label loss reads their columns).
@@ -487,8 +489,10 @@ def choose_encoders(
     unread), ``choice(features)`` (a domain's `Domain.step_encoders`: a spec, or None for "not read"),
     the generic default (``image_cnn`` per camera, ``state_mlp``, ``discrete_action`` or
     ``continuous_action``). ``read_actions`` False leaves the action unread. ``statistics``
-    (`feature_statistics`) standardise the state and a continuous action. FeatureError when nothing
-    would be read, or an override names a feature the data lacks.
+    (`feature_statistics`) standardise the state and a continuous action. ``measured_state``: the generic
+    state encoder also gives the standardised state as measured values (``measured``), for a model whose
+    trunk reads them through periodic embeddings. FeatureError when nothing would be read, or an override
+    names a feature the data lacks.
     """
     overrides = dict(overrides or {})
     statistics = statistics or {}
@@ -512,6 +516,15 @@ def choose_encoders(
                 specs.append(_with_statistics(chosen[name], features[name], statistics))
         elif name in defaults:
             specs.append(_default_spec(defaults[name], features[name], statistics))
+    if measured_state and features.state is not None:
+        # A state is measured values (joint angles, an effector's position) on which skills end at
+        # thresholds, what the periodic embeddings sharpen (ps/model.py `PeriodicEmbedding`).
+        specs = [
+            EncoderSpec(s.kind, s.feature, {"measured": True, **s.config})
+            if s.kind == "state_mlp" and s.feature == features.state.name
+            else s
+            for s in specs
+        ]
     if not any(spec.feature != action.name for spec in specs):
         raise FeatureError(
             f"no observation feature would be read (the data has {', '.join(features.by_name)})"

@@ -21,7 +21,14 @@ from playseg_core.domains import Domain, load_domain
 from playseg_core.errors import PlaysegError
 from playseg_core.ps.encoders import StepEncoders, choose_encoders, feature_statistics
 from playseg_core.ps.fixed_features import FixedFeatureCache
-from playseg_core.ps.model import LabelModel, ModelConfig, PSModel, TrunkConfig
+from playseg_core.ps.model import (
+    PERIODIC_FREQUENCIES,
+    TRUNK_DROPOUT,
+    LabelModel,
+    ModelConfig,
+    PSModel,
+    TrunkConfig,
+)
 from playseg_core.ps.samples import Batch, label_index, make_batch
 from playseg_core.ps.symmetries import ClipSymmetries, camera_symmetries
 from playseg_core.training.device import resolve_device, to_device
@@ -131,16 +138,23 @@ def model_config_for(
     min_len: int = 1,
     label_head: str | None = None,
     end_lookahead: int | None = None,
+    measured_state: bool = True,
 ) -> ModelConfig:
     """The default model for data with ``features`` (step encoders by `choose_encoders`; the state and a
     continuous action standardised with ``episodes``' statistics, computed only when read; the label
     head ``label_head``, else the domain's, else "linear"; the end head's lookahead ``end_lookahead``,
-    else the domain's, else 0, the paper's; playseg_core/domains `Domain`)."""
+    else the domain's, else 0, the paper's; the trunk's periodic embeddings the domain's frequencies, else
+    `PERIODIC_FREQUENCIES`, and with them, unless ``measured_state`` is False, the state among the
+    measured values they read; the trunk's dropout the domain's, else `TRUNK_DROPOUT`;
+    playseg_core/domains `Domain`)."""
     known = load_domain(domain) if domain else Domain("")
+    frequencies = PERIODIC_FREQUENCIES if known.periodic_frequencies is None else known.periodic_frequencies
     needs = [f.name for f in (features.state, features.action) if f is not None and not f.is_discrete]
     episodes = list(episodes)
     statistics = feature_statistics(episodes, needs) if episodes and needs else {}
-    encoders = choose_encoders(features, known.step_encoders, statistics, read_actions, overrides)
+    encoders = choose_encoders(
+        features, known.step_encoders, statistics, read_actions, overrides, measured_state and frequencies > 0
+    )
     observed = [features[spec.feature] for spec in encoders if spec.feature != features.action.name]
     # The action is always recorded (what the model was trained on), read or not.
     read = Features.of([*observed, features.action], features.fps)
@@ -148,7 +162,11 @@ def model_config_for(
         encoders,
         read,
         num_classes,
-        TrunkConfig(max_len=max_len, periodic_frequencies=known.periodic_frequencies),
+        TrunkConfig(
+            max_len=max_len,
+            periodic_frequencies=frequencies,
+            dropout=TRUNK_DROPOUT if known.trunk_dropout is None else known.trunk_dropout,
+        ),
         min_len=min_len,
         label_head=known.label_head if label_head is None else label_head,
         end_lookahead=known.end_lookahead if end_lookahead is None else end_lookahead,

@@ -24,6 +24,10 @@ SEGMENT_BOUNDS = {"min_len": 1, "max_len": 25, "k_max": 5}
 """The measured setting for BabyAI play (tasks of 1-21 steps, mostly ~5): L_min, L_max and the negatives'
 shift range k_max, used instead of the values derived from the annotated segments."""
 
+TRUNK_DROPOUT = 0.0
+"""No dropout in PS's trunk: BabyAI's figures (docs/segmentation.md) were measured without, on play with
+thousands of annotated segments."""
+
 
 def step_encoders(features: Features) -> dict[str, EncoderSpec | None]:
     """BabyAI's choice of step encoders (see ps/encoders.py `choose_encoders`): the grid-tile encoder for
@@ -56,6 +60,7 @@ __all__ = [
     "POLICIES",
     "PRESET_NAMES",
     "SEGMENT_BOUNDS",
+    "TRUNK_DROPOUT",
     "experiment",
     "generate_dataset",
     "step_encoders",
@@ -150,6 +155,7 @@ register_domain(
         name=DOMAIN,
         step_encoders=step_encoders,
         segment_bounds=SEGMENT_BOUNDS,
+        trunk_dropout=TRUNK_DROPOUT,
         policies=POLICIES,
         preset_names=PRESET_NAMES,
         generate_dataset=generate_dataset,
