@@ -55,13 +55,10 @@ from which block moved (val label accuracy 0.25 against 0.50 at x15; docs/tablet
 
 def step_encoders(features: Features) -> dict[str, EncoderSpec | None]:
     """The tabletop's choice of step encoders (ps/encoders.py `choose_encoders`): for its camera, the
-    object-map encoder's blocks (where each block is, nothing learnt); the generic ones for the state and
-    the action."""
+    object-map encoder's blocks (where each block is, nothing learnt); the generic ones for the state
+    and the action."""
     config = ObjectMapConfig(pooling="blocks", twins_by_size=True, position_scale=BLOCK_POSITION_SCALE)
-    chosen: dict[str, EncoderSpec | None] = {}
-    if CAMERA in features:
-        chosen[CAMERA] = object_map_spec(features[CAMERA], config)
-    return chosen
+    return {CAMERA: object_map_spec(features[CAMERA], config)} if CAMERA in features else {}
 
 
 def _turn_clip(inputs: dict[str, Any], number: int) -> dict[str, Any]:
