@@ -1,11 +1,19 @@
-"""Training samples of Play Segmentation: positives, the paper's negatives, and batches of windows.
+"""Training samples of Play Segmentation: positives, negatives, and batches of windows.
 
-Every annotated segment [s, e) is a positive; its negatives move the end later / earlier, widen both
-sides, take the window before it, and shift it left / right, by k drawn from 1..k_max, always inside the
-episode and never longer than the model's L_max. Beyond the paper (`dense_prefix_negatives`): the trunk
-is causal from the start, so one pass over a positive window also yields the end logit of every proper
-prefix [s, s+m), m < e-s, which did *not* end, supervised as 0. That is exactly the `log(1 - p_seg)`
-term of the segment score the decoder maximises.
+Every annotated segment [s, e) is a positive; its negatives move the end earlier, widen both sides, take
+the window before it, and shift it left / right, by k drawn from 1..k_max, always inside the episode and
+never longer than the model's L_max. Beyond the paper (`dense_prefix_negatives`): the trunk is causal
+from the start, so one pass over a positive window also yields the end logit of every proper prefix
+[s, s+m), m < e-s, which did *not* end, supervised as 0. That is exactly the `log(1 - p_seg)` term of
+the segment score the decoder maximises.
+
+The end head is trained as the decoder reads it (decoding.py): as a hazard, the probability that the
+segment ends at j given that it has not ended before j. So nothing past a true end is supervised from
+its true start, and the paper's "end later" negative [s, e+k) is left out: the decoder already scores
+[s, e+k) low through the factor 1 - p_end(e) of its score. Why: a head also told "not ended" past the
+end learns whether the segment ends exactly here; where it cannot tell e from e+1 apart it gives each
+about one half, and the decoder, reading two halves as a hazard, sees a one-in-four chance that the
+segment runs on past both and merges it with the next (docs/segmentation.md "Training").
 
 Steps are encoded once per batch (or once per training, for encoders that learn nothing: fixed_features.py);
 windows are gathered from those features by index.
@@ -24,7 +32,7 @@ from playseg_core.ps.encoders import StepEncoders
 from playseg_core.ps.fixed_features import FixedFeatureCache
 from playseg_core.ps.symmetries import ClipSymmetries
 
-NEGATIVE_KINDS = ("end_later", "end_earlier", "widened", "before", "shift_left", "shift_right")
+NEGATIVE_KINDS = ("end_earlier", "widened", "before", "shift_left", "shift_right")
 
 
 @dataclass(frozen=True)
@@ -45,7 +53,7 @@ def _draw(rng: np.random.Generator, high: int) -> int | None:
 def segment_samples(
     start: int, end: int, num_steps: int, max_len: int, k_max: int, rng: np.random.Generator
 ) -> list[Sample]:
-    """The positive [start, end) and up to six negatives; a kind that cannot fit is left out.
+    """The positive [start, end) and up to five negatives; a kind that cannot fit is left out.
 
     A segment longer than max_len cannot be scored by the model and yields no samples at all.
     """
@@ -58,8 +66,6 @@ def segment_samples(
         samples.append(Sample(s, e, False, kind))
 
     room_left, room_right, room_len = start, num_steps - end, max_len - length
-    if (k := _draw(rng, min(k_max, room_right, room_len))) is not None:
-        add("end_later", start, end + k)
     if (k := _draw(rng, min(k_max, length - 1))) is not None:
         add("end_earlier", start, end - k)
     if (k3 := _draw(rng, min(k_max, room_left, room_len - 1))) is not None:
@@ -83,8 +89,8 @@ class Batch:
     """Training windows of a few episodes. A window starts at one step and is supervised at positions.
 
     Samples that share a start share a window (the trunk is causal from the start, so one pass yields
-    the end logit at every position): the positive and its end-earlier / end-later negatives all live
-    in the window of the segment's true start.
+    the end logit at every position): the positive and its end-earlier negative both live in the window
+    of the segment's true start.
     """
 
     inputs: dict[str, torch.Tensor]  # step-encoder input rows by feature, N rows (see StepEncoders)
@@ -127,8 +133,7 @@ def make_batch(
     Only the steps each segment's samples can touch (k_max around it) are included: a batch holds
     segments from many episodes, which trains far faster than whole episodes (many scenes per step).
     With `dense_prefix_negatives`, the true-start window is also supervised as "not ended" at every
-    position before the end and at every position up to k_max after it (the end-earlier and end-later
-    negatives for all k at once). With `symmetries` (augmentation), each segment's clip is turned by one
+    position before the end (the end-earlier negatives for all k at once), and at none past it. With `symmetries` (augmentation), each segment's clip is turned by one
     of them drawn at random, its instruction with it (a turned instruction the classes lack leaves the
     clip as it was). The batch carries every step encoder's input rows, or, for the features ``fixed``
     caches, their encoder output rows. ``lookahead``: each window also holds that many steps past its
@@ -184,8 +189,7 @@ def make_batch(
                 labels.append(label)
         if negatives and dense_prefix_negatives and seg.start in windows:
             row, length = windows[seg.start], seg.end - seg.start
-            last = min(length + k_max, max_len, ep.num_steps - seg.start)
-            weights[row][1 : last + 1] = 1.0  # targets stay 0 except at the true end
+            weights[row][1 : length + 1] = 1.0  # targets stay 0 except at the true end
         if negatives and dense_window_negatives:
             true_starts = {s.start for s in ep.segments}
             last_end = min(ep.num_steps, seg.end + k_max)  # the region without the lookahead's rows
