@@ -8,12 +8,9 @@ from the start, so one pass over a positive window also yields the end logit of 
 the segment score the decoder maximises.
 
 The end head is trained as the decoder reads it (decoding.py): as a hazard, the probability that the
-segment ends at j given that it has not ended before j. So nothing past a true end is supervised from
-its true start, and the paper's "end later" negative [s, e+k) is left out: the decoder already scores
-[s, e+k) low through the factor 1 - p_end(e) of its score. Why: a head also told "not ended" past the
-end learns whether the segment ends exactly here; where it cannot tell e from e+1 apart it gives each
-about one half, and the decoder, reading two halves as a hazard, sees a one-in-four chance that the
-segment runs on past both and merges it with the next (docs/segmentation.md "Training").
+segment ends at j given that it has not ended before j. So from a segment's own start nothing past its
+end is supervised, and the paper's "end later" negative [s, e+k) is left out: the decoder already
+scores [s, e+k) low through the factor 1 - p_end(e). Why: docs/segmentation.md "Training".
 
 Steps are encoded once per batch (or once per training, for encoders that learn nothing: fixed_features.py);
 windows are gathered from those features by index.
@@ -133,9 +130,9 @@ def make_batch(
     Only the steps each segment's samples can touch (k_max around it) are included: a batch holds
     segments from many episodes, which trains far faster than whole episodes (many scenes per step).
     With `dense_prefix_negatives`, the true-start window is also supervised as "not ended" at every
-    position before the end (the end-earlier negatives for all k at once), and at none past it. With `symmetries` (augmentation), each segment's clip is turned by one
-    of them drawn at random, its instruction with it (a turned instruction the classes lack leaves the
-    clip as it was). The batch carries every step encoder's input rows, or, for the features ``fixed``
+    position before the end (the end-earlier negatives for all k at once), and at none past it. With
+    `symmetries` (augmentation), each segment's clip is turned by one of them drawn at random, its
+    instruction with it (a turned instruction the classes lack leaves the clip as it was). The batch carries every step encoder's input rows, or, for the features ``fixed``
     caches, their encoder output rows. ``lookahead``: each window also holds that many steps past its
     last supervised position (the PS end head reads them: `ModelConfig.end_lookahead`).
     """
