@@ -9,7 +9,7 @@ import pytest
 import torch
 from test_models import INSTRUCTIONS, synthetic_episode, tiny_model_config
 
-from playseg_core.data.episode import Episode
+from playseg_core.data.episode import Episode, Segment
 from playseg_core.domains.babyai.spec import CAMERA
 from playseg_core.ps.encoders import StepEncoders
 from playseg_core.ps.model import PSModel
@@ -80,6 +80,31 @@ def test_corner_cases_stay_inside_the_episode() -> None:
     assert "widened" not in kinds and "shift_left" in kinds
     # A segment longer than L_max yields nothing.
     assert segment_samples(0, 12, 40, 10, 5, rng) == []
+
+
+def test_no_negative_starts_at_an_annotated_start_and_ends_at_or_past_its_end() -> None:
+    # A 2-step annotated segment [4, 6) before [6, 12): with k_max 5 the window-before, shifted and
+    # widened negatives of [6, 12) can start at 4 and end at or past 6, which would tell the end head
+    # "not ended" where [4, 6) ends, or past it.
+    base = synthetic_episode(3, num_segments=8)
+    assert base.num_steps >= 16
+    bounds = [0, 4, 6, 12, base.num_steps]
+    segments = [
+        Segment(a, b, INSTRUCTIONS[i % len(INSTRUCTIONS)])
+        for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))
+    ]
+    episode = Episode(base.episode_id, base.actions, base.images, segments=segments)
+    rng = np.random.default_rng(0)
+    negatives_from_other_starts = 0
+    for _ in range(50):
+        batch = make_batch([(episode, segments[2])], label_index(INSTRUCTIONS), encoders_for(), 10, 5, rng)
+        for row in range(len(batch.end_target)):
+            start = 1 + int(batch.window_index[row, 0])  # the batch's rows start k_max before step 6
+            for position in torch.nonzero(batch.end_weight[row] > 0).flatten().tolist():
+                if batch.end_target[row, position] == 0 and start != 6:
+                    negatives_from_other_starts += 1
+                    assert not (start == 4 and start + position >= 6)
+    assert negatives_from_other_starts > 50
 
 
 def test_batch_windows_never_cross_episodes() -> None:

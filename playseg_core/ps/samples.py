@@ -8,9 +8,11 @@ from the start, so one pass over a positive window also yields the end logit of 
 the segment score the decoder maximises.
 
 The end head is trained as the decoder reads it (decoding.py): as a hazard, the probability that the
-segment ends at j given that it has not ended before j. So from a segment's own start nothing past its
-end is supervised, and the paper's "end later" negative [s, e+k) is left out: the decoder already
-scores [s, e+k) low through the factor 1 - p_end(e). Why: docs/segmentation.md "Training".
+segment ends at j given that it has not ended before j. So from an annotated segment's start nothing
+at or past its end is supervised as "not ended": the paper's "end later" negative [s, e+k) is left out
+(the decoder already scores [s, e+k) low through the factor 1 - p_end(e)), and so is a negative of the
+next segment that starts where a short one starts and reaches its end (a window before, shifted or
+widened by k >= its length). Why: docs/segmentation.md "Training".
 
 Steps are encoded once per batch (or once per training, for encoders that learn nothing: fixed_features.py);
 windows are gathered from those features by index.
@@ -130,11 +132,13 @@ def make_batch(
     Only the steps each segment's samples can touch (k_max around it) are included: a batch holds
     segments from many episodes, which trains far faster than whole episodes (many scenes per step).
     With `dense_prefix_negatives`, the true-start window is also supervised as "not ended" at every
-    position before the end (the end-earlier negatives for all k at once), and at none past it. With
-    `symmetries` (augmentation), each segment's clip is turned by one of them drawn at random, its
-    instruction with it (a turned instruction the classes lack leaves the clip as it was). The batch carries every step encoder's input rows, or, for the features ``fixed``
-    caches, their encoder output rows. ``lookahead``: each window also holds that many steps past its
-    last supervised position (the PS end head reads them: `ModelConfig.end_lookahead`).
+    position before the end (the end-earlier negatives for all k at once), and at none past it. No
+    negative is supervised that starts at an annotated segment's start of the episode and ends at or
+    past that segment's end (module docstring). With `symmetries` (augmentation), each segment's clip is
+    turned by one of them drawn at random, its instruction with it (a turned instruction the classes lack
+    leaves the clip as it was). The batch carries every step encoder's input rows, or, for the features
+    ``fixed`` caches, their encoder output rows. ``lookahead``: each window also holds that many steps
+    past its last supervised position (the PS end head reads them: `ModelConfig.end_lookahead`).
     """
     regions = [
         (max(0, seg.start - k_max), min(ep.num_steps, seg.end + k_max + lookahead)) for ep, seg in items
@@ -149,6 +153,7 @@ def make_batch(
     label_window, label_position, labels = [], [], []
     offset = 0
     for (ep, seg), (lo, hi) in zip(items, regions, strict=True):
+        annotated_ends = {other.start: other.end for other in ep.segments}
         recorded = encoders.recorded_clip(ep, lo, hi, raw)
         label, number = classes[seg.instruction], 0
         if symmetries is not None:
@@ -170,6 +175,9 @@ def make_batch(
         for sample in samples:
             if not negatives and not sample.is_end:
                 continue
+            annotated_end = annotated_ends.get(sample.start)
+            if not sample.is_end and annotated_end is not None and sample.end >= annotated_end:
+                continue  # from an annotated segment's start, at or past its end: not a negative
             if sample.start not in windows:
                 windows[sample.start] = len(rows)
                 steps = sample.start + np.arange(num_pos + lookahead)
