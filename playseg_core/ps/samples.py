@@ -196,10 +196,9 @@ def make_batch(
             row, length = windows[seg.start], seg.end - seg.start
             weights[row][1 : length + 1] = 1.0  # targets stay 0 except at the true end
         if negatives and dense_window_negatives:
-            true_starts = {s.start for s in ep.segments}
             last_end = min(ep.num_steps, seg.end + k_max)  # the region without the lookahead's rows
             for start, row in windows.items():
-                if start not in true_starts:  # no true segment starts here: no position is an end
+                if start not in annotated_ends:  # no true segment starts here: no position is an end
                     weights[row][1 : min(max_len, last_end - start) + 1] = 1.0
         offset += hi - lo + 1
 
