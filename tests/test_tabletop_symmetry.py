@@ -261,6 +261,29 @@ def test_ps_trains_on_turned_clips_with_turned_labels() -> None:
     assert len({w for w in seen if w.startswith("move the arm")}) > 1
 
 
+def random_layout_frames(rng: np.random.Generator, count: int) -> np.ndarray:
+    """``count`` camera frames of the table, the blocks in a new random layout in each: real blocks to
+    find."""
+    renderer, sim, frames = Renderer(96), TabletopSim(), []
+    for _ in range(count):
+        sim.place_randomly(rng)
+        frames.append(renderer.render(sim.scene()))
+    return np.stack(frames)
+
+
+def random_layout_episode(
+    rng: np.random.Generator, steps: int, segments: list[Segment] | None = None
+) -> Episode:
+    """An episode of ``steps`` random commands over `random_layout_frames`, with a random state."""
+    return Episode(
+        "e",
+        rng.uniform(-0.2, 0.2, (steps, 2)).astype(np.float32),
+        {CAMERA: random_layout_frames(rng, steps + 1)},
+        rng.uniform(0, 0.5, (steps + 1, 4)).astype(np.float32),
+        segments=segments or [],
+    )
+
+
 @pytest.mark.slow
 def test_the_blocks_are_encoded_once_per_episode_and_symmetry() -> None:
     """The blocks' positions learn nothing: training encodes them once per (episode, symmetry) and reads
@@ -272,17 +295,10 @@ def test_the_blocks_are_encoded_once_per_episode_and_symmetry() -> None:
     from playseg_core.ps.samples import label_index, make_batch
     from playseg_core.ps.training import model_config_for
 
-    rng = np.random.default_rng(2)
-    renderer, sim, frames = Renderer(96), TabletopSim(), []
-    for _ in range(31):  # real blocks to find, in a new layout every step
-        sim.place_randomly(rng)
-        frames.append(renderer.render(sim.scene()))
-    episode = Episode(
-        "e",
-        rng.uniform(-0.2, 0.2, (30, 2)).astype(np.float32),
-        {CAMERA: np.stack(frames)},
-        rng.uniform(0, 0.5, (31, 4)).astype(np.float32),
-        segments=[Segment(2, 12, "push the red cube left"), Segment(14, 28, "move the arm to the top edge")],
+    episode = random_layout_episode(
+        np.random.default_rng(2),
+        30,
+        [Segment(2, 12, "push the red cube left"), Segment(14, 28, "move the arm to the top edge")],
     )
     config = model_config_for(
         PlayConfig().features, "tabletop", len(INSTRUCTIONS), max_len=20, episodes=[episode]
@@ -321,6 +337,36 @@ def test_the_blocks_are_encoded_once_per_episode_and_symmetry() -> None:
     torch.testing.assert_close(fixed.clip_rows(namesake, 0, 3)[CAMERA], expected, atol=1e-5, rtol=0)
 
 
+def test_the_window_baselines_read_the_blocks_from_the_cache() -> None:
+    """UnLoc and TriDet train on windows of raw steps: the blocks' rows come from the cache of rows
+    encoded once per episode (`window_inputs` with a `FixedFeatureCache`), and the step features of a
+    batch equal those of the batch that carries the frames; the state and commands still come as input
+    rows, and the padding repeats a window's last row either way."""
+    from playseg_core.baselines.common import encode_windows, window_inputs
+    from playseg_core.baselines.unloc import UnlocConfig, UnlocModel
+    from playseg_core.domains.tabletop.play import PlayConfig
+    from playseg_core.ps.fixed_features import FixedFeatureCache
+    from playseg_core.ps.training import model_config_for
+
+    episode = random_layout_episode(np.random.default_rng(3), 20)
+    features = PlayConfig().features
+    specs = model_config_for(features, "tabletop", 3, max_len=20, episodes=[episode]).encoders
+    model = UnlocModel(specs, features, list(INSTRUCTIONS)[:3], UnlocConfig(length_counts={5: 1})).eval()
+    fixed = FixedFeatureCache(model.encoders)
+    assert fixed.features == [CAMERA]
+    windows = [(episode, 0, 7), (episode, 4, 20), (episode, 12, 15)]
+    plain, cached = window_inputs(model.encoders, windows), window_inputs(model.encoders, windows, fixed)
+    assert CAMERA in plain.inputs and not plain.encoded
+    assert CAMERA not in cached.inputs and set(cached.encoded) == {CAMERA}
+    assert set(cached.inputs) == set(plain.inputs) - {CAMERA} and cached.inputs
+    torch.testing.assert_close(cached.valid, plain.valid)
+    with torch.no_grad():
+        rows = encode_windows(model.encoders, cached)
+        torch.testing.assert_close(rows, encode_windows(model.encoders, plain), atol=1e-5, rtol=0)
+    assert rows.shape[:2] == (3, 17) and not rows[2, 4:].any()  # zero past the short window's rows
+    assert len(fixed) == 1  # the episode encoded once for all three windows
+
+
 def test_the_blocks_turn_as_the_table_without_encoding_the_turned_frames() -> None:
     """The blocks' rows of a turned clip are the recorded rows turned (`turn_block_rows`), equal to
     encoding the turned frames, so the cache encodes an episode's frames once for all 8 symmetries."""
@@ -333,11 +379,7 @@ def test_the_blocks_turn_as_the_table_without_encoding_the_turned_frames() -> No
     features = PlayConfig().features
     spec = object_map_spec(features[CAMERA], ObjectMapConfig(pooling="blocks", twins_by_size=True))
     rng = np.random.default_rng(5)
-    renderer, sim, frames = Renderer(96), TabletopSim(), []
-    for _ in range(12):
-        sim.place_randomly(rng)
-        frames.append(renderer.render(sim.scene()))
-    frames = np.stack(frames)
+    frames = random_layout_frames(rng, 12)
     encoders = StepEncoders([spec], features)
     encoder = encoders.encoders[0]
     with torch.no_grad():

@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -28,6 +28,7 @@ from playseg_core.data.features import Features
 from playseg_core.errors import PlaysegError
 from playseg_core.ps.calibration import LABEL_ACCURACY_TARGET, check_target_accuracy
 from playseg_core.ps.encoders import EncoderSpec, StepEncoders, as_tensors
+from playseg_core.ps.fixed_features import FixedFeatureCache
 from playseg_core.ps.labelling import KeepRule
 from playseg_core.ps.metrics import LabelCounts, label_accuracy
 from playseg_core.training.device import resolve_device, to_device
@@ -264,42 +265,58 @@ def window_rows(
     return batch, valid
 
 
+class WindowInputs(NamedTuple):
+    """A training batch's windows [start, end) of several episodes, rows o_start..o_end each, right-padded
+    to the longest by repeating the last row (any valid row works: padded steps are masked), flattened to
+    (B * P, ...) by feature: ``inputs``, the input rows of the encoders that learn; ``encoded``, the output
+    rows of those that learn nothing, from a `FixedFeatureCache`; ``valid`` (B, P-1), True at the steps
+    inside each window."""
+
+    inputs: dict[str, torch.Tensor]
+    encoded: dict[str, torch.Tensor]
+    valid: torch.Tensor
+
+
 def window_inputs(
-    encoders: StepEncoders, items: Sequence[tuple[Episode, int, int]]
-) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
-    """The encoders' input rows of windows [start, end) of several episodes (rows o_start..o_end each,
-    right-padded to the longest by repeating the last row: any valid input works, padded steps are
-    masked), by feature, flattened to (B * P, ...); and (B, P-1) True at the steps inside each window.
-    CPU tensors, made without the model: a training batch (`encode_windows` encodes them)."""
+    encoders: StepEncoders, items: Sequence[tuple[Episode, int, int]], fixed: FixedFeatureCache | None = None
+) -> WindowInputs:
+    """The `WindowInputs` of windows (episode, start, end): CPU tensors, made without the model's
+    gradients (`encode_windows` encodes them). With ``fixed``, the features it caches come as their
+    encoder's output rows, each episode encoded once for the whole training: a window model reads every
+    annotated step in many batches, and a camera read by an encoder that learns nothing would otherwise be
+    encoded again in every one of them."""
     width = max(end - start for _, start, end in items) + 1
-    inputs: dict[str, list[np.ndarray]] = {spec.feature: [] for spec in encoders.specs}
+    cached = set(fixed.features) if fixed is not None else set()
+    raw = [spec.feature for spec in encoders.specs if spec.feature not in cached]
+    inputs: dict[str, list[np.ndarray]] = {feature: [] for feature in raw}
+    encoded: dict[str, list[torch.Tensor]] = {feature: [] for feature in cached}
     valid = torch.zeros(len(items), width - 1, dtype=torch.bool)
     for row, (episode, start, end) in enumerate(items):
+        pad = width - (end - start + 1)
         for name, array in encoders.episode_inputs(episode).items():
+            if name in cached:
+                continue
             clip = np.array(array[start : end + 1])
-            pad = np.repeat(clip[-1:], width - len(clip), axis=0)
-            inputs[name].append(np.concatenate([clip, pad]))
+            inputs[name].append(np.concatenate([clip, np.repeat(clip[-1:], pad, axis=0)]))
+        if fixed is not None:
+            for name, rows in fixed.clip_rows(episode, start, end).items():
+                encoded[name].append(torch.cat([rows, rows[-1:].expand(pad, -1)]))
         valid[row, : end - start] = True
-    return {name: torch.from_numpy(np.concatenate(parts)) for name, parts in inputs.items()}, valid
+    return WindowInputs(
+        {name: torch.from_numpy(np.concatenate(parts)) for name, parts in inputs.items()},
+        {name: torch.cat(parts) for name, parts in encoded.items()},
+        valid,
+    )
 
 
-def encode_windows(
-    encoders: StepEncoders, inputs: Mapping[str, torch.Tensor], valid: torch.Tensor
-) -> torch.Tensor:
+def encode_windows(encoders: StepEncoders, windows: WindowInputs) -> torch.Tensor:
     """`window_inputs` encoded with gradients (training) -> (B, P, d) rows, zero past each window."""
-    count, width = valid.shape[0], valid.shape[1] + 1
-    features = encoders(inputs).reshape(count, width, -1)
-    inside = torch.cat([torch.ones(count, 1, dtype=torch.bool, device=valid.device), valid], 1)
+    count, width = windows.valid.shape[0], windows.valid.shape[1] + 1
+    features = encoders(windows.inputs, windows.encoded).reshape(count, width, -1)
+    inside = torch.cat(
+        [torch.ones(count, 1, dtype=torch.bool, device=windows.valid.device), windows.valid], 1
+    )
     return features * inside[..., None]
-
-
-def training_window_rows(
-    encoders: StepEncoders, items: Sequence[tuple[Episode, int, int]]
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """As `window_rows` for windows of several episodes, encoded with gradients (training): only the
-    rows of the windows themselves are read and encoded (`window_inputs`, then `encode_windows`)."""
-    inputs, valid = window_inputs(encoders, items)
-    return encode_windows(encoders, inputs, valid), valid
 
 
 def transition_tokens(rows: torch.Tensor) -> torch.Tensor:

@@ -54,6 +54,7 @@ from playseg_core.checkpoint import Checkpoint, CheckpointError, read_checkpoint
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.data.features import Features
 from playseg_core.ps.encoders import EncoderSpec, StepEncoders
+from playseg_core.ps.fixed_features import FixedFeatureCache
 from playseg_core.training.device import resolve_device
 
 KIND = "tridet"
@@ -330,6 +331,7 @@ def train_tridet(
     specs, features = step_encoders_for(data)
     model = TridetModel(specs, features, data.instructions, cfg)
     freeze_pretrained_encoders(model.encoders, data)
+    fixed = FixedFeatureCache(model.encoders)
     classes = {text: i for i, text in enumerate(data.instructions)}
     fits = lambda seg: seg.length <= cfg.window  # noqa: E731 - a longer segment fits no window
     items = {True: [(e, s) for e in train_eps for s in e.segments if fits(s)]}
@@ -342,7 +344,7 @@ def train_tridet(
         return [(e, s, *_training_window(e, s, cfg.window, rng)) for e, s in chosen]
 
     def build(windows: list[tuple[Episode, Segment, int, int]]) -> dict[str, Any]:
-        inputs, valid = window_inputs(model.encoders, [(e, start, end) for e, _, start, end in windows])
+        windows_in = window_inputs(model.encoders, [(e, start, end) for e, _, start, end in windows], fixed)
         spans = [
             [
                 (seg.start - start, seg.end - start, classes[seg.instruction])
@@ -351,11 +353,13 @@ def train_tridet(
             ]
             for episode, drawn, start, end in windows
         ]
-        return {"inputs": inputs, "valid": valid, "spans": spans}
+        return {"windows": windows_in, "spans": spans}
 
     def loss(trained: nn.Module, batch: dict[str, Any]) -> torch.Tensor:
-        rows = encode_windows(trained.encoders, batch["inputs"], batch["valid"])
-        return tridet_loss(trained, trained(*_padded(rows, batch["valid"], cfg.window)), batch["spans"])
+        rows = encode_windows(trained.encoders, batch["windows"])
+        return tridet_loss(
+            trained, trained(*_padded(rows, batch["windows"].valid, cfg.window)), batch["spans"]
+        )
 
     steps = options.step_cap(len(items[True]), batch_size, default_steps=WINDOW_STEP_CAP)
     report = fit(model, WindowBatches(choose, build, loss), options, steps, options.lr or 1e-3, "tridet")

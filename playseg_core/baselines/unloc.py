@@ -49,6 +49,7 @@ from playseg_core.checkpoint import Checkpoint, CheckpointError, read_checkpoint
 from playseg_core.data.episode import Episode, Segment
 from playseg_core.data.features import Features
 from playseg_core.ps.encoders import EncoderSpec, StepEncoders
+from playseg_core.ps.fixed_features import FixedFeatureCache
 from playseg_core.training.device import resolve_device
 
 KIND = "unloc"
@@ -194,6 +195,7 @@ def train_unloc(
     specs, features = step_encoders_for(data)
     model = UnlocModel(specs, features, data.instructions, cfg)
     freeze_pretrained_encoders(model.encoders, data)
+    fixed = FixedFeatureCache(model.encoders)
     classes = {text: i for i, text in enumerate(data.instructions)}
     items = {True: [(e, s) for e in train_eps for s in e.segments]}
     longest = max(cfg.length_counts)  # the position embeddings reach this far
@@ -206,16 +208,16 @@ def train_unloc(
         return [(e, s, *_training_window(e, s, cfg.pad_max, rng)) for e, s in chosen]
 
     def build(windows: list[tuple[Episode, Segment, int, int]]) -> dict[str, Any]:
-        inputs, valid = window_inputs(model.encoders, [(e, start, end) for e, _, start, end in windows])
-        target = torch.full(valid.shape, model.background, dtype=torch.long)
+        windows_in = window_inputs(model.encoders, [(e, start, end) for e, _, start, end in windows], fixed)
+        target = torch.full(windows_in.valid.shape, model.background, dtype=torch.long)
         for row, (_, seg, start, _) in enumerate(windows):
             target[row, seg.start - start : seg.end - start] = classes[seg.instruction]
-        return {"inputs": inputs, "valid": valid, "target": target}
+        return {"windows": windows_in, "target": target}
 
     def loss(trained: nn.Module, batch: dict[str, Any]) -> torch.Tensor:
-        rows = encode_windows(trained.encoders, batch["inputs"], batch["valid"])
-        logits = trained.step_logits(rows, batch["valid"])
-        return masked_cross_entropy(logits, batch["target"], batch["valid"])
+        rows = encode_windows(trained.encoders, batch["windows"])
+        valid = batch["windows"].valid
+        return masked_cross_entropy(trained.step_logits(rows, valid), batch["target"], valid)
 
     steps = options.step_cap(len(items[True]), batch_size, default_steps=WINDOW_STEP_CAP)
     report = fit(model, WindowBatches(choose, build, loss), options, steps, options.lr or 1e-3, "unloc")
