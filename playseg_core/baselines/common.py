@@ -32,14 +32,7 @@ from playseg_core.ps.fixed_features import FixedFeatureCache
 from playseg_core.ps.labelling import KeepRule
 from playseg_core.ps.metrics import LabelCounts, label_accuracy
 from playseg_core.training.device import resolve_device, to_device
-from playseg_core.training.loop import (
-    PATIENCE_SHARE,
-    LoopConfig,
-    LoopResult,
-    TrainingTask,
-    log_to_stderr,
-    train_loop,
-)
+from playseg_core.training.loop import LoopConfig, LoopResult, TrainingTask, log_to_stderr, train_loop
 
 
 @dataclass
@@ -372,8 +365,7 @@ well before it."""
 WINDOW_EVAL_EVERY = 25
 """Steps between the held-out evaluations of a window model (each is `VAL_BATCHES` forward passes)."""
 WINDOW_PATIENCE = 4
-"""Evaluations without a better val loss that end a window model's run, spanning at least
-`PATIENCE_SHARE` of its step cap (its val loss, of a few batches, dips for a while as it still falls)."""
+"""Evaluations without a better val loss that end a window model's run."""
 VAL_BATCHES = 4
 """Fixed val batches (of the training batch size) whose mean loss is the held-out measure."""
 VAL_SEED = 12345
@@ -489,8 +481,8 @@ def fit(
     over ``steps`` (the cap: `window_learning_rate`), gradients clipped at 5; step s's batch is the s-th
     draw from ``options.seed`` (`_DrawnBatches`); every ``options.eval_every`` (else ``eval_every``)
     steps the mean loss of ``val_batches`` fixed val batches decides the best weights, which are kept,
-    and early stopping after ``options``' patience (else ``patience``; none with ``options.epochs``)
-    spanning at least `PATIENCE_SHARE` of ``steps``; ``options.max_minutes`` ends it too. On ``options.device`` (bf16 autocast on CUDA); the model comes
+    and early stopping after ``options``' patience (else ``patience``; none with ``options.epochs``);
+    ``options.max_minutes`` ends it too. On ``options.device`` (bf16 autocast on CUDA); the model comes
     back on the CPU, in eval mode."""
     if options.num_threads:
         torch.set_num_threads(options.num_threads)
@@ -518,7 +510,6 @@ def fit(
         steps=steps,
         eval_every=options.eval_every or eval_every,
         patience=options.patience_or(patience) if held_out else 0,
-        patience_steps=int(PATIENCE_SHARE * steps),
         max_minutes=options.max_minutes,
         grad_clip=5.0,
         device=device,

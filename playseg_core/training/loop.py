@@ -76,12 +76,6 @@ class TrainingTask:
     measure: str = "val_loss"
 
 
-PATIENCE_SHARE = 0.15
-"""The least share of a run's step cap between its best evaluation and early stopping (`LoopConfig.
-patience_steps` of PS and the window models): on a small val split the measure dips for a few evaluations
-while it still improves."""
-
-
 @dataclass
 class LoopConfig:
     steps: int  # the step cap
