@@ -19,6 +19,7 @@ from playseg_core.domains.tabletop.play import PlayConfig
 from playseg_core.domains.tabletop.render import VIEW_BORDER, Renderer
 from playseg_core.domains.tabletop.sim import TabletopSim
 from playseg_core.domains.tabletop.spec import BLOCKS, CAMERA, COLOURS, DOMAIN, TABLE_SIZE
+from playseg_core.ps.encoders import StepEncoders
 from playseg_core.ps.incremental import IncrementalEndScorer
 from playseg_core.ps.model import (
     PERIODIC_FREQUENCIES,
@@ -322,3 +323,15 @@ def test_a_text_head_s_tokens_are_the_ones_its_checkpoints_hold() -> None:
     ]  # fmt: skip
     head = TextLabelHead(8, ["拿起红色方块", "go left"])
     assert head.token_embedding.shape[0] == 7  # 2 for the first, go, left, 0:go, 1:left, "go left"
+
+
+@pytest.mark.parametrize("pooling", ["blocks", "grid", "keypoints"])
+def test_the_camera_encoder_makes_its_tensors_on_its_own_device(pooling: str) -> None:
+    """PS and the baselines move the encoder to a GPU wherever torch sees one: a tensor it makes on the
+    CPU inside its forward would fail there. The meta device stands in for the GPU (the same rule)."""
+    features = PlayConfig().features
+    spec = object_map_spec(features[CAMERA], ObjectMapConfig(pooling=pooling, twins_by_size=True))
+    encoder = StepEncoders([spec], features).encoders[0].to("meta")
+    frames = torch.zeros((2, *features[CAMERA].shape), dtype=torch.uint8, device="meta")
+    rows = encoder(frames)
+    assert rows.device.type == "meta" and rows.shape[0] == 2

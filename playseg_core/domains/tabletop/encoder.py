@@ -186,7 +186,9 @@ class ObjectMapEncoder(ObservationEncoder):
         angle = 0.5 * torch.atan2(2 * xy, xx - yy)
         axis = torch.stack([torch.cos(angle), torch.sin(angle)], dim=-1)  # (N, G, 2)
         spread = (0.5 * (xx + yy) + ((0.5 * (xx - yy)) ** 2 + xy**2).sqrt()).clamp_min(1e-8).sqrt()
-        ends = torch.linspace(-1.0, 1.0, len(SHAPES))[None, None, :, None]
+        ends = torch.linspace(-1.0, 1.0, len(SHAPES), device=mass.device, dtype=mass.dtype)[
+            None, None, :, None
+        ]
         centres = mean[:, :, None] + ends * (spread[..., None] * axis)[:, :, None]  # (N, G, S, 2)
         cells = self.cell_centres.square().sum(-1)
         for _ in range(self.blob_iterations):
