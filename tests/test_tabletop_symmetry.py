@@ -360,6 +360,9 @@ def test_the_window_baselines_read_the_blocks_from_the_cache() -> None:
     assert CAMERA not in cached.inputs and set(cached.encoded) == {CAMERA}
     assert set(cached.inputs) == set(plain.inputs) - {CAMERA} and cached.inputs
     torch.testing.assert_close(cached.valid, plain.valid)
+    with torch.no_grad():  # the cached rows padded as the frames are: each window's last row repeated
+        camera = model.encoders.encoders[0]
+        torch.testing.assert_close(cached.encoded[CAMERA], camera(plain.inputs[CAMERA]), atol=1e-5, rtol=0)
     with torch.no_grad():
         rows = encode_windows(model.encoders, cached)
         torch.testing.assert_close(rows, encode_windows(model.encoders, plain), atol=1e-5, rtol=0)

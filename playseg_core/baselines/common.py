@@ -286,7 +286,7 @@ def window_inputs(
     annotated step in many batches, and a camera read by an encoder that learns nothing would otherwise be
     encoded again in every one of them."""
     width = max(end - start for _, start, end in items) + 1
-    cached = set(fixed.features) if fixed is not None else set()
+    cached = fixed.features if fixed is not None else []
     raw = [spec.feature for spec in encoders.specs if spec.feature not in cached]
     inputs: dict[str, list[np.ndarray]] = {feature: [] for feature in raw}
     encoded: dict[str, list[torch.Tensor]] = {feature: [] for feature in cached}
@@ -375,7 +375,8 @@ VAL_SEED = 12345
 class WindowBatches:
     """How a window model learns: ``choose(rng, training)`` draws one batch's windows (all of its
     randomness; from the training pool, or with ``training`` False from the val pool), ``build(windows)``
-    makes their tensors on the CPU (no model needed: batches can be made ahead, on another thread), and
+    makes their tensors on the CPU (batches can be made ahead, on another thread; the only model part it
+    may run is the encoders that learn nothing, once per episode, through a `FixedFeatureCache`), and
     ``loss(model, batch)`` is the batch's loss (the batch on the model's device)."""
 
     choose: Callable[[np.random.Generator, bool], Any]

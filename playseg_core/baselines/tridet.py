@@ -344,7 +344,9 @@ def train_tridet(
         return [(e, s, *_training_window(e, s, cfg.window, rng)) for e, s in chosen]
 
     def build(windows: list[tuple[Episode, Segment, int, int]]) -> dict[str, Any]:
-        windows_in = window_inputs(model.encoders, [(e, start, end) for e, _, start, end in windows], fixed)
+        batch_windows = window_inputs(
+            model.encoders, [(e, start, end) for e, _, start, end in windows], fixed
+        )
         spans = [
             [
                 (seg.start - start, seg.end - start, classes[seg.instruction])
@@ -353,7 +355,7 @@ def train_tridet(
             ]
             for episode, drawn, start, end in windows
         ]
-        return {"windows": windows_in, "spans": spans}
+        return {"windows": batch_windows, "spans": spans}
 
     def loss(trained: nn.Module, batch: dict[str, Any]) -> torch.Tensor:
         rows = encode_windows(trained.encoders, batch["windows"])

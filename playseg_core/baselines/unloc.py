@@ -208,11 +208,13 @@ def train_unloc(
         return [(e, s, *_training_window(e, s, cfg.pad_max, rng)) for e, s in chosen]
 
     def build(windows: list[tuple[Episode, Segment, int, int]]) -> dict[str, Any]:
-        windows_in = window_inputs(model.encoders, [(e, start, end) for e, _, start, end in windows], fixed)
-        target = torch.full(windows_in.valid.shape, model.background, dtype=torch.long)
+        batch_windows = window_inputs(
+            model.encoders, [(e, start, end) for e, _, start, end in windows], fixed
+        )
+        target = torch.full(batch_windows.valid.shape, model.background, dtype=torch.long)
         for row, (_, seg, start, _) in enumerate(windows):
             target[row, seg.start - start : seg.end - start] = classes[seg.instruction]
-        return {"windows": windows_in, "target": target}
+        return {"windows": batch_windows, "target": target}
 
     def loss(trained: nn.Module, batch: dict[str, Any]) -> torch.Tensor:
         rows = encode_windows(trained.encoders, batch["windows"])
