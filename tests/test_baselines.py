@@ -472,3 +472,28 @@ def test_without_early_stopping_the_window_models_train_as_before_the_loop(
     assert weights.keys() == before.keys()
     assert [key for key in weights if not torch.equal(weights[key], before[key])] == []
     assert meta["val_loss"] == meta_before["val_loss"]
+
+
+@pytest.mark.parametrize("method", ["unloc", "tridet"])
+def test_the_window_models_build_their_batches_through_the_fixed_feature_cache(
+    method: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """UnLoc and TriDet hand every batch's windows to `window_inputs` with one `FixedFeatureCache` of
+    their encoders (what spares a camera encoder that learns nothing from running in every batch: the
+    cached rows themselves are checked in tests/test_tabletop_symmetry.py)."""
+    import importlib
+
+    from playseg_core.baselines import common
+    from playseg_core.ps.fixed_features import FixedFeatureCache
+
+    module = importlib.import_module(f"playseg_core.baselines.{method}")
+    caches = []
+
+    def spy(encoders, items, fixed=None):
+        caches.append(fixed)
+        return common.window_inputs(encoders, items, fixed)
+
+    monkeypatch.setattr(module, "window_inputs", spy)
+    get_method(method).train(synthetic_data(train=4, val=2), TrainOptions(max_steps=2, batch_size=4))
+    assert len(caches) > 2  # the val batches and one per step
+    assert all(isinstance(cache, FixedFeatureCache) for cache in caches) and len({id(c) for c in caches}) == 1
