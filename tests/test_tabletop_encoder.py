@@ -23,6 +23,7 @@ from playseg_core.ps.encoders import StepEncoders
 from playseg_core.ps.incremental import IncrementalEndScorer
 from playseg_core.ps.model import (
     PERIODIC_FREQUENCIES,
+    PairDistanceEmbedding,
     PSModel,
     TextLabelHead,
     load_model,
@@ -240,6 +241,10 @@ def test_the_trunk_reads_the_blocks_through_periodic_embeddings_and_segmenting_s
     measured = list(range(16 + 4))
     assert model.encoders.measured_columns == measured
     assert model.trunk.periodic is not None and model.trunk.periodic.columns.tolist() == measured
+    # the distances between the 8 blocks' positions: 28 pairs, embedded to the trunk's width
+    assert model.encoders.position_columns == [(2 * k, 2 * k + 1) for k in range(8)]
+    assert model.pair_distances is not None and len(model.pair_distances.pairs) == 28
+    assert model.step_dim == model.encoders.step_dim + config.trunk.hidden_dim
     state_encoder = model.encoders.encoders[1]
     rows = torch.from_numpy(episode.state[:3])
     standardised = (rows - state_encoder.mean) / state_encoder.std
@@ -270,11 +275,40 @@ def test_the_trunk_reads_the_blocks_through_periodic_embeddings_and_segmenting_s
         model.trunk.periodic.proj.weight.zero_()
         assert not torch.allclose(model.end_logits(step_features), matrix)
         model.trunk.periodic.proj.weight.copy_(saved)
+        saved = model.pair_distances.embed.weight.clone()
+        model.pair_distances.embed.weight.zero_()
+        assert not torch.allclose(model.end_logits(model.encode_episode(episode)), matrix)
+        model.pair_distances.embed.weight.copy_(saved)
     save_model(tmp_path / "m.pt", model)
     loaded, _ = load_model(tmp_path / "m.pt")
-    assert loaded.cfg.trunk.periodic_frequencies == PERIODIC_FREQUENCIES
+    assert loaded.cfg.trunk.periodic_frequencies == loaded.cfg.trunk.pair_frequencies == PERIODIC_FREQUENCIES
     with torch.no_grad():
         torch.testing.assert_close(loaded.end_logits(loaded.encode_episode(episode)), matrix)
+
+
+def test_the_distances_embedding_reads_the_distances_between_positions_only() -> None:
+    """Moving, turning or mirroring every position together changes nothing; one pair's distance does,
+    and a pair's own vector tells the pairs apart."""
+    torch.manual_seed(0)
+    embedding = PairDistanceEmbedding([(0, 1), (2, 3), (4, 5)], frequencies=8, out_dim=16)
+    with torch.no_grad():
+        embedding.pair.normal_()
+    rows = torch.randn(5, 7)  # three positions, then a column that is not one
+    angle = torch.tensor(0.7)
+    turn = torch.stack([torch.stack([angle.cos(), -angle.sin()]), torch.stack([angle.sin(), angle.cos()])])
+    moved = rows.clone()
+    points = rows[:, :6].reshape(5, 3, 2) @ turn.T * torch.tensor([-1.0, 1.0]) + torch.tensor([0.3, -2.0])
+    moved[:, :6] = points.reshape(5, 6)
+    moved[:, 6] = 5.0
+    torch.testing.assert_close(embedding(moved), embedding(rows), atol=1e-4, rtol=1e-4)
+    apart = rows.clone()
+    apart[:, 4:6] += 3.0  # the third thing moves away from the other two
+    assert not torch.allclose(embedding(apart), embedding(rows), atol=1e-3)
+    distances = embedding.distances(rows)
+    torch.testing.assert_close(distances[:, 0], (rows[:, 0:2] - rows[:, 2:4]).norm(dim=-1))
+    swapped = PairDistanceEmbedding([(0, 1), (4, 5), (2, 3)], frequencies=8, out_dim=16)
+    swapped.load_state_dict(embedding.state_dict())
+    assert not torch.allclose(swapped(rows), embedding(rows), atol=1e-3)
 
 
 @pytest.mark.slow

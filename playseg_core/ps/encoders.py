@@ -59,6 +59,12 @@ class StepEncoder(nn.Module):
         them for an encoder that learns nothing): what PS's trunk may read through periodic embeddings."""
         return range(0) if self.learns else range(self.out_dim)
 
+    @property
+    def position_columns(self) -> list[tuple[int, int]]:
+        """The (x, y) output columns of each thing whose position this encoder measures (blocks found in
+        a camera frame): what PS's trunk may read the distances between (`PairDistanceEmbedding`)."""
+        return []
+
     def input_rows(self, episode: Episode, where: str) -> np.ndarray:
         """The encoder's input for every observation o_0..o_T of ``episode`` (T+1 rows)."""
         raise NotImplementedError
@@ -306,6 +312,16 @@ class StepEncoders(nn.Module):
         for encoder in self.encoders:
             if isinstance(encoder, ObservationEncoder):
                 columns.extend(first + column for column in encoder.measured_columns)
+            first += encoder.out_dim
+        return columns
+
+    @property
+    def position_columns(self) -> list[tuple[int, int]]:
+        """The (x, y) step-feature columns of every measured position (`StepEncoder.position_columns`)."""
+        columns, first = [], 0
+        for encoder in self.encoders:
+            if isinstance(encoder, ObservationEncoder):
+                columns.extend((first + x, first + y) for x, y in encoder.position_columns)
             first += encoder.out_dim
         return columns
 

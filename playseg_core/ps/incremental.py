@@ -31,7 +31,7 @@ class IncrementalEndScorer:
     def __init__(self, model: PSModel) -> None:
         trunk = model.trunk
         self.model = model
-        step_dim = model.encoders.step_dim
+        step_dim = model.step_dim
         weight = trunk.in_proj.weight
         own, start, difference = (
             weight[:, :step_dim],

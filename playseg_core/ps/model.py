@@ -2,7 +2,9 @@
 
 Step features: every observation o_t of an episode (T+1 of them) becomes one row of step features, the
 concatenation of the model's step encoders (ps/encoders.py: cameras, the previous action a_{t-1}, ...),
-each row encoded once (no temporal mixing); everything temporal happens on the (T+1, step_dim) sequence.
+each row encoded once (no temporal mixing), followed, where encoders measure positions of things, by an
+embedding of the distances between them (`PairDistanceEmbedding`); everything temporal happens on the
+(T+1, step_dim) sequence.
 
 The PS trunk is causal in time *from the segment start*: for a window starting at step i, position p
 (row o_{i+p}) sees only o_i .. o_{i+p}, the start row's features and the offset p. One pass over the
@@ -44,6 +46,9 @@ class TrunkConfig:
     # Dropout on the trunk's input and on each block's residual branch while training; 0: none (what a
     # checkpoint without the setting was trained with).
     dropout: float = 0.0
+    # Periodic embeddings of the distances between measured positions (`PairDistanceEmbedding`), with
+    # this many learnt frequencies; 0: none (what a checkpoint without the setting was trained with).
+    pair_frequencies: int = 0
 
 
 PERIODIC_FREQUENCIES = 16
@@ -179,6 +184,40 @@ class PeriodicEmbedding(nn.Module):
         values = torch.cat([values, values - start[..., self.columns]], dim=-1)
         angles = (2 * torch.pi) * values.unsqueeze(-1) * self.frequency
         return self.proj(torch.cat([angles.sin(), angles.cos()], dim=-1).flatten(-2))
+
+
+class PairDistanceEmbedding(nn.Module):
+    """Step features of the distances between measured positions (things found in a camera frame): for
+    every pair, sin and cos of learnt frequencies of their distance, embedded by one projection shared by
+    all pairs plus a learnt vector of the pair, then the maximum over pairs.
+
+    A task may end when two things come within some distance of each other: a value no single position
+    holds, and a function of two that the trunk's linear projection of the positions cannot make sharp.
+    Sharing the projection keeps the parameters few (a pair's own vector says which pairs matter), and
+    the maximum reads "some pair is this close" whichever pair it is. One row each: the trunk reads them
+    at the start and now, and their change, as every step feature.
+    """
+
+    def __init__(self, positions: list[tuple[int, int]], frequencies: int, out_dim: int) -> None:
+        super().__init__()
+        pairs = [(a, b) for a in range(len(positions)) for b in range(a + 1, len(positions))]
+        self.register_buffer("positions", torch.tensor(positions, dtype=torch.long), persistent=False)
+        self.register_buffer("pairs", torch.tensor(pairs, dtype=torch.long), persistent=False)
+        self.frequency = nn.Parameter(torch.randn(frequencies) * PeriodicEmbedding.SCALE)
+        self.embed = nn.Linear(2 * frequencies, out_dim)
+        self.pair = nn.Parameter(torch.zeros(len(pairs), out_dim))
+        self.out_dim = out_dim
+
+    def distances(self, rows: torch.Tensor) -> torch.Tensor:
+        """(N, d) step features -> (N, pairs) distances between the measured positions."""
+        points = rows[:, self.positions]  # (N, things, 2)
+        return (points[:, self.pairs[:, 0]] - points[:, self.pairs[:, 1]]).norm(dim=-1)
+
+    def forward(self, rows: torch.Tensor) -> torch.Tensor:
+        """(N, d) step features -> (N, out_dim)."""
+        angles = (2 * torch.pi) * self.distances(rows).unsqueeze(-1) * self.frequency  # (N, pairs, F)
+        embedded = self.embed(torch.cat([angles.sin(), angles.cos()], dim=-1)) + self.pair
+        return F.gelu(embedded).amax(dim=1)
 
 
 class StartCausalTrunk(nn.Module):
@@ -375,13 +414,26 @@ class StepModel(nn.Module):
         self.cfg = cfg
         self.instructions = _class_names(instructions, cfg.num_classes)
         self.encoders = StepEncoders(cfg.encoders, cfg.features)
+        positions = self.encoders.position_columns
+        self.pair_distances = (
+            PairDistanceEmbedding(positions, cfg.trunk.pair_frequencies, cfg.trunk.hidden_dim)
+            if cfg.trunk.pair_frequencies and len(positions) > 1
+            else None
+        )
         self.trunk = StartCausalTrunk(
-            self.encoders.step_dim, cfg.trunk, self.lookahead, self.encoders.measured_columns
+            self.step_dim, cfg.trunk, self.lookahead, self.encoders.measured_columns
         )
 
     @property
     def max_len(self) -> int:
         return self.cfg.trunk.max_len
+
+    @property
+    def step_dim(self) -> int:
+        """Width of a step's features: the step encoders' outputs, then the distances' embedding."""
+        return self.encoders.step_dim + (
+            self.pair_distances.out_dim if self.pair_distances is not None else 0
+        )
 
     @property
     def lookahead(self) -> int:
@@ -401,7 +453,10 @@ class StepModel(nn.Module):
 
         Encode an episode once and reuse the rows: each depends on its own step only.
         """
-        return self.encoders(inputs, encoded)
+        rows = self.encoders(inputs, encoded)
+        if self.pair_distances is None:
+            return rows
+        return torch.cat([rows, self.pair_distances(rows)], dim=-1)
 
     @torch.no_grad()
     def encode_episode(self, episode: Episode, chunk: int | None = None) -> torch.Tensor:

@@ -144,7 +144,8 @@ def model_config_for(
     continuous action standardised with ``episodes``' statistics, computed only when read; the label
     head ``label_head``, else the domain's, else "linear"; the end head's lookahead ``end_lookahead``,
     else the domain's, else 0, the paper's; the trunk's periodic embeddings the domain's frequencies, else
-    `PERIODIC_FREQUENCIES`, and with them, unless ``measured_state`` is False, the state among the
+    `PERIODIC_FREQUENCIES` (as many for the distances between measured positions), and with them, unless
+    ``measured_state`` is False, the state among the
     measured values they read; the trunk's dropout the domain's, else `TRUNK_DROPOUT`;
     playseg_core/domains `Domain`)."""
     known = load_domain(domain) if domain else Domain("")
@@ -166,6 +167,7 @@ def model_config_for(
             max_len=max_len,
             periodic_frequencies=frequencies,
             dropout=TRUNK_DROPOUT if known.trunk_dropout is None else known.trunk_dropout,
+            pair_frequencies=frequencies,
         ),
         min_len=min_len,
         label_head=known.label_head if label_head is None else label_head,

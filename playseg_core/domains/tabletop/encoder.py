@@ -248,6 +248,10 @@ class ObjectMapEncoder(ObservationEncoder):
             centres, share = self.order_twins(masks, centres, share)
         return centres.flatten(1, 2), share.flatten(1, 2)
 
+    @property
+    def position_columns(self) -> list[tuple[int, int]]:
+        return [(2 * k, 2 * k + 1) for k in range(self.out_dim // 2)] if self.blocks else []
+
     def forward(self, frames: torch.Tensor) -> torch.Tensor:
         """(N, H, W, 3) uint8 -> (N, feature_dim), or (N, 2 * keypoints) or (N, 2 * blocks) coordinates
         in [-1, 1]."""
