@@ -287,7 +287,7 @@ def random_layout_episode(
 @pytest.mark.slow
 def test_the_blocks_are_encoded_once_per_episode_and_symmetry() -> None:
     """The blocks' positions learn nothing: training encodes them once per (episode, symmetry) and reads
-    rows from there (ps/fixed_features.py). The step features of such a batch are those of the batch that
+    rows from there (ps/fixed_features.py). The step encoders' rows of such a batch are those of the batch that
     carries the turned frames, and the state and commands still come as input rows."""
     from playseg_core.domains.tabletop.play import PlayConfig
     from playseg_core.ps.fixed_features import FixedFeatureCache
@@ -320,11 +320,9 @@ def test_the_blocks_are_encoded_once_per_episode_and_symmetry() -> None:
             assert set(cached.inputs) == set(plain.inputs) - {CAMERA}
             torch.testing.assert_close(cached.labels, plain.labels)
             torch.testing.assert_close(cached.window_index, plain.window_index)
+            # the step encoders' rows (the distances' embedding, learnt, is made from them in every batch)
             torch.testing.assert_close(
-                model.encode_steps(cached.inputs, cached.encoded),
-                model.encode_steps(plain.inputs),
-                atol=1e-5,
-                rtol=0,
+                model.encoders(cached.inputs, cached.encoded), model.encoders(plain.inputs), atol=1e-5, rtol=0
             )
     assert 2 <= len(fixed) <= len(SYMMETRIES)  # one episode, the symmetries drawn so far
     # Another episode under the same id (lists given to training need not come from one dataset) gets
