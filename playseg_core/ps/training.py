@@ -145,9 +145,8 @@ def model_config_for(
     head ``label_head``, else the domain's, else "linear"; the end head's lookahead ``end_lookahead``,
     else the domain's, else 0, the paper's; the trunk's periodic embeddings the domain's frequencies, else
     `PERIODIC_FREQUENCIES` (as many for the distances between measured positions), and with them, unless
-    ``measured_state`` is False, the state among the
-    measured values they read; the trunk's dropout the domain's, else `TRUNK_DROPOUT`;
-    playseg_core/domains `Domain`)."""
+    ``measured_state`` is False, the state among the measured values they read; the trunk's dropout the
+    domain's, else `TRUNK_DROPOUT`; playseg_core/domains `Domain`)."""
     known = load_domain(domain) if domain else Domain("")
     frequencies = PERIODIC_FREQUENCIES if known.periodic_frequencies is None else known.periodic_frequencies
     needs = [f.name for f in (features.state, features.action) if f is not None and not f.is_discrete]
