@@ -110,7 +110,7 @@ def random_features(num_frames: int, dim: int = 16, seed: int = 1) -> torch.Tens
 )
 def test_end_column_equals_diagonal_of_end_logits(num_steps: int, num_actions: int, lookahead: int) -> None:
     model = tiny_ps_model(max_len=6, num_actions=num_actions, end_lookahead=lookahead)
-    features = random_features(num_steps + 1, dim=model.encoders.step_dim)
+    features = random_features(num_steps + 1, dim=model.step_dim)
     # past the last observation the lookahead reads zero rows, as the matrix's padding
     padded = torch.cat([features, features.new_zeros(lookahead, features.shape[1])])
     with torch.no_grad():

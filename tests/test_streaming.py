@@ -105,7 +105,7 @@ def test_incremental_end_scores_equal_end_column(end_lookahead):
     with torch.no_grad():
         model.end_bias.fill_(0.25)
     steps = model.max_len * 3
-    features = torch.randn(steps, model.encoders.step_dim)
+    features = torch.randn(steps, model.step_dim)
     if end_lookahead:  # zero rows past the episode's end, as `finish` pushes them
         features[-end_lookahead:] = 0.0
     scorer, first_kept, compared = IncrementalEndScorer(model), 0, 0

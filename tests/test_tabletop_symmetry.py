@@ -324,6 +324,12 @@ def test_the_blocks_are_encoded_once_per_episode_and_symmetry() -> None:
             torch.testing.assert_close(
                 model.encoders(cached.inputs, cached.encoded), model.encoders(plain.inputs), atol=1e-5, rtol=0
             )
+            torch.testing.assert_close(
+                model.encode_steps(cached.inputs, cached.encoded),
+                model.encode_steps(plain.inputs),
+                atol=1e-4,
+                rtol=0,
+            )
     assert 2 <= len(fixed) <= len(SYMMETRIES)  # one episode, the symmetries drawn so far
     # Another episode under the same id (lists given to training need not come from one dataset) gets
     # its own rows, not the first one's.

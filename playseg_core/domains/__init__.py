@@ -68,8 +68,9 @@ class Domain:
     - ``end_lookahead``: steps past a candidate end its PS end head reads (ps/model.py
       `ModelConfig.end_lookahead`).
     - ``periodic_frequencies``: learnt frequencies of the periodic embeddings its PS and labelling
-      models' trunk gives the measured observation values (ps/model.py `TrunkConfig`); 0: none,
-      None: the generic default (ps/model.py `PERIODIC_FREQUENCIES`).
+      models' trunk gives the measured observation values, and of the distances between measured
+      positions (ps/model.py `TrunkConfig`); 0: neither, None: the generic default (ps/model.py
+      `PERIODIC_FREQUENCIES`).
     - ``trunk_dropout``: the dropout of its PS and labelling models' trunk (ps/model.py `TrunkConfig`);
       None: the generic default (ps/model.py `TRUNK_DROPOUT`).
     - ``clip_symmetries``: the symmetries of its world, what ``playseg train --augment`` trains on
