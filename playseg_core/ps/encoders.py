@@ -308,22 +308,29 @@ class StepEncoders(nn.Module):
     def measured_columns(self) -> list[int]:
         """The columns of step features that hold measured values (`StepEncoder.measured_columns` of the
         observation encoders: positions found in a camera frame, a state read as it is)."""
-        columns, first = [], 0
-        for encoder in self.encoders:
-            if isinstance(encoder, ObservationEncoder):
-                columns.extend(first + column for column in encoder.measured_columns)
-            first += encoder.out_dim
-        return columns
+        return [
+            first + column
+            for first, encoder in self._observation_encoders()
+            for column in encoder.measured_columns
+        ]
 
     @property
     def position_columns(self) -> list[tuple[int, int]]:
         """The (x, y) step-feature columns of every measured position (`StepEncoder.position_columns`)."""
-        columns, first = [], 0
-        for encoder in self.encoders:
-            if isinstance(encoder, ObservationEncoder):
-                columns.extend((first + x, first + y) for x, y in encoder.position_columns)
-            first += encoder.out_dim
-        return columns
+        return [
+            (first + x, first + y)
+            for first, encoder in self._observation_encoders()
+            for x, y in encoder.position_columns
+        ]
+
+    def _observation_encoders(self) -> list[tuple[int, ObservationEncoder]]:
+        """Each observation encoder with the step-feature column its output starts at."""
+        starts = np.cumsum([0] + [encoder.out_dim for encoder in self.encoders])
+        return [
+            (int(first), e)
+            for first, e in zip(starts[:-1], self.encoders, strict=True)
+            if isinstance(e, ObservationEncoder)
+        ]
 
     @property
     def reads_actions(self) -> bool:
