@@ -123,3 +123,32 @@ def test_incremental_end_scores_equal_end_column(end_lookahead):
         torch.testing.assert_close(column[finite], expected[finite], atol=1e-5, rtol=1e-5)
         compared += int(finite.sum())
     assert compared > steps * model.max_len // 2  # most of each column was scored
+
+
+@pytest.mark.slow
+def test_stream_of_a_model_reading_the_distances_between_blocks_equals_offline():
+    """A tabletop model (the blocks' positions, their distances, periodic embeddings, the domain's end
+    lookahead) on real generated play: live, frame by frame, as offline."""
+    from playseg_core.domains.tabletop.play import PlayConfig as TabletopPlay
+    from playseg_core.domains.tabletop.play import generate_episode as tabletop_episode
+    from playseg_core.domains.tabletop.spec import CAMERA as TOP
+    from playseg_core.domains.tabletop.spec import DOMAIN as TABLETOP
+
+    play = TabletopPlay(tasks_per_episode=(3, 3))
+    episode = tabletop_episode(play, 4).episode  # a block pushed next to another: the distances move
+    instructions = sorted({s.instruction for s in episode.segments} | {"move the arm to the centre"})
+    cfg = model_config_for(play.features, TABLETOP, len(instructions), max_len=12, episodes=[episode])
+    torch.manual_seed(0)  # untrained weights cut arbitrarily: many boundaries to compare
+    model = PSModel(cfg, instructions).eval()
+    assert model.pair_distances is not None and model.trunk.periodic is not None and model.lookahead > 0
+    stream, live = StreamingSegmenter(model), []
+    for t in range(episode.num_steps + 1):
+        observation = {TOP: episode.images[TOP][t], STATE: episode.state[t]}
+        live += stream.push(observation, episode.actions[t] if t < episode.num_steps else None)
+    live += stream.finish()
+    offline = segment_episode(model, episode)
+    assert len(offline) > 3
+    assert [(s.start, s.end, s.instruction) for s in live] == [
+        (s.start, s.end, s.instruction) for s in offline
+    ]
+    assert [s.log_prob for s in live] == pytest.approx([s.log_prob for s in offline], abs=1e-3)
