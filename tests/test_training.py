@@ -285,8 +285,8 @@ def test_augment_without_a_domains_symmetries_turns_frames_only_for_models_that_
         training_symmetries(TrainConfig(augment=True), with_actions)
 
 
-@pytest.mark.parametrize(("lookahead", "dense_windows"), [(0, False), (2, False), (2, True)])
-def test_training_windows_read_the_rows_segmenting_reads(lookahead: int, dense_windows: bool) -> None:
+@pytest.mark.parametrize("lookahead", [0, 2])
+def test_training_windows_read_the_rows_segmenting_reads(lookahead: int) -> None:
     """At every supervised position the end logit of a training window equals the offline end-logit
     matrix's: the same rows past the end (not zero rows where the episode goes on)."""
     torch.manual_seed(0)
@@ -298,8 +298,7 @@ def test_training_windows_read_the_rows_segmenting_reads(lookahead: int, dense_w
         for index, segment in enumerate(episode.segments):
             batch = make_batch(
                 [(episode, segment)], label_index(INSTRUCTIONS), model.encoders, 6, 2,
-                np.random.default_rng(index), dense_prefix_negatives=True,
-                dense_window_negatives=dense_windows, lookahead=lookahead,
+                np.random.default_rng(index), dense_prefix_negatives=True, lookahead=lookahead,
             )  # fmt: skip
             features = model.encode_steps(batch.inputs)
             rows = torch.cat([features, features.new_zeros(1, features.shape[1])])[batch.window_index]
@@ -311,38 +310,6 @@ def test_training_windows_read_the_rows_segmenting_reads(lookahead: int, dense_w
                     torch.testing.assert_close(logits[row, position], offline[start, position - 1])
                     checked += 1
     assert checked > 20
-
-
-def test_dense_window_negatives_supervise_every_position_of_off_start_windows() -> None:
-    episode = synthetic_episode(5, num_segments=4)
-    true_starts = {s.start for s in episode.segments}
-    items = [(episode, episode.segments[2])]  # a middle segment: all negative kinds fit
-    classes = label_index(INSTRUCTIONS)
-    encoders = encoders_for()
-    plain = make_batch(items, classes, encoders, 6, 3, np.random.default_rng(0), dense_prefix_negatives=True)
-    dense = make_batch(
-        items,
-        classes,
-        encoders,
-        6,
-        3,
-        np.random.default_rng(0),
-        dense_prefix_negatives=True,
-        dense_window_negatives=True,
-    )
-    torch.testing.assert_close(dense.window_index, plain.window_index)  # same windows, more positions
-    assert torch.all(dense.end_target == plain.end_target)
-    assert dense.end_weight.sum() > plain.end_weight.sum()
-    first_frame = max(0, episode.segments[2].start - 3)
-    for row in range(len(dense.window_index)):
-        start = first_frame + int(dense.window_index[row, 0])
-        inside = int(
-            (dense.window_index[row] < len(dense.inputs[CAMERA])).sum()
-        )  # positions with real frames
-        if start in true_starts:
-            torch.testing.assert_close(dense.end_weight[row], plain.end_weight[row])
-        else:
-            assert torch.all(dense.end_weight[row, 1:inside] == 1) and torch.all(dense.end_target[row] == 0)
 
 
 def test_the_step_cap_scales_with_the_data() -> None:

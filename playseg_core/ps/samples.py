@@ -123,7 +123,6 @@ def make_batch(
     negatives: bool = True,
     dense_prefix_negatives: bool = False,
     symmetries: ClipSymmetries | None = None,
-    dense_window_negatives: bool = False,
     fixed: FixedFeatureCache | None = None,
     lookahead: int = 0,
 ) -> Batch:
@@ -195,11 +194,6 @@ def make_batch(
         if negatives and dense_prefix_negatives and seg.start in windows:
             row, length = windows[seg.start], seg.end - seg.start
             weights[row][1 : length + 1] = 1.0  # targets stay 0 except at the true end
-        if negatives and dense_window_negatives:
-            last_end = min(ep.num_steps, seg.end + k_max)  # the region without the lookahead's rows
-            for start, row in windows.items():
-                if start not in annotated_ends:  # no true segment starts here: no position is an end
-                    weights[row][1 : min(max_len, last_end - start) + 1] = 1.0
         offset += hi - lo + 1
 
     def stack(arrays: list[np.ndarray], dtype: type, width: int = num_pos) -> torch.Tensor:

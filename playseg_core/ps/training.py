@@ -64,7 +64,6 @@ class TrainConfig:
     weight_decay: float = 1e-4
     k_max: int = 5  # negatives shift by 1..k_max steps
     dense_prefix_negatives: bool = True
-    dense_window_negatives: bool = False  # windows starting off a true start: every position is "no end"
     augment: bool = False  # each training clip under a random symmetry (`training_symmetries`; see docs)
     domain: str | None = None  # the data's domain, whose `clip_symmetries` augment applies if it has any
     label_weight: float = 1.0
@@ -377,7 +376,6 @@ def _batch_for(model, items, chosen, classes, cfg: TrainConfig, rng, fixed, trai
         rng,
         negatives=isinstance(model, PSModel),
         dense_prefix_negatives=cfg.dense_prefix_negatives,
-        dense_window_negatives=cfg.dense_window_negatives,
         symmetries=training_symmetries(cfg, model.encoders) if training else None,
         fixed=fixed,
         lookahead=model.lookahead,
