@@ -202,7 +202,7 @@ def experiment() -> ExperimentSpec:
         },  # fmt: skip
         # The paper's CALVIN table scores the average number of tasks completed in a row (of 5 per
         # sequence); this evaluation scores single tasks' success. They do not mean the same thing, so
-        # no paper figure stands next to these rows.
+        # the results table shows no paper figure; only the shares of the gap compare.
         paper={},
         paper_source="(CALVIN's figures are tasks completed in a row, not a success rate: not shown)",
     )
