@@ -24,6 +24,16 @@ def babyai_model(read_actions: bool, end_lookahead: int = 0) -> PSModel:
     return PSModel(cfg, list(INSTRUCTIONS))
 
 
+def assert_live_equals_offline(live: list, offline: list, num_steps: int) -> None:
+    """The same segments and labels, their scores up to float rounding, the last ending the episode."""
+    assert [(s.start, s.end, s.instruction) for s in live] == [
+        (s.start, s.end, s.instruction) for s in offline
+    ]
+    assert [s.confidence for s in live] == pytest.approx([s.confidence for s in offline], abs=1e-5)
+    assert [s.log_prob for s in live] == pytest.approx([s.log_prob for s in offline], abs=1e-4)
+    assert live[-1].end == num_steps
+
+
 @pytest.mark.parametrize(
     ("seed", "read_actions", "end_lookahead"),
     [(0, False, 0), (1, False, 0), (2, True, 0), (3, True, 1), (4, False, 3)],
@@ -42,13 +52,7 @@ def test_stream_equals_offline(seed, read_actions, end_lookahead):
         # only frames from the last decided boundary on are kept (older ones are never needed again)
         assert stream._offset == (live[-1].end if live else 0)
     live += stream.finish()
-    offline = segment_episode(model, episode)
-    assert [(s.start, s.end, s.instruction) for s in live] == [
-        (s.start, s.end, s.instruction) for s in offline
-    ]
-    assert [s.confidence for s in live] == pytest.approx([s.confidence for s in offline], abs=1e-5)
-    assert [s.log_prob for s in live] == pytest.approx([s.log_prob for s in offline], abs=1e-4)
-    assert live[-1].end == episode.num_steps
+    assert_live_equals_offline(live, segment_episode(model, episode), episode.num_steps)
 
 
 def test_stream_of_an_action_model_rejects_a_missing_or_invalid_action():
@@ -148,10 +152,4 @@ def test_stream_of_a_model_reading_the_distances_between_blocks_equals_offline()
         observation = {TOP: episode.images[TOP][t], STATE: episode.state[t]}
         live += stream.push(observation, episode.actions[t] if t < episode.num_steps else None)
     live += stream.finish()
-    offline = segment_episode(model, episode)
-    assert [(s.start, s.end, s.instruction) for s in live] == [
-        (s.start, s.end, s.instruction) for s in offline
-    ]
-    assert [s.confidence for s in live] == pytest.approx([s.confidence for s in offline], abs=1e-5)
-    assert [s.log_prob for s in live] == pytest.approx([s.log_prob for s in offline], abs=1e-4)
-    assert live[-1].end == episode.num_steps
+    assert_live_equals_offline(live, segment_episode(model, episode), episode.num_steps)
