@@ -141,7 +141,7 @@ def test_stream_of_a_model_reading_the_distances_between_blocks_equals_offline()
     play = TabletopPlay(tasks_per_episode=(3, 3))
     # a block pushed to the bottom edge, another next to a third: the distances between them change
     episode = tabletop_episode(play, 4).episode
-    assert {"push the red cylinder next to the blue cube"} <= {s.instruction for s in episode.segments}
+    assert "push the red cylinder next to the blue cube" in {s.instruction for s in episode.segments}
     instructions = sorted({s.instruction for s in episode.segments} | {"move the arm to the centre"})
     cfg = model_config_for(play.features, TABLETOP, len(instructions), max_len=12, episodes=[episode])
     torch.manual_seed(0)  # untrained weights cut arbitrarily: many boundaries to compare

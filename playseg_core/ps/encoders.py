@@ -327,9 +327,9 @@ class StepEncoders(nn.Module):
         """Each observation encoder with the step-feature column its output starts at."""
         starts = np.cumsum([0] + [encoder.out_dim for encoder in self.encoders])
         return [
-            (int(first), e)
-            for first, e in zip(starts[:-1], self.encoders, strict=True)
-            if isinstance(e, ObservationEncoder)
+            (int(first), encoder)
+            for first, encoder in zip(starts[:-1], self.encoders, strict=True)
+            if isinstance(encoder, ObservationEncoder)
         ]
 
     @property
